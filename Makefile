@@ -1,0 +1,30 @@
+# The two set-up commands of the README: `make demo` (install + main job) and `make test`.
+PYTHON ?= python3
+VENV ?= .venv
+BIN := $(VENV)/bin
+OUT ?= out
+
+.PHONY: demo test bench lint clean
+
+$(VENV)/.installed: pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/pip install -q --upgrade pip
+	$(BIN)/pip install -q -e ".[test]"
+	touch $@
+
+demo: $(VENV)/.installed
+	mkdir -p $(OUT)
+	$(BIN)/terrainmap eval artificial-obstacle --json $(OUT)/artificial_obstacle.json --csv $(OUT)/artificial_obstacle.csv --plot $(OUT)/artificial_obstacle.png
+	@echo "Wrote $(OUT)/artificial_obstacle.{json,csv,png}"
+
+test: $(VENV)/.installed
+	$(BIN)/python -m pytest
+
+bench: $(VENV)/.installed
+	$(BIN)/terrainmap bench
+
+lint: $(VENV)/.installed
+	$(BIN)/ruff check terrainmap cli tests
+
+clean:
+	rm -rf $(VENV) $(OUT)

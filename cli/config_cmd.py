@@ -1,0 +1,14 @@
+"""``terrainmap config``: print the effective configuration as TOML."""
+
+from __future__ import annotations
+
+import click
+
+from .options import config_options, load_cli_config
+
+
+@click.command()
+@config_options
+def config(config_path: str | None, overrides: tuple[str, ...]) -> None:
+    """Print the effective config (defaults < --config TOML < --set) as TOML."""
+    click.echo(load_cli_config(config_path, overrides).to_toml(), nl=False)

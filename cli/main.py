@@ -1,0 +1,75 @@
+"""Entry point: the ``terrainmap`` click group.
+
+Commands live in their own modules and are imported only when used, so ``terrainmap --help``
+stays fast. Library errors (:class:`terrainmap.errors.TerrainmapError`) become one-line
+messages and exit code 2; ``--verbose`` shows the traceback instead.
+"""
+
+from __future__ import annotations
+
+import importlib
+import logging
+import sys
+
+import click
+
+from terrainmap.errors import TerrainmapError
+
+# command name -> "module:attribute" (modules relative to terrainmap.cli)
+COMMANDS = {
+    "config": "config_cmd:config",
+    "eval": "eval_cmd:eval_group",
+    "bench": "bench_cmd:bench",
+}
+
+
+class LazyGroup(click.Group):
+    """A click group whose subcommands are imported on first use."""
+
+    def __init__(self, *args, lazy: dict[str, str], **kwargs):
+        super().__init__(*args, **kwargs)
+        self.lazy = lazy
+
+    def list_commands(self, ctx: click.Context) -> list[str]:
+        return sorted(set(super().list_commands(ctx)) | set(self.lazy))
+
+    def get_command(self, ctx: click.Context, name: str) -> click.Command | None:
+        if name in self.lazy:
+            module, attr = self.lazy[name].split(":")
+            return getattr(importlib.import_module(f"terrainmap.cli.{module}"), attr)
+        return super().get_command(ctx, name)
+
+
+@click.group(cls=LazyGroup, lazy=COMMANDS, context_settings={"help_option_names": ["-h", "--help"]})
+@click.option("-v", "--verbose", is_flag=True, help="Log progress details and show tracebacks on errors.")
+@click.version_option(package_name="terrainmap")
+@click.pass_context
+def cli(ctx: click.Context, verbose: bool) -> None:
+    """terrainmap: terrain maps from stereo camera logs (Broggi et al., rational B-splines)."""
+    ctx.obj = {"verbose": verbose}
+    logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Run the CLI, turning library errors into one-line messages."""
+    verbose = "-v" in (argv or sys.argv[1:]) or "--verbose" in (argv or sys.argv[1:])
+    try:
+        cli.main(args=argv, standalone_mode=False)
+    except click.exceptions.Abort:
+        click.echo("Aborted.", err=True)
+        sys.exit(130)
+    except click.ClickException as exc:
+        exc.show()
+        sys.exit(exc.exit_code)
+    except TerrainmapError as exc:
+        if verbose:
+            raise
+        click.echo(f"Error: {exc}", err=True)
+        sys.exit(2)
+    except KeyboardInterrupt:
+        click.echo("Interrupted.", err=True)
+        sys.exit(130)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,34 @@
+"""Options shared by several commands, defined once."""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable
+
+import click
+
+from terrainmap.config import Config, load_config
+
+
+def config_options(func: Callable) -> Callable:
+    """``--config PATH.toml`` and repeatable ``--set section.field=value``."""
+
+    @click.option(
+        "--config", "config_path", type=click.Path(dir_okay=False), default=None, help="TOML config file."
+    )
+    @click.option(
+        "--set",
+        "overrides",
+        multiple=True,
+        metavar="SECTION.FIELD=VALUE",
+        help="Override one config field, e.g. --set terrain.control_points_x=15 (repeatable).",
+    )
+    @functools.wraps(func)
+    def wrapper(*args, **kwargs):
+        return func(*args, **kwargs)
+
+    return wrapper
+
+
+def load_cli_config(config_path: str | None, overrides: tuple[str, ...]) -> Config:
+    return load_config(config_path, overrides)

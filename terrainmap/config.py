@@ -1,0 +1,316 @@
+"""One typed configuration for the whole pipeline.
+
+Every field is documented where it is declared; the defaults are the paper's values where the
+paper gives one (degree 3, 25×25 control points, 0.5 m cells, 34 m × 22 m area ahead of the
+vehicle). A :class:`Config` is loaded from TOML (one table per section) and overridden with
+``section.field=value`` strings, as the CLI's ``--set`` does::
+
+    cfg = load_config("my.toml", overrides=["terrain.control_points_x=15"])
+
+Units: metres, radians, seconds; ``*_deg`` fields are degrees (human-facing limits only).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import tomllib
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+from typing import Any
+
+from .errors import ConfigError
+
+
+def _check(ok: bool, name: str, message: str) -> None:
+    if not ok:
+        raise ConfigError(f"{name}: {message}")
+
+
+@dataclass
+class GridConfig:
+    """The 2.5D grid over the area of interest (paper Sec. IV), vehicle frame.
+
+    The area is ``x ∈ [x_min_m, x_min_m + length_m]`` (forward) by
+    ``y ∈ [y_center_m − width_m/2, y_center_m + width_m/2]`` (left).
+    """
+
+    x_min_m: float = 2.0
+    """Near edge of the area, metres ahead of the vehicle origin."""
+    length_m: float = 34.0
+    """Extent along x (forward), metres. Paper: 34 m."""
+    width_m: float = 22.0
+    """Extent along y (left), metres. Paper: 22 m."""
+    y_center_m: float = 0.0
+    """Lateral centre of the area, metres (positive = left)."""
+    cell_size_m: float = 0.5
+    """Cell edge, metres. Paper: 0.5 m ("sampling ratio 50 cm")."""
+    z_min_m: float = -10.0
+    """Points below this height (vehicle frame) are ignored as gross stereo errors."""
+    z_max_m: float = 10.0
+    """Points above this height are ignored (sky, overhanging structures)."""
+    fill_empty: bool = True
+    """Empty cells take the mean height of their observed 8-neighbours (paper Sec. IV)."""
+
+    def validate(self) -> None:
+        for name in ("length_m", "width_m", "cell_size_m"):
+            value = getattr(self, name)
+            _check(math.isfinite(value) and value > 0, f"grid.{name}", f"must be > 0, got {value}")
+        for name in ("length_m", "width_m"):
+            cells = getattr(self, name) / self.cell_size_m
+            _check(
+                abs(cells - round(cells)) < 1e-6,
+                f"grid.{name}",
+                f"must be a whole number of cells of {self.cell_size_m} m, got {getattr(self, name)}",
+            )
+        _check(self.z_min_m < self.z_max_m, "grid.z_min_m", "must be below grid.z_max_m")
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """(m0, m1): number of cells along x and along y."""
+        return (round(self.length_m / self.cell_size_m), round(self.width_m / self.cell_size_m))
+
+    @property
+    def y_min_m(self) -> float:
+        return self.y_center_m - self.width_m / 2
+
+
+@dataclass
+class TerrainConfig:
+    """Rational B-spline terrain estimation (paper Sec. V, Algorithm V-B.1)."""
+
+    degree: int = 3
+    """Spline degree d0 = d1 (paper: "order 3", i.e. cubic)."""
+    control_points_x: int = 25
+    """Final number of control points along x, n_max,0 + 1. Paper: 25."""
+    control_points_y: int = 25
+    """Final number of control points along y, n_max,1 + 1. Paper: 25."""
+    start_control_points: int = 4
+    """Control points per axis of the first, non-rational fit ("very few"); at least degree + 1."""
+    control_point_step: int = 1
+    """Control points added per axis at each iteration (paper: 1)."""
+    weight_max: float = 100.0
+    """Upper bound of the sample weight W of eq. 3 (W is infinite at Δz = 0 otherwise)."""
+    threshold_factor: float = 1.0
+    """th(ē) = threshold_factor · ē, ē the mean absolute fit error of valid samples (eq. 3)."""
+    threshold_min_m: float = 0.02
+    """Lower bound of th, so a near-perfect fit does not make every sample an outlier."""
+    alpha_per_iteration: float = 1.0
+    """Weighting speed: α = max(1, alpha_per_iteration · iteration), iteration counted from 1."""
+    control_weight_min: float = 0.2
+    """Lower bound of the control-point weights R (normalised to mean 1) remapped from W."""
+    equalize_tolerance_m: float = 0.05
+    """Valid samples less than this above the surface are not equalized (stereo noise band);
+    keeps the one-sided equalization from dragging the surface below the terrain."""
+    equalize_tolerance_per_m: float = 0.002
+    """Growth of that tolerance with range from the vehicle origin, metres per metre."""
+    epsilon_m: float = 0.005
+    """Stop early when no valid sample moved more than this in the last equalization."""
+    smoothness: float = 1e-3
+    """Weight of the second-difference penalty on control points, relative to the mean data
+    weight per control point; keeps fits well-posed where knot spans hold no sample."""
+    filled_weight: float = 0.5
+    """Relative weight of cells filled from neighbours (no points of their own)."""
+    min_valid_cells: int = 16
+    """Fewer valid cells than this (and than (degree+1)²) → the frame fails with no terrain."""
+
+    def validate(self, grid: GridConfig | None = None) -> None:
+        _check(1 <= self.degree <= 5, "terrain.degree", f"must be 1..5, got {self.degree}")
+        for name in ("control_points_x", "control_points_y", "start_control_points"):
+            value = getattr(self, name)
+            _check(
+                value >= self.degree + 1,
+                f"terrain.{name}",
+                f"must be at least degree + 1 = {self.degree + 1}, got {value}",
+            )
+        _check(self.control_point_step >= 1, "terrain.control_point_step", "must be >= 1")
+        _check(self.weight_max > 1, "terrain.weight_max", "must be > 1")
+        _check(self.threshold_factor > 0, "terrain.threshold_factor", "must be > 0")
+        _check(self.threshold_min_m > 0, "terrain.threshold_min_m", "must be > 0")
+        _check(self.alpha_per_iteration > 0, "terrain.alpha_per_iteration", "must be > 0")
+        _check(0 < self.control_weight_min <= 1, "terrain.control_weight_min", "must be in (0, 1]")
+        _check(self.equalize_tolerance_m >= 0, "terrain.equalize_tolerance_m", "must be >= 0")
+        _check(self.equalize_tolerance_per_m >= 0, "terrain.equalize_tolerance_per_m", "must be >= 0")
+        _check(self.epsilon_m > 0, "terrain.epsilon_m", "must be > 0")
+        _check(self.smoothness > 0, "terrain.smoothness", "must be > 0")
+        _check(0 <= self.filled_weight <= 1, "terrain.filled_weight", "must be in [0, 1]")
+        if grid is not None:
+            m0, m1 = grid.shape
+            for name, n, m, axis in (
+                ("control_points_x", self.control_points_x, m0, "x"),
+                ("control_points_y", self.control_points_y, m1, "y"),
+            ):
+                _check(
+                    n <= m,
+                    f"terrain.{name}",
+                    f"n_max = {n} exceeds the {m} grid cells along {axis} (paper: n_max <= min(m0, m1))",
+                )
+
+
+@dataclass
+class SegmentationConfig:
+    """Inlier/outlier labelling of points and cells against the terrain surface."""
+
+    obstacle_height_m: float = 0.25
+    """A point higher than this above the surface is an obstacle (outlier above)."""
+    below_depth_m: float = 0.25
+    """A point deeper than this below the surface is labelled below (hole, ditch, noise)."""
+    threshold_per_m: float = 0.005
+    """Both thresholds grow by this many metres per metre of range (stereo depth noise)."""
+    lattice_m: float = 0.1
+    """Spacing of the lattice the surface is evaluated on for per-point labels (bilinear
+    interpolation between exact spline values; error below 1 mm for terrain curvature < 0.5/m)."""
+
+    def validate(self) -> None:
+        _check(self.obstacle_height_m > 0, "segmentation.obstacle_height_m", "must be > 0")
+        _check(self.below_depth_m > 0, "segmentation.below_depth_m", "must be > 0")
+        _check(self.threshold_per_m >= 0, "segmentation.threshold_per_m", "must be >= 0")
+        _check(0 < self.lattice_m <= 1, "segmentation.lattice_m", "must be in (0, 1]")
+
+
+@dataclass
+class StereoConfig:
+    """OpenCV StereoSGBM front end and reprojection (paper Sec. III)."""
+
+    num_disparities: int = 128
+    """Disparity search range in pixels (multiple of 16)."""
+    block_size: int = 5
+    """SGBM matched block size (odd)."""
+    uniqueness_ratio: int = 10
+    speckle_window_size: int = 100
+    speckle_range: int = 2
+    disp12_max_diff: int = 1
+    mode: str = "sgbm"
+    """One of ``sgbm``, ``hh``, ``sgbm_3way``, ``hh4`` (cv2.STEREO_SGBM_MODE_*)."""
+    min_range_m: float = 1.0
+    """Points nearer than this (camera depth) are dropped."""
+    max_range_m: float = 40.0
+    """Points farther than this (camera depth) are dropped."""
+
+    def validate(self) -> None:
+        _check(
+            self.num_disparities > 0 and self.num_disparities % 16 == 0,
+            "stereo.num_disparities",
+            f"must be a positive multiple of 16, got {self.num_disparities}",
+        )
+        _check(self.block_size % 2 == 1 and self.block_size >= 1, "stereo.block_size", "must be odd and >= 1")
+        _check(
+            self.mode in ("sgbm", "hh", "sgbm_3way", "hh4"),
+            "stereo.mode",
+            f"must be one of sgbm, hh, sgbm_3way, hh4, got {self.mode!r}",
+        )
+        _check(0 < self.min_range_m < self.max_range_m, "stereo.min_range_m", "must be in (0, max_range_m)")
+
+
+@dataclass
+class Config:
+    """The effective configuration of a run: one section per pipeline stage."""
+
+    grid: GridConfig = field(default_factory=GridConfig)
+    terrain: TerrainConfig = field(default_factory=TerrainConfig)
+    segmentation: SegmentationConfig = field(default_factory=SegmentationConfig)
+    stereo: StereoConfig = field(default_factory=StereoConfig)
+
+    def validate(self) -> Config:
+        """Check every section; raise :class:`ConfigError` naming the first bad field."""
+        self.grid.validate()
+        self.terrain.validate(self.grid)
+        self.segmentation.validate()
+        self.stereo.validate()
+        return self
+
+    def to_dict(self) -> dict[str, dict[str, Any]]:
+        return dataclasses.asdict(self)
+
+    def to_toml(self) -> str:
+        """The config as TOML text that :func:`load_config` reads back."""
+        lines: list[str] = []
+        for section, values in self.to_dict().items():
+            lines.append(f"[{section}]")
+            lines.extend(f"{key} = {_toml_value(value)}" for key, value in values.items())
+            lines.append("")
+        return "\n".join(lines)
+
+
+def _toml_value(value: Any) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, str):
+        return '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
+    return repr(value)
+
+
+def _coerce(section: str, name: str, current: Any, value: Any) -> Any:
+    """Convert ``value`` (from TOML or a ``--set`` string) to the type of ``current``."""
+    key = f"{section}.{name}"
+    try:
+        if isinstance(current, bool):
+            if isinstance(value, str):
+                if value.lower() not in ("true", "false", "1", "0", "yes", "no"):
+                    raise ValueError
+                return value.lower() in ("true", "1", "yes")
+            if not isinstance(value, bool):
+                raise ValueError
+            return value
+        if isinstance(current, int):
+            if isinstance(value, float) and not value.is_integer():
+                raise ValueError
+            return int(value)
+        if isinstance(current, float):
+            result = float(value)
+            if not math.isfinite(result):
+                raise ValueError
+            return result
+        if isinstance(current, (tuple, list)):
+            items = value.split(",") if isinstance(value, str) else list(value)
+            return type(current)(_coerce(section, name, current[0], v) for v in items)
+        return str(value)
+    except (TypeError, ValueError):
+        raise ConfigError(f"{key}: cannot use {value!r} as a {type(current).__name__}") from None
+
+
+def apply_values(config: Config, values: dict[str, Any], source: str = "config") -> Config:
+    """Apply ``{section: {field: value}}`` onto ``config`` in place (unknown keys are errors)."""
+    sections = {f.name: getattr(config, f.name) for f in fields(config)}
+    for section, table in values.items():
+        if section not in sections:
+            raise ConfigError(f"{source}: unknown section [{section}] (known: {', '.join(sections)})")
+        if not isinstance(table, dict):
+            raise ConfigError(f"{source}: [{section}] must be a table")
+        target = sections[section]
+        names = {f.name for f in fields(target)}
+        for name, value in table.items():
+            if name not in names:
+                raise ConfigError(f"{source}: unknown field {section}.{name}")
+            setattr(target, name, _coerce(section, name, getattr(target, name), value))
+    return config
+
+
+def parse_override(text: str) -> dict[str, dict[str, str]]:
+    """``"terrain.degree=2"`` → ``{"terrain": {"degree": "2"}}``."""
+    key, sep, value = text.partition("=")
+    section, dot, name = key.strip().partition(".")
+    if not sep or not dot or not section or not name:
+        raise ConfigError(f"--set {text!r}: expected section.field=value, e.g. terrain.degree=3")
+    return {section: {name: value.strip()}}
+
+
+def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str, ...] = ()) -> Config:
+    """Defaults, then the TOML file at ``path`` (if any), then ``overrides``; validated."""
+    config = Config()
+    if path is not None:
+        path = Path(path)
+        try:
+            data = tomllib.loads(path.read_text())
+        except FileNotFoundError:
+            raise ConfigError(f"{path}: config file does not exist") from None
+        except (OSError, UnicodeDecodeError) as exc:
+            raise ConfigError(f"{path}: cannot read config file ({exc})") from None
+        except tomllib.TOMLDecodeError as exc:
+            raise ConfigError(f"{path}: not valid TOML ({exc})") from None
+        apply_values(config, data, source=str(path))
+    for text in overrides:
+        apply_values(config, parse_override(text), source=f"--set {text}")
+    return config.validate()

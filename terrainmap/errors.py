@@ -1,0 +1,35 @@
+"""The small exception hierarchy of terrainmap.
+
+The library raises these; the CLI turns them into one-line messages and exit codes.
+Inside a run, a per-frame failure is a :class:`FrameError` that the runner counts and
+skips, while the other errors end the run (after the outputs are finalised).
+"""
+
+from __future__ import annotations
+
+
+class TerrainmapError(Exception):
+    """Base class: every error the library raises on purpose."""
+
+
+class ConfigError(TerrainmapError, ValueError):
+    """A configuration value or option that makes no sense (names the field)."""
+
+
+class InputError(TerrainmapError):
+    """A file, folder, log or topic that cannot be used (names the path or topic)."""
+
+
+class CalibrationError(InputError):
+    """Calibration missing or nonsensical (zero baseline, non-positive focal length...)."""
+
+
+class FrameError(TerrainmapError):
+    """One frame could not be processed (no terrain found, too few valid cells...).
+
+    The runner counts these by ``reason`` and goes on with the next frame.
+    """
+
+    def __init__(self, reason: str, message: str | None = None):
+        super().__init__(message or reason)
+        self.reason = reason

@@ -1,0 +1,140 @@
+"""2.5D grid quantization (paper Sec. IV).
+
+Indexing, used everywhere in terrainmap: a grid array ``A`` has shape ``(m0, m1)`` and
+``A[ix, iy]`` is the cell whose centre is ``(x0 + (ix + ½)·c, y0 + (iy + ½)·c)`` in the vehicle
+frame, with ``x0 = grid.x_min_m``, ``y0 = grid.y_min_m`` and ``c`` the cell size: ix runs
+forward along x, iy to the left along y. Writers convert to each message's layout.
+
+Per cell, the sample height is eq. 1, ``Z = max(min z, mean z − σ)`` over the points in the cell.
+Empty cells take the mean of their observed 8-neighbours; cells with none stay INVALID, Z = 0.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.ndimage import convolve
+
+from .config import GridConfig
+from .errors import FrameError, InputError
+
+
+@dataclass
+class HeightGrid:
+    """The sampled grid ``P`` of the paper, all arrays ``(m0, m1)``, indexed ``[ix, iy]``.
+
+    ``z`` (float64, m): eq. 1 for observed cells, neighbour mean for filled cells, 0 where invalid.
+    ``z_top`` (float64, m): ``min(max z, mean z + σ)``, the symmetric counterpart of eq. 1, used
+    to label cells that hold something standing up; equals ``z`` where not observed.
+    ``count`` (int64): points per cell. ``observed = count > 0``; ``valid`` = observed or filled.
+    """
+
+    z: np.ndarray
+    z_top: np.ndarray
+    count: np.ndarray
+    observed: np.ndarray
+    valid: np.ndarray
+    config: GridConfig
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.z.shape
+
+    @property
+    def x_centers(self) -> np.ndarray:
+        """Cell-centre x coordinates, (m0,) metres."""
+        return cell_centers(self.config)[0]
+
+    @property
+    def y_centers(self) -> np.ndarray:
+        """Cell-centre y coordinates, (m1,) metres."""
+        return cell_centers(self.config)[1]
+
+
+def cell_centers(config: GridConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Cell-centre coordinates ``(x (m0,), y (m1,))`` in metres, vehicle frame."""
+    m0, m1 = config.shape
+    c = config.cell_size_m
+    return config.x_min_m + (np.arange(m0) + 0.5) * c, config.y_min_m + (np.arange(m1) + 0.5) * c
+
+
+def cell_index(points: np.ndarray, config: GridConfig) -> np.ndarray:
+    """Flat cell index ``ix·m1 + iy`` of each point (N,), or ``m0·m1`` for points outside the
+    area, outside ``[z_min_m, z_max_m]`` or not finite. ``points`` is N×3 (vehicle frame, m)."""
+    m0, m1 = config.shape
+    inv = 1.0 / config.cell_size_m
+    with np.errstate(invalid="ignore"):
+        fx = (points[:, 0] - config.x_min_m) * inv
+        fy = (points[:, 1] - config.y_min_m) * inv
+        z = points[:, 2]
+        inside = (fx >= 0) & (fx < m0) & (fy >= 0) & (fy < m1) & (z >= config.z_min_m) & (z <= config.z_max_m)
+    # NaN compares false above, so non-finite points are outside; cast only where inside.
+    idx = np.full(len(points), m0 * m1, dtype=np.intp)
+    idx[inside] = fx[inside].astype(np.intp) * m1 + fy[inside].astype(np.intp)
+    return idx
+
+
+def quantize(points_vehicle: np.ndarray, config: GridConfig, *, index: np.ndarray | None = None) -> HeightGrid:
+    """Condense a point cloud into the 2.5D grid (paper Sec. IV, eq. 1).
+
+    Parameters
+    ----------
+    points_vehicle : (N, 3) float array
+        Points in the vehicle frame, metres. Non-finite points are ignored.
+    config : GridConfig
+        Area of interest and cell size.
+    index : (N,) int array, optional
+        Precomputed :func:`cell_index` of the points (the pipeline reuses it for labelling).
+
+    Raises
+    ------
+    InputError
+        ``points_vehicle`` is not an N×3 array.
+    FrameError
+        (reason ``no_points_in_area``) no finite point lies in the area of interest.
+    """
+    points_vehicle = np.asarray(points_vehicle)
+    if points_vehicle.ndim != 2 or points_vehicle.shape[1] != 3:
+        raise InputError(f"points must be an N×3 array, got shape {points_vehicle.shape}")
+    m0, m1 = config.shape
+    ncell = m0 * m1
+    idx = cell_index(points_vehicle, config) if index is None else index
+    z = points_vehicle[:, 2].astype(np.float64)
+    z = np.where(idx < ncell, z, 0.0)  # keeps NaN out of the sums of the trash bin
+
+    count = np.bincount(idx, minlength=ncell + 1)[:ncell]
+    if not count.any():
+        raise FrameError("no_points_in_area", "no finite point lies in the grid area")
+    s1 = np.bincount(idx, weights=z, minlength=ncell + 1)[:ncell]
+    s2 = np.bincount(idx, weights=z * z, minlength=ncell + 1)[:ncell]
+    zmin = np.full(ncell + 1, np.inf)
+    np.minimum.at(zmin, idx, z)
+    zmax = np.full(ncell + 1, -np.inf)
+    np.maximum.at(zmax, idx, z)
+
+    observed = count > 0
+    n = np.maximum(count, 1)
+    mean = s1 / n
+    sigma = np.sqrt(np.maximum(s2 / n - mean * mean, 0.0))
+    zc = np.where(observed, np.maximum(zmin[:ncell], mean - sigma), 0.0)
+    ztop = np.where(observed, np.minimum(zmax[:ncell], mean + sigma), 0.0)
+    return _fill(zc.reshape(m0, m1), ztop.reshape(m0, m1), count.reshape(m0, m1), config)
+
+
+_NEIGHBOURS = np.array([[1, 1, 1], [1, 0, 1], [1, 1, 1]], dtype=np.float64)
+
+
+def _fill(z: np.ndarray, ztop: np.ndarray, count: np.ndarray, config: GridConfig) -> HeightGrid:
+    """Fill empty cells with the mean of their observed 8-neighbours; the rest stay INVALID (Z=0)."""
+    observed = count > 0
+    valid = observed.copy()
+    if config.fill_empty:
+        obs = observed.astype(np.float64)
+        nsum = convolve(np.where(observed, z, 0.0), _NEIGHBOURS, mode="constant")
+        ncount = convolve(obs, _NEIGHBOURS, mode="constant")
+        fill = ~observed & (ncount > 0)
+        z = np.where(fill, nsum / np.maximum(ncount, 1), z)
+        ztop = np.where(fill, z, ztop)
+        valid |= fill
+    return HeightGrid(z=z, z_top=ztop, count=count, observed=observed, valid=valid, config=config)

@@ -1,0 +1,126 @@
+"""Data passed between the pipeline stages (the contracts of docs/DESIGN §2).
+
+Frames follow ROS REP-103: vehicle frame ``base_link`` x forward, y left, z up (origin on the
+ground under the camera unless extrinsics say otherwise); camera optical frame x right, y down,
+z forward. Units: metres, radians, nanoseconds.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from enum import IntEnum
+
+import numpy as np
+
+
+class Label(IntEnum):
+    """Per-point and per-cell labels (uint8 in every output)."""
+
+    UNKNOWN = 0
+    TERRAIN = 1
+    OBSTACLE = 2  # above the terrain surface (outlier above)
+    BELOW = 3  # below the terrain surface (hole, ditch, or a gross stereo error)
+
+
+@dataclass(frozen=True)
+class StereoCalibration:
+    """Intrinsics of a stereo pair.
+
+    When ``rectified`` is true, both images are already rectified and the pinhole model is
+    ``fx, fy, cx, cy`` (left camera) with ``baseline_m``; ``cx_right`` may differ from ``cx``
+    (then disparity is offset by ``cx - cx_right``, KITTI-style) and ``doffs`` is Middlebury's
+    disparity offset in pixels (``Z = f·B / (d + doffs)``).
+
+    When ``rectified`` is false, ``K_left, K_right`` (3×3), ``dist_left, dist_right``
+    (OpenCV distortion vectors), ``R`` (3×3) and ``T`` (3, metres) give the right camera
+    relative to the left (OpenCV ``stereoRectify`` convention: x_right = R·x_left + T); the stereo
+    stage rectifies and derives the pinhole model itself.
+    """
+
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    baseline_m: float
+    cx_right: float | None = None
+    doffs: float = 0.0
+    rectified: bool = True
+    K_left: np.ndarray | None = None
+    K_right: np.ndarray | None = None
+    dist_left: np.ndarray | None = None
+    dist_right: np.ndarray | None = None
+    R: np.ndarray | None = None
+    T: np.ndarray | None = None
+    source: str = ""
+    """Where it came from (file path or topic), for messages and output metadata."""
+
+
+@dataclass(frozen=True)
+class Extrinsics:
+    """Pose of the left camera optical frame in the vehicle frame.
+
+    ``p_vehicle = rotation @ p_camera + translation``; ``rotation`` is 3×3, ``translation`` 3
+    (metres). ``source`` records what was used: ``"tf"``, ``"calibration"``, ``"estimated"``
+    (ground fit on the data) or ``"default"``.
+    """
+
+    rotation: np.ndarray
+    translation: np.ndarray
+    source: str = "default"
+    camera_frame_id: str = "camera_optical"
+    vehicle_frame_id: str = "base_link"
+
+    def to_dict(self) -> dict:
+        return {
+            "rotation": np.asarray(self.rotation, float).tolist(),
+            "translation_m": np.asarray(self.translation, float).tolist(),
+            "source": self.source,
+            "camera_frame_id": self.camera_frame_id,
+            "vehicle_frame_id": self.vehicle_frame_id,
+        }
+
+
+@dataclass
+class StereoFrame:
+    """One synchronised stereo pair as a source yields it.
+
+    ``left``/``right`` are H×W (mono) or H×W×3 (RGB order) uint8 images of the same size.
+    ``extrinsics`` is None when the source has none (the pipeline then estimates them).
+    """
+
+    index: int
+    stamp_ns: int
+    left: np.ndarray
+    right: np.ndarray
+    calibration: StereoCalibration
+    extrinsics: Extrinsics | None = None
+    frame_id: str = "camera_optical"
+    source: str = ""
+    """Human-readable origin (file names or topics), for messages."""
+
+
+@dataclass
+class FrameResult:
+    """Everything the pure per-frame core computed for one frame.
+
+    Arrays of points are in the vehicle frame; ``pixels`` holds the (u, v) pixel of each point in
+    the (rectified) left image, so labels can be drawn back on it. ``layers`` maps a layer name to
+    an m0×m1 array indexed ``[ix, iy]`` (ix along x, iy along y, see :mod:`terrainmap.grid`).
+    """
+
+    index: int
+    stamp_ns: int
+    extrinsics: Extrinsics
+    points_vehicle: np.ndarray  # N×3 float32, metres
+    pixels: np.ndarray  # N×2 int32, (u, v)
+    point_labels: np.ndarray  # N uint8, Label values
+    grid: object  # terrainmap.grid.HeightGrid
+    surface: object  # terrainmap.terrain.TerrainSurface
+    layers: dict[str, np.ndarray] = field(default_factory=dict)
+    disparity: np.ndarray | None = None  # H×W float32 px, NaN where invalid
+    image: np.ndarray | None = None  # rectified left image
+    obstacles: list = field(default_factory=list)
+    stats: dict[str, float] = field(default_factory=dict)
+    timings_ms: dict[str, float] = field(default_factory=dict)
