@@ -17,9 +17,12 @@ from terrainmap.errors import TerrainmapError
 
 # command name -> "module:attribute" (modules relative to terrainmap.cli)
 COMMANDS = {
+    "bench": "bench_cmd:bench",
     "config": "config_cmd:config",
     "eval": "eval_cmd:eval_group",
-    "bench": "bench_cmd:bench",
+    "info": "info_cmd:info",
+    "process": "process_cmd:process",
+    "simulate": "simulate_cmd:simulate",
 }
 
 

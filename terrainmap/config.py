@@ -203,6 +203,89 @@ class StereoConfig:
 
 
 @dataclass
+class ExtrinsicsConfig:
+    """Camera pose in the vehicle frame when the log and calibration give none: a robust
+    ground-plane fit on near points (see :mod:`terrainmap.extrinsics`)."""
+
+    near_range_m: float = 15.0
+    """Only points nearer than this (camera depth) are used for the ground fit."""
+    inlier_threshold_m: float = 0.05
+    """RANSAC distance threshold to the plane, metres."""
+    iterations: int = 200
+    """RANSAC hypotheses."""
+    min_inlier_fraction: float = 0.2
+    """Fewer ground inliers than this fraction of the near points → the fit fails."""
+
+    def validate(self) -> None:
+        _check(self.near_range_m > 0, "extrinsics.near_range_m", "must be > 0")
+        _check(self.inlier_threshold_m > 0, "extrinsics.inlier_threshold_m", "must be > 0")
+        _check(self.iterations >= 1, "extrinsics.iterations", "must be >= 1")
+        _check(0 < self.min_inlier_fraction < 1, "extrinsics.min_inlier_fraction", "must be in (0, 1)")
+
+
+@dataclass
+class ObstacleConfig:
+    """Obstacle extraction from above/below-terrain points (paper step 5)."""
+
+    min_height_m: float = 0.3
+    """Obstacles lower than this above the terrain are dropped."""
+    min_points: int = 10
+    """Clusters with fewer points are dropped."""
+    min_cells: int = 1
+    """Clusters covering fewer grid cells are dropped."""
+
+    def validate(self) -> None:
+        _check(self.min_height_m > 0, "obstacles.min_height_m", "must be > 0")
+        _check(self.min_points >= 1, "obstacles.min_points", "must be >= 1")
+        _check(self.min_cells >= 1, "obstacles.min_cells", "must be >= 1")
+
+
+@dataclass
+class TrackingConfig:
+    """Kalman tracking of obstacles (prunes single-frame false positives)."""
+
+    confirm_hits: int = 2
+    """A track is confirmed after this many frames with a matching detection."""
+    max_misses: int = 3
+    """A track is dropped after this many consecutive frames without a match."""
+    gate_m: float = 2.0
+    """Association gate: maximum distance between predicted track and detection, metres."""
+
+    def validate(self) -> None:
+        _check(self.confirm_hits >= 1, "tracking.confirm_hits", "must be >= 1")
+        _check(self.max_misses >= 0, "tracking.max_misses", "must be >= 0")
+        _check(self.gate_m > 0, "tracking.gate_m", "must be > 0")
+
+
+@dataclass
+class CostConfig:
+    """Traversability cost in [0, 1] from slope, step height/roughness and occupancy."""
+
+    max_slope_deg: float = 25.0
+    """Slopes at or above this are untraversable (cost 1)."""
+    max_step_m: float = 0.3
+    """Steps (height differences within a cell's neighbourhood) at or above this cost 1."""
+    clearance_m: float = 0.5
+    """Cells within this distance of a confirmed obstacle are occupied (cost 1)."""
+
+    def validate(self) -> None:
+        _check(0 < self.max_slope_deg < 90, "cost.max_slope_deg", "must be in (0, 90)")
+        _check(self.max_step_m > 0, "cost.max_step_m", "must be > 0")
+        _check(self.clearance_m >= 0, "cost.clearance_m", "must be >= 0")
+
+
+@dataclass
+class RerunConfig:
+    """What goes into Rerun recordings (display only; does not change any result)."""
+
+    max_points: int = 50000
+    """Points logged per frame at most (uniformly subsampled beyond that)."""
+
+    def validate(self) -> None:
+        _check(self.max_points >= 1, "rerun.max_points", "must be >= 1")
+
+
+@dataclass
 class Config:
     """The effective configuration of a run: one section per pipeline stage."""
 
@@ -210,13 +293,19 @@ class Config:
     terrain: TerrainConfig = field(default_factory=TerrainConfig)
     segmentation: SegmentationConfig = field(default_factory=SegmentationConfig)
     stereo: StereoConfig = field(default_factory=StereoConfig)
+    extrinsics: ExtrinsicsConfig = field(default_factory=ExtrinsicsConfig)
+    obstacles: ObstacleConfig = field(default_factory=ObstacleConfig)
+    tracking: TrackingConfig = field(default_factory=TrackingConfig)
+    cost: CostConfig = field(default_factory=CostConfig)
+    rerun: RerunConfig = field(default_factory=RerunConfig)
 
     def validate(self) -> Config:
         """Check every section; raise :class:`ConfigError` naming the first bad field."""
         self.grid.validate()
         self.terrain.validate(self.grid)
         self.segmentation.validate()
-        self.stereo.validate()
+        for section in (self.stereo, self.extrinsics, self.obstacles, self.tracking, self.cost, self.rerun):
+            section.validate()
         return self
 
     def to_dict(self) -> dict[str, dict[str, Any]]:

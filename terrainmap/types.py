@@ -102,6 +102,27 @@ class StereoFrame:
 
 
 @dataclass
+class Obstacle:
+    """One obstacle (step 5 of the paper), in the vehicle frame.
+
+    ``center_m`` is the centre of its oriented bounding box (x, y, z), ``size_m`` its
+    (length along ``yaw_rad``, width, height) and ``height_m`` its top above the terrain surface
+    (depth below it for ``kind == "negative"``). ``track_id`` is -1 before tracking.
+    """
+
+    center_m: np.ndarray
+    size_m: np.ndarray
+    yaw_rad: float
+    height_m: float
+    point_count: int
+    range_m: float
+    kind: str = "positive"  # "positive" (standing up) or "negative" (ditch, hole)
+    track_id: int = -1
+    confirmed: bool = False
+    velocity_mps: np.ndarray | None = None
+
+
+@dataclass
 class FrameResult:
     """Everything the pure per-frame core computed for one frame.
 
@@ -116,11 +137,11 @@ class FrameResult:
     points_vehicle: np.ndarray  # N×3 float32, metres
     pixels: np.ndarray  # N×2 int32, (u, v)
     point_labels: np.ndarray  # N uint8, Label values
-    grid: object  # terrainmap.grid.HeightGrid
-    surface: object  # terrainmap.terrain.TerrainSurface
+    grid: object  # terrainmap.grid.HeightGrid (samples before equalization)
+    terrain: object  # terrainmap.terrain.TerrainEstimate (surface, equalized samples, weights, ...)
     layers: dict[str, np.ndarray] = field(default_factory=dict)
     disparity: np.ndarray | None = None  # H×W float32 px, NaN where invalid
     image: np.ndarray | None = None  # rectified left image
-    obstacles: list = field(default_factory=list)
+    obstacles: list[Obstacle] = field(default_factory=list)
     stats: dict[str, float] = field(default_factory=dict)
     timings_ms: dict[str, float] = field(default_factory=dict)
