@@ -1,0 +1,38 @@
+"""Terrain slope from the analytic derivative of the spline surface (paper step 4).
+
+The slope angle at (x, y) is ``atan(‖∇S‖)`` (radians, 0 = level), where ∇S = (∂S/∂x, ∂S/∂y)
+comes from the quotient rule on eq. 2 (:meth:`RationalSurface.gradient`), never from finite
+differences. ``aspect`` is the direction of steepest ascent, ``atan2(∂S/∂y, ∂S/∂x)`` (radians,
+0 = uphill straight ahead, +π/2 = uphill to the left).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .bspline import RationalSurface
+from .config import GridConfig
+from .grid import cell_centers
+
+
+def slope_angle(gx: np.ndarray, gy: np.ndarray) -> np.ndarray:
+    """Slope angle (rad) from the gradient components (dimensionless)."""
+    return np.arctan(np.hypot(gx, gy))
+
+
+def slope_at(surface: RationalSurface, x, y) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(slope_rad, dz_dx, dz_dy)`` at broadcastable points (x, y) in metres, vehicle frame."""
+    gx, gy = surface.gradient(x, y)
+    return slope_angle(gx, gy), gx, gy
+
+
+def surface_layers(surface: RationalSurface, grid: GridConfig) -> dict[str, np.ndarray]:
+    """Elevation (m), gradient and slope (rad) at the cell centres: float32 arrays (m0, m1)."""
+    xs, ys = cell_centers(grid)
+    gx, gy = surface.gradient_on_grid(xs, ys)
+    return {
+        "elevation": surface.on_grid(xs, ys).astype(np.float32),
+        "slope": slope_angle(gx, gy).astype(np.float32),
+        "dz_dx": gx.astype(np.float32),
+        "dz_dy": gy.astype(np.float32),
+    }

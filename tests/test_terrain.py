@@ -1,0 +1,95 @@
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from terrainmap.config import GridConfig, TerrainConfig, load_config
+from terrainmap.errors import ConfigError, FrameError
+from terrainmap.grid import cell_centers, quantize
+from terrainmap.synthetic import grid_samples
+from terrainmap.terrain import equalize, estimate_terrain, fitter_for, sample_weights
+
+
+def _rmse(a, b):
+    return float(np.sqrt(np.mean((a - b) ** 2)))
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_accuracy_target_and_single_fit_is_many_times_worse(seed):
+    """3 cm noise, 10 % outliers up to 2 m, 30 % empty cells: RMSE ≤ 3 cm; one plain fit ≫."""
+    grid, truth = grid_samples(seed=seed)
+    est = estimate_terrain(grid, TerrainConfig())
+    xs, ys = cell_centers(grid.config)
+    rmse = _rmse(est.surface.on_grid(xs, ys), truth)
+    fit = fitter_for(grid.config, 25, 25, 3)
+    R = np.ones((25, 25))
+    single = _rmse(fit.evaluate(fit.fit(grid.z, grid.valid * 1.0, R, 1e-3), R), truth)
+    assert rmse <= 0.03
+    assert single >= 4 * rmse
+
+
+def test_paper_schedule_gives_the_same_accuracy():
+    """Growth 1.0 (one control point per iteration, the pseudo-code) vs the default 1.5."""
+    grid, truth = grid_samples(seed=4)
+    xs, ys = cell_centers(grid.config)
+    fast = estimate_terrain(grid, TerrainConfig())
+    paper = estimate_terrain(grid, TerrainConfig(control_point_growth=1.0))
+    assert paper.iterations > fast.iterations
+    assert abs(_rmse(fast.surface.on_grid(xs, ys), truth) - _rmse(paper.surface.on_grid(xs, ys), truth)) < 0.01
+
+
+def test_clean_flat_scene_converges_early_and_exactly():
+    cfg = GridConfig()
+    xs, ys = cell_centers(cfg)
+    X, Y = np.meshgrid(xs, ys, indexing="ij")
+    pts = np.column_stack([X.ravel(), Y.ravel(), 0.1 + 0.05 * X.ravel()])
+    est = estimate_terrain(quantize(pts, cfg), TerrainConfig())
+    assert est.converged and est.iterations < 4
+    np.testing.assert_allclose(est.surface.on_grid(xs, ys), 0.1 + 0.05 * X, atol=1e-3)
+
+
+def test_noise_alone_leaves_little_bias():
+    """The dead band keeps one-sided equalization from dragging the surface into the noise."""
+    grid, truth = grid_samples(outlier_fraction=0.0, empty_fraction=0.0, noise_m=0.05, seed=3)
+    est = estimate_terrain(grid, TerrainConfig())
+    xs, ys = cell_centers(grid.config)
+    assert abs(float(np.mean(est.surface.on_grid(xs, ys) - truth))) < 0.015
+
+
+@given(
+    dz=st.lists(st.floats(-5, 5, allow_nan=False), min_size=1, max_size=50),
+    th=st.floats(0.01, 1.0),
+    alpha=st.floats(1.0, 30.0),
+)
+@settings(max_examples=100, deadline=None)
+def test_equalization_invariants(dz, th, alpha):
+    dz = np.array(dz)
+    S = np.zeros_like(dz)
+    P = dz.copy()
+    valid = np.ones(dz.shape, bool)
+    valid[::3] = False
+    W, f = sample_weights(dz, th, alpha, weight_max=100.0)
+    assert np.all((W >= 1) & (W <= 100)) and np.all(np.isfinite(W))
+    assert np.all((f >= 0) & (f < 1 + 1e-12))
+    new = equalize(P, S, f, valid, tolerance=0.05)
+    up = valid & (dz > 0)
+    assert np.all(new[up] >= S[up] - 1e-12)  # never overshoots the surface
+    assert np.all(new[up] <= P[up] + 1e-12)  # only moves down
+    np.testing.assert_array_equal(new[valid & (dz <= 0.05)], P[valid & (dz <= 0.05)])  # below / in band: unmoved
+    np.testing.assert_array_equal(new[~valid], S[~valid])  # INVALID: pulled onto S both ways
+    # larger distance → larger fraction
+    order = np.argsort(np.abs(dz))
+    assert np.all(np.diff(f[order]) >= -1e-12)
+
+
+def test_bad_input_is_reported_cleanly():
+    sparse = np.array([[5.0 + i, 0.0, 0.0] for i in range(5)])
+    with pytest.raises(FrameError) as err:
+        estimate_terrain(quantize(sparse, GridConfig(fill_empty=False)), TerrainConfig())
+    assert err.value.reason == "too_few_cells"
+    with pytest.raises(ConfigError, match="terrain.control_points_x"):
+        load_config(overrides=["terrain.control_points_x=70"])  # n_max > 68 cells along x
+    with pytest.raises(ConfigError, match="terrain.degree"):
+        load_config(overrides=["terrain.degree=0"])
+    with pytest.raises(ConfigError, match="grid.cell_size_m"):
+        load_config(overrides=["grid.cell_size_m=-0.5"])
