@@ -1,0 +1,144 @@
+r"""Traversability cost (paper step 5: slope and occupancy fused into one cost per cell).
+
+For every grid cell (arrays ``(m0, m1)``, indexed ``[ix, iy]``)::
+
+    cost = max( s(θ / θ_max),  s(h / h_max),  occ )                 where the cell has data
+    cost = 1                                                         where occupied, data or not
+    cost = NaN                                                       elsewhere (unknown)
+
+    s(t) = 3·t'² − 2·t'³  with  t' = clip(t, 0, 1)                   (smoothstep ramp)
+
+* ``θ`` is the terrain slope (the ``slope`` layer, radians) and ``θ_max`` is
+  ``cost.max_slope_deg``: flat ground costs 0, ``θ ≥ θ_max`` costs 1, with a ramp that is
+  flat at both ends (so gentle slopes cost little and the cost saturates smoothly);
+* ``h`` is the step height (metres, see :func:`step_height`), the largest height difference of
+  the terrain relief between the cell and its observed 8-neighbours, and ``h_max`` is
+  ``cost.max_step_m``; the term is 0 where the step is NaN (cells filled from neighbours
+  hold no sample of their own) and everywhere when no ``step`` array is given;
+* ``occ`` is 1 where a **confirmed** obstacle's footprint, grown by ``cost.clearance_m``,
+  reaches the cell: the distance from the cell centre to the oriented footprint rectangle
+  ``≤ clearance_m + cell_size_m / 2`` (so a footprint touching a cell occupies it even with no
+  clearance), and 0 elsewhere;
+* "has data" is the ``valid`` mask where slope and elevation are finite.
+
+Each term lies in [0, 1], so the cost does too; it never decreases when the slope, the step
+or the occupied area grows.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import ndimage
+
+from .config import CostConfig, GridConfig
+from .errors import InputError
+from .grid import cell_centers
+from .types import Obstacle
+
+_CHUNK = 64  # obstacles rasterised at once (bounds the temporary (k, m0, m1) arrays)
+
+
+def smoothstep(t: np.ndarray) -> np.ndarray:
+    """``s(t) = 3t² − 2t³`` of ``t`` clipped to [0, 1]; NaN stays NaN."""
+    t = np.clip(t, 0.0, 1.0)
+    return t * t * (3.0 - 2.0 * t)
+
+
+def traversability_cost(
+    elevation: np.ndarray,
+    slope: np.ndarray,
+    valid: np.ndarray,
+    grid_config: GridConfig,
+    obstacles: list[Obstacle],
+    config: CostConfig,
+    *,
+    step: np.ndarray | None = None,
+) -> np.ndarray:
+    """Traversability cost of every cell, ``(m0, m1)`` float32 in [0, 1], NaN where unknown.
+
+    Parameters
+    ----------
+    elevation : (m0, m1) float array
+        Terrain height at the cell centres, metres (only its shape and finiteness are used).
+    slope : (m0, m1) float array
+        Terrain slope, radians.
+    valid : (m0, m1) bool array
+        Cells with terrain data (observed or filled).
+    grid_config : GridConfig
+    obstacles : list of Obstacle
+        Tracked obstacles, vehicle frame; only those with ``confirmed`` true occupy cells.
+    config : CostConfig
+    step : (m0, m1) float array, optional
+        Step height per cell, metres (:func:`step_height`); NaN counts as no step.
+
+    Raises
+    ------
+    InputError
+        A layer does not have the grid's shape.
+    """
+    shape = grid_config.shape
+    layers = {"elevation": elevation, "slope": slope, "valid": valid}
+    if step is not None:
+        layers["step"] = step
+    for name, layer in layers.items():
+        if np.shape(layer) != shape:
+            raise InputError(f"cost: layer {name!r} has shape {np.shape(layer)}, expected the grid's {shape}")
+    known = np.asarray(valid, bool) & np.isfinite(slope) & np.isfinite(elevation)
+    cost = smoothstep(np.abs(slope) / np.deg2rad(config.max_slope_deg))
+    if step is not None:
+        step_m = np.nan_to_num(np.asarray(step, float), nan=0.0)
+        cost = np.maximum(cost, smoothstep(step_m / config.max_step_m))
+    occupied = occupancy(obstacles, grid_config, config.clearance_m)
+    cost = np.where(occupied, 1.0, np.where(known, cost, np.nan))
+    return cost.astype(np.float32)
+
+
+def occupancy(obstacles: list[Obstacle], grid_config: GridConfig, clearance_m: float) -> np.ndarray:
+    """Cells reached by a confirmed obstacle's footprint grown by ``clearance_m``, (m0, m1) bool.
+
+    A cell is reached when the distance from its centre to the obstacle's oriented footprint
+    rectangle (``center_m[:2]``, ``size_m[:2]``, ``yaw_rad``) is at most
+    ``clearance_m + cell_size_m / 2``.
+    """
+    xs, ys = cell_centers(grid_config)
+    occupied = np.zeros(grid_config.shape, bool)
+    boxes = np.array(
+        [[*o.center_m[:2], *o.size_m[:2], o.yaw_rad] for o in obstacles if o.confirmed], float
+    ).reshape(-1, 5)
+    reach = clearance_m + grid_config.cell_size_m / 2
+    for start in range(0, len(boxes), _CHUNK):
+        cx, cy, length, width, yaw = (c[:, None, None] for c in boxes[start : start + _CHUNK].T)
+        dx, dy = xs[None, :, None] - cx, ys[None, None, :] - cy
+        cos, sin = np.cos(yaw), np.sin(yaw)
+        u = np.maximum(np.abs(dx * cos + dy * sin) - length / 2, 0.0)
+        v = np.maximum(np.abs(-dx * sin + dy * cos) - width / 2, 0.0)
+        occupied |= (u * u + v * v <= reach * reach).any(axis=0)
+    return occupied
+
+
+def step_height(samples: np.ndarray, elevation: np.ndarray, observed: np.ndarray) -> np.ndarray:
+    """Step height per cell, metres, (m0, m1) float64, NaN where not observed.
+
+    The relief ``r = samples − elevation`` is what the smooth terrain surface does not explain
+    (kerbs, berms, ruts, rocks). The step of an observed cell is
+    ``max |r[n] − r[c]|`` over its observed 8-neighbours ``n`` (0 with none).
+
+    Parameters
+    ----------
+    samples : (m0, m1) float array
+        Grid sample heights, metres (``HeightGrid.z``, eq. 1, before equalization).
+    elevation : (m0, m1) float array
+        Terrain surface at the cell centres, metres.
+    observed : (m0, m1) bool array
+        Cells holding points of their own (``HeightGrid.observed``).
+    """
+    observed = np.asarray(observed, bool) & np.isfinite(samples) & np.isfinite(elevation)
+    relief = np.where(observed, np.asarray(samples, float) - elevation, 0.0)
+    footprint = np.ones((3, 3), bool)
+    hi = ndimage.maximum_filter(
+        np.where(observed, relief, -np.inf), footprint=footprint, mode="constant", cval=-np.inf
+    )
+    lo = ndimage.minimum_filter(
+        np.where(observed, relief, np.inf), footprint=footprint, mode="constant", cval=np.inf
+    )
+    return np.where(observed, np.maximum(hi - relief, relief - lo), np.nan)

@@ -1,0 +1,71 @@
+"""Paper step 5 as one call: obstacle extraction, tracking and the traversability cost layer.
+
+The pipeline calls :func:`run_obstacle_stage` once per frame after segmentation, with one
+:class:`~terrainmap.tracking.ObstacleTracker` kept across the frames of a run (see
+:func:`make_tracker`); ``terrainmap bench`` times this call as the stage ``obstacles``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .config import Config
+from .cost import step_height, traversability_cost
+from .grid import HeightGrid
+from .obstacles import extract_obstacles
+from .tracking import ObstacleTracker
+from .types import Obstacle
+
+
+def make_tracker(config: Config) -> ObstacleTracker:
+    """A fresh tracker for one run (drops tracks that leave the grid area)."""
+    return ObstacleTracker(config.tracking, area=config.grid)
+
+
+def run_obstacle_stage(
+    points_vehicle: np.ndarray,
+    point_labels: np.ndarray,
+    grid: HeightGrid,
+    surface,
+    elevation: np.ndarray,
+    slope: np.ndarray,
+    stamp_ns: int,
+    tracker: ObstacleTracker,
+    config: Config,
+    *,
+    vehicle_pose: np.ndarray | None = None,
+) -> tuple[list[Obstacle], np.ndarray]:
+    """Obstacles of this frame (tracked) and the cost layer.
+
+    Parameters
+    ----------
+    points_vehicle, point_labels : (N, 3) float, (N,) uint8
+        Points (vehicle frame, m) and their :class:`~terrainmap.types.Label`.
+    grid : HeightGrid
+        The frame's grid (samples before equalization, observed/valid masks).
+    surface : RationalSurface
+        Terrain surface (unused when ``elevation`` is given, which it always is here).
+    elevation, slope : (m0, m1) float arrays
+        Terrain height (m) and slope (rad) at the cell centres.
+    stamp_ns : int
+        Frame stamp, nanoseconds.
+    tracker : ObstacleTracker
+        Per-run tracking state (:func:`make_tracker`).
+    config : Config
+    vehicle_pose : (4, 4) array, optional
+        ``world_from_vehicle`` from odometry; tracks then live in the world frame.
+
+    Returns
+    -------
+    obstacles : list of Obstacle
+        Tracked obstacles, vehicle frame; those with ``confirmed`` true are the obstacles.
+    cost : (m0, m1) float32
+        Traversability cost in [0, 1], NaN where unknown (:mod:`terrainmap.cost`).
+    """
+    detections = extract_obstacles(
+        points_vehicle, point_labels, grid.config, surface, config.obstacles, elevation=elevation
+    )
+    obstacles = tracker.update(detections, stamp_ns, vehicle_pose)
+    step = step_height(grid.z, elevation, grid.observed)
+    cost = traversability_cost(elevation, slope, grid.valid, grid.config, obstacles, config.cost, step=step)
+    return obstacles, cost

@@ -1,0 +1,202 @@
+"""Obstacle extraction from outlier points (paper step 5, first half).
+
+Points labelled :attr:`Label.OBSTACLE` (above the terrain) and :attr:`Label.BELOW` (below it)
+are clustered separately: each kind is counted per grid cell, cells holding at least
+``min_cell_points`` such points are joined by 8-connectivity (:func:`scipy.ndimage.label`), and
+every point takes the cluster of its cell. Per-cluster statistics are reduced with
+``np.bincount`` / ``ufunc.at`` over all points at once, so thousands of tiny clusters cost no
+Python loop over points; only the clusters that pass the filters become :class:`Obstacle` objects.
+
+Per cluster (vehicle frame, metres):
+
+* footprint: principal axes of the points' (x, y) covariance give ``yaw_rad`` (major axis,
+  in (−π/2, π/2]); the extents of the points along those axes give length and width and the
+  footprint centre (a point cluster's oriented bounding rectangle);
+* ``height_m``: the largest point height above the terrain surface (positive) or depth below it
+  (negative), the surface taken at each point by bilinear interpolation of its values at the cell
+  centres (exact on planes);
+* the box spans from the terrain at the footprint centre up to the highest point (positive) or
+  from the deepest point up to the terrain (negative); ``center_m`` is its centre;
+* ``range_m``: the distance from the vehicle origin to the nearest point of the cluster.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+from scipy import ndimage
+
+from .config import GridConfig, ObstacleConfig
+from .errors import InputError
+from .grid import cell_centers, cell_index
+from .types import Label, Obstacle
+
+logger = logging.getLogger(__name__)
+
+_EIGHT = np.ones((3, 3), dtype=bool)
+
+
+def extract_obstacles(
+    points_vehicle: np.ndarray,
+    point_labels: np.ndarray,
+    grid_config: GridConfig,
+    surface,
+    config: ObstacleConfig,
+    *,
+    elevation: np.ndarray | None = None,
+) -> list[Obstacle]:
+    """Cluster above/below-terrain points into positive and negative obstacles.
+
+    Parameters
+    ----------
+    points_vehicle : (N, 3) float array
+        Points in the vehicle frame, metres. Points outside the grid area are ignored.
+    point_labels : (N,) uint8 array
+        :class:`Label` of each point.
+    grid_config : GridConfig
+        The grid the points are clustered on.
+    surface : RationalSurface
+        Terrain surface; only ``surface.on_grid(xs, ys)`` is used (and not at all when
+        ``elevation`` is given).
+    config : ObstacleConfig
+        Minimum size, height and point count of an obstacle.
+    elevation : (m0, m1) float array, optional
+        The surface at the cell centres (the ``elevation`` layer), to avoid evaluating it again.
+
+    Returns
+    -------
+    list of Obstacle
+        Positive obstacles, then negative ones, each sorted by range; ``track_id`` is -1.
+
+    Raises
+    ------
+    InputError
+        ``points_vehicle`` is not N×3 or ``point_labels`` does not have one label per point.
+    """
+    points_vehicle = np.asarray(points_vehicle)
+    point_labels = np.asarray(point_labels)
+    if points_vehicle.ndim != 2 or points_vehicle.shape[1] != 3:
+        raise InputError(f"obstacles: points must be an N×3 array, got shape {points_vehicle.shape}")
+    if point_labels.shape != (len(points_vehicle),):
+        raise InputError(
+            f"obstacles: expected {len(points_vehicle)} point labels, got shape {point_labels.shape}"
+        )
+    if elevation is None:
+        elevation = surface.on_grid(*cell_centers(grid_config))
+    kinds = [(Label.OBSTACLE, "positive", config.min_height_m)]
+    if config.negative:
+        kinds.append((Label.BELOW, "negative", config.min_depth_m))
+    result: list[Obstacle] = []
+    for label, kind, min_height in kinds:
+        selected = points_vehicle[point_labels == label]
+        result += _clusters(selected, grid_config, np.asarray(elevation, float), config, kind, min_height)
+    return result
+
+
+def terrain_at(points_xy: np.ndarray, elevation: np.ndarray, grid_config: GridConfig) -> np.ndarray:
+    """Terrain height (m) under (x, y) points, bilinear between cell-centre values, (N,) float64.
+
+    Exact where the terrain is a plane; points beyond the outermost cell centres take the
+    nearest value along that axis.
+    """
+    m0, m1 = elevation.shape
+    c = grid_config.cell_size_m
+    fx = np.clip((points_xy[:, 0] - grid_config.x_min_m) / c - 0.5, 0, m0 - 1)
+    fy = np.clip((points_xy[:, 1] - grid_config.y_min_m) / c - 0.5, 0, m1 - 1)
+    ix = np.minimum(fx.astype(np.intp), max(m0 - 2, 0))
+    iy = np.minimum(fy.astype(np.intp), max(m1 - 2, 0))
+    tx, ty = fx - ix, fy - iy
+    ix1, iy1 = np.minimum(ix + 1, m0 - 1), np.minimum(iy + 1, m1 - 1)
+    top = elevation[ix, iy] * (1 - ty) + elevation[ix, iy1] * ty
+    bottom = elevation[ix1, iy] * (1 - ty) + elevation[ix1, iy1] * ty
+    return top * (1 - tx) + bottom * tx
+
+
+def _clusters(
+    points: np.ndarray,
+    grid_config: GridConfig,
+    elevation: np.ndarray,
+    config: ObstacleConfig,
+    kind: str,
+    min_height: float,
+) -> list[Obstacle]:
+    """Obstacles of one kind from the points of that kind (see the module docstring)."""
+    m0, m1 = grid_config.shape
+    idx = cell_index(points, grid_config)
+    inside = idx < m0 * m1
+    points, idx = points[inside].astype(np.float64), idx[inside]
+    if len(points) == 0:
+        return []
+    counts = np.bincount(idx, minlength=m0 * m1).reshape(m0, m1)
+    cells, n = ndimage.label(counts >= config.min_cell_points, structure=_EIGHT)
+    if n == 0:
+        return []
+    cid = cells.ravel()[idx] - 1  # cluster of each point, -1 where its cell has too few points
+    keep = cid >= 0
+    points, cid = points[keep], cid[keep]
+    x, y, z = points[:, 0], points[:, 1], points[:, 2]
+    height = z - terrain_at(points, elevation, grid_config)
+    if kind == "negative":
+        height = -height
+
+    npts = np.bincount(cid, minlength=n)
+    ncells = np.bincount(cells.ravel(), minlength=n + 1)[1:]
+    top = _reduce(np.maximum, height, cid, n, -np.inf)
+    ok = (npts >= config.min_points) & (ncells >= config.min_cells) & (top >= min_height)
+    if not ok.any():
+        return []
+    # Keep only the surviving clusters' points from here on, renumbered 0..k-1.
+    new_id = np.cumsum(ok) - 1
+    sel = ok[cid]
+    x, y, z, cid = x[sel], y[sel], z[sel], new_id[cid[sel]]
+    k, npts, top = int(ok.sum()), npts[ok], top[ok]
+
+    yaw, u, v = _principal_axes(x, y, cid, npts)
+    u_lo, u_hi = _reduce(np.minimum, u, cid, k, np.inf), _reduce(np.maximum, u, cid, k, -np.inf)
+    v_lo, v_hi = _reduce(np.minimum, v, cid, k, np.inf), _reduce(np.maximum, v, cid, k, -np.inf)
+    uc, vc = (u_lo + u_hi) / 2, (v_lo + v_hi) / 2
+    cos, sin = np.cos(yaw), np.sin(yaw)
+    cx, cy = uc * cos - vc * sin, uc * sin + vc * cos
+    ground = terrain_at(np.column_stack([cx, cy]), elevation, grid_config)
+    if kind == "positive":
+        z_lo, z_hi = ground, np.maximum(_reduce(np.maximum, z, cid, k, -np.inf), ground)
+    else:
+        z_lo = np.minimum(_reduce(np.minimum, z, cid, k, np.inf), ground)
+        z_hi = ground
+    rng = np.sqrt(_reduce(np.minimum, x * x + y * y + z * z, cid, k, np.inf))
+
+    order = np.argsort(rng, kind="stable")
+    return [
+        Obstacle(
+            center_m=np.array([cx[i], cy[i], (z_lo[i] + z_hi[i]) / 2]),
+            size_m=np.array([u_hi[i] - u_lo[i], v_hi[i] - v_lo[i], z_hi[i] - z_lo[i]]),
+            yaw_rad=float(yaw[i]),
+            height_m=float(top[i]),
+            point_count=int(npts[i]),
+            range_m=float(rng[i]),
+            kind=kind,
+        )
+        for i in order
+    ]
+
+
+def _reduce(ufunc: np.ufunc, values: np.ndarray, cid: np.ndarray, n: int, identity: float) -> np.ndarray:
+    """Per-cluster ``ufunc`` reduction (np.minimum / np.maximum) of ``values``, (n,)."""
+    out = np.full(n, identity)
+    ufunc.at(out, cid, values)
+    return out
+
+
+def _principal_axes(x: np.ndarray, y: np.ndarray, cid: np.ndarray, npts: np.ndarray):
+    """Per-cluster major-axis angle (k,) and every point's coordinates (u, v) along the axes."""
+    k = len(npts)
+    mx = np.bincount(cid, x, k) / npts
+    my = np.bincount(cid, y, k) / npts
+    dx, dy = x - mx[cid], y - my[cid]
+    sxx = np.bincount(cid, dx * dx, k)
+    syy = np.bincount(cid, dy * dy, k)
+    sxy = np.bincount(cid, dx * dy, k)
+    yaw = 0.5 * np.arctan2(2 * sxy, sxx - syy)  # in (−π/2, π/2]; 0 for a single point
+    cos, sin = np.cos(yaw)[cid], np.sin(yaw)[cid]
+    return yaw, x * cos + y * sin, -x * sin + y * cos

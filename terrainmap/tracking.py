@@ -1,0 +1,239 @@
+"""Kalman tracking of obstacles (paper step 5: "a Kalman filter is applied to prune false positives").
+
+Each track is a constant-velocity Kalman filter on the obstacle's 2D centre, state
+``(x, y, vx, vy)``. Tracks live in a *tracking frame*: the vehicle frame when no pose is given,
+else the world/odometry frame of ``vehicle_pose`` (4×4 ``world_from_vehicle``), so that static
+obstacles stand still while the vehicle moves. Obstacles are reported back in the current
+vehicle frame either way.
+
+Per frame (:meth:`ObstacleTracker.update`):
+
+1. predict every track by ``dt`` (from the stamps) with white-acceleration process noise;
+2. associate detections to tracks of the same kind with the Hungarian algorithm
+   (:func:`scipy.optimize.linear_sum_assignment`) on the distance between predicted and
+   detected centres, pairs farther than ``gate_m`` never matching;
+3. update matched tracks; start a tentative track for every unmatched detection;
+4. a track is *confirmed* once it has been matched in ``confirm_hits`` frames (counting the
+   first); a tentative track is dropped at its first miss, a confirmed one after more than
+   ``max_misses`` consecutive misses, and any track whose predicted centre leaves the grid area
+   (when the tracker knows it) at once. Track ids count up from 1 and are never reused.
+
+Reported: every track matched in this frame (tentative ones with ``confirmed=False``) and the
+confirmed tracks that coast through a miss, at their predicted position with their last
+detected shape. Only confirmed ones are obstacles for the cost map, so a candidate seen in a
+single frame never becomes one (for ``confirm_hits >= 2``). ``velocity_mps`` is (vx, vy, 0):
+relative to the vehicle without a pose, over ground with one, in vehicle axes.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+
+from .config import GridConfig, TrackingConfig
+from .errors import InputError
+from .types import Obstacle
+
+logger = logging.getLogger(__name__)
+
+_H = np.eye(2, 4)
+
+
+class ObstacleTracker:
+    """Tracks obstacles across frames; keep one per log (the pipeline's per-run state).
+
+    Parameters
+    ----------
+    config : TrackingConfig
+    area : GridConfig, optional
+        The grid area (vehicle frame); tracks whose predicted centre leaves it are dropped.
+    """
+
+    def __init__(self, config: TrackingConfig, *, area: GridConfig | None = None):
+        self.config = config
+        self.area = area
+        self._next_id = 1
+        self._stamp_ns: int | None = None
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget every track (ids keep counting up)."""
+        self._x = np.zeros((0, 4))  # state (x, y, vx, vy) in the tracking frame
+        self._P = np.zeros((0, 4, 4))
+        self._ids = np.zeros(0, dtype=np.int64)
+        self._hits = np.zeros(0, dtype=np.int64)
+        self._misses = np.zeros(0, dtype=np.int64)
+        # per track: last detection, its centre z and its yaw in the tracking frame
+        self._shape: list[tuple[Obstacle, float, float]] = []
+        self._stamp_ns = None
+
+    @property
+    def track_count(self) -> int:
+        return len(self._ids)
+
+    def update(
+        self, obstacles: list[Obstacle], stamp_ns: int, vehicle_pose: np.ndarray | None = None
+    ) -> list[Obstacle]:
+        """Advance the tracks to ``stamp_ns`` with this frame's detections (vehicle frame).
+
+        Parameters
+        ----------
+        obstacles : list of Obstacle
+            Detections of this frame, vehicle frame (``extract_obstacles``).
+        stamp_ns : int
+            Frame stamp, nanoseconds. A stamp older than the previous one resets the tracker.
+        vehicle_pose : (4, 4) array, optional
+            ``world_from_vehicle`` (odometry / tf); tracks then live in that world frame.
+
+        Returns
+        -------
+        list of Obstacle
+            Copies carrying ``track_id``, ``confirmed`` and ``velocity_mps``, vehicle frame.
+        """
+        rot, trans = _pose(vehicle_pose)
+        dt = self._advance(int(stamp_ns))
+        self._predict(dt)
+        self._drop(self._outside(rot, trans))
+
+        centers = np.array([o.center_m for o in obstacles], float).reshape(-1, 3)
+        centers_t = centers @ rot.T + trans  # tracking frame
+        yaw_v = float(np.arctan2(rot[1, 0], rot[0, 0]))
+        rows, cols = self._associate(centers_t[:, :2], [o.kind for o in obstacles])
+
+        self._correct(rows, centers_t[cols, :2])
+        matched = np.zeros(len(self._ids), bool)
+        matched[rows] = True
+        self._hits[rows] += 1
+        self._misses[rows] = 0
+        self._misses[~matched] += 1
+        for r, c in zip(rows, cols, strict=True):
+            self._shape[r] = (obstacles[c], centers_t[c, 2], obstacles[c].yaw_rad + yaw_v)
+        self._drop(
+            (~matched) & ((self._hits < self.config.confirm_hits) | (self._misses > self.config.max_misses))
+        )
+
+        new = np.setdiff1d(np.arange(len(obstacles)), cols)
+        self._spawn([obstacles[i] for i in new], centers_t[new], yaw_v)
+        return self._report(rot, trans, yaw_v)
+
+    def _advance(self, stamp_ns: int) -> float:
+        """Seconds since the previous frame (0 for the first one); resets on a stamp going back."""
+        if self._stamp_ns is not None and stamp_ns < self._stamp_ns:
+            logger.warning(
+                "tracking: stamp %d is older than the previous %d; tracks reset", stamp_ns, self._stamp_ns
+            )
+            self.reset()
+        dt = 0.0 if self._stamp_ns is None else (stamp_ns - self._stamp_ns) * 1e-9
+        self._stamp_ns = stamp_ns
+        return dt
+
+    def _predict(self, dt: float) -> None:
+        if dt <= 0 or not len(self._ids):
+            return
+        F = np.eye(4)
+        F[0, 2] = F[1, 3] = dt
+        q = self.config.acceleration_std_mps2**2
+        block = q * np.array([[dt**4 / 4, dt**3 / 2], [dt**3 / 2, dt**2]])
+        Q = np.zeros((4, 4))
+        Q[np.ix_([0, 2], [0, 2])] = block
+        Q[np.ix_([1, 3], [1, 3])] = block
+        self._x = self._x @ F.T
+        self._P = F @ self._P @ F.T + Q
+
+    def _associate(self, centers_xy: np.ndarray, kinds: list[str]) -> tuple[np.ndarray, np.ndarray]:
+        """Hungarian matching within the gate: (track rows, detection columns)."""
+        if not len(self._ids) or not len(centers_xy):
+            return np.zeros(0, np.intp), np.zeros(0, np.intp)
+        dist = np.linalg.norm(self._x[:, None, :2] - centers_xy[None, :, :], axis=2)
+        track_kinds = np.array([s[0].kind for s in self._shape])
+        allowed = (dist <= self.config.gate_m) & (track_kinds[:, None] == np.array(kinds)[None, :])
+        big = self.config.gate_m * 10 + 1.0
+        rows, cols = linear_sum_assignment(np.where(allowed, dist, big))
+        ok = allowed[rows, cols]
+        return rows[ok], cols[ok]
+
+    def _correct(self, rows: np.ndarray, z: np.ndarray) -> None:
+        """Batched Kalman update of tracks ``rows`` with measured centres ``z`` (k, 2)."""
+        if not len(rows):
+            return
+        P = self._P[rows]
+        S = P[:, :2, :2] + self.config.measurement_std_m**2 * np.eye(2)
+        K = P[:, :, :2] @ np.linalg.inv(S)  # (k, 4, 2)
+        innovation = z - self._x[rows, :2]
+        self._x[rows] += (K @ innovation[:, :, None])[:, :, 0]
+        self._P[rows] = (np.eye(4) - K @ _H) @ P
+
+    def _spawn(self, obstacles: list[Obstacle], centers_t: np.ndarray, yaw_v: float) -> None:
+        k = len(obstacles)
+        if not k:
+            return
+        x = np.zeros((k, 4))
+        x[:, :2] = centers_t[:, :2]
+        P = np.diag([self.config.measurement_std_m**2] * 2 + [self.config.initial_velocity_std_mps**2] * 2)
+        self._x = np.vstack([self._x, x])
+        self._P = np.concatenate([self._P, np.broadcast_to(P, (k, 4, 4))])
+        self._ids = np.concatenate([self._ids, np.arange(self._next_id, self._next_id + k)])
+        self._next_id += k
+        self._hits = np.concatenate([self._hits, np.ones(k, np.int64)])
+        self._misses = np.concatenate([self._misses, np.zeros(k, np.int64)])
+        self._shape += [(o, c[2], o.yaw_rad + yaw_v) for o, c in zip(obstacles, centers_t, strict=True)]
+
+    def _outside(self, rot: np.ndarray, trans: np.ndarray) -> np.ndarray:
+        """Tracks whose predicted centre lies outside the grid area (vehicle frame)."""
+        if self.area is None or not len(self._ids):
+            return np.zeros(len(self._ids), bool)
+        xy = (self._x[:, :2] - trans[:2]) @ rot[:2, :2]  # rotᵀ·(p − t), level-vehicle approximation
+        a = self.area
+        return (
+            (xy[:, 0] < a.x_min_m)
+            | (xy[:, 0] > a.x_min_m + a.length_m)
+            | (xy[:, 1] < a.y_min_m)
+            | (xy[:, 1] > a.y_min_m + a.width_m)
+        )
+
+    def _drop(self, mask: np.ndarray) -> None:
+        if not mask.any():
+            return
+        keep = ~mask
+        self._x, self._P, self._ids = self._x[keep], self._P[keep], self._ids[keep]
+        self._hits, self._misses = self._hits[keep], self._misses[keep]
+        self._shape = [s for s, k in zip(self._shape, keep, strict=True) if k]
+
+    def _report(self, rot: np.ndarray, trans: np.ndarray, yaw_v: float) -> list[Obstacle]:
+        confirmed = self._hits >= self.config.confirm_hits
+        shown = np.flatnonzero((self._misses == 0) | confirmed)
+        out = []
+        for i in shown:
+            last, z_t, yaw_t = self._shape[i]
+            center = rot.T @ (np.array([self._x[i, 0], self._x[i, 1], z_t]) - trans)
+            velocity = rot.T @ np.array([self._x[i, 2], self._x[i, 3], 0.0])
+            velocity[2] = 0.0
+            out.append(
+                dataclasses.replace(
+                    last,
+                    center_m=center,
+                    yaw_rad=float(_wrap_half(yaw_t - yaw_v)),
+                    track_id=int(self._ids[i]),
+                    confirmed=bool(confirmed[i]),
+                    velocity_mps=velocity,
+                )
+            )
+        return out
+
+
+def _pose(vehicle_pose: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """(rotation 3×3, translation 3) of ``world_from_vehicle``; identity when None."""
+    if vehicle_pose is None:
+        return np.eye(3), np.zeros(3)
+    T = np.asarray(vehicle_pose, float)
+    if T.shape != (4, 4) or not np.isfinite(T).all():
+        raise InputError(f"tracking: vehicle_pose must be a finite 4×4 matrix, got shape {T.shape}")
+    return T[:3, :3], T[:3, 3]
+
+
+def _wrap_half(angle: float) -> float:
+    """Footprint yaw folded into (−π/2, π/2] (a rectangle is symmetric under a half turn)."""
+    return float(np.pi / 2 - np.mod(np.pi / 2 - angle, np.pi))
