@@ -1,0 +1,202 @@
+"""What every output sink shares: the :class:`Sink` protocol and the MCAP sink life cycle.
+
+A sink receives ``write(frame, result)`` once per processed frame and ``close()`` once at the
+end, in a ``finally``: ``close`` must leave a finalised file (summary and index) holding every
+frame written so far, even when the run failed part way, and may be called again safely.
+
+:class:`McapSink` implements that life cycle for the MCAP flavours; subclasses only say how a
+frame becomes messages (``_write_frame``) and how the file is finished (``_finish``). The helpers
+below turn a :class:`~terrainmap.types.FrameResult` into the plain arrays both flavours pack.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+from ..config import Config
+from ..errors import InputError, TerrainmapError
+from ..ros2defs import quaternion_from_matrix
+from ..types import Extrinsics, FrameResult, Obstacle, StereoFrame
+
+log = logging.getLogger(__name__)
+
+VEHICLE_FRAME = "base_link"
+METADATA_NAME = "terrainmap"
+GRID_LAYERS = ("elevation", "slope", "cost", "label", "valid")
+"""Layers written to the grid messages, in this order, where present (``cost`` is optional)."""
+FLOAT_LAYERS = frozenset({"elevation", "slope", "cost"})
+"""float32 layers; the others (``label``, ``valid``) are written as uint8."""
+POINT_DTYPE = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("label", "u1")])
+"""Packed point record of both flavours: 13 bytes, x, y, z in metres (vehicle frame), Label."""
+OBSTACLE_RGBA = {"positive": (1.0, 0.35, 0.1, 0.6), "negative": (0.3, 0.3, 1.0, 0.6)}
+"""Box colour by :attr:`Obstacle.kind` (others: grey)."""
+
+
+@runtime_checkable
+class Sink(Protocol):
+    """Receives each processed frame; ``close`` finalises the output (idempotent)."""
+
+    def write(self, frame: StereoFrame, result: FrameResult) -> None: ...
+
+    def close(self) -> None: ...
+
+
+class McapSink:
+    """Life cycle of an MCAP output: open, write frames, always finish (once), context manager.
+
+    Parameters
+    ----------
+    path : str or Path
+        Output ``.mcap`` file (overwritten).
+    config : Config
+        Effective configuration, stored as TOML in the ``terrainmap`` metadata record.
+    metadata : mapping of str to str, optional
+        Extra entries for the metadata record (e.g. ``{"source": "<input path>"}``).
+    """
+
+    def __init__(self, path: str | Path, *, config: Config, metadata: Mapping[str, str] | None = None):
+        self.path = Path(path)
+        self._config = config
+        self._metadata = {str(k): str(v) for k, v in (metadata or {}).items()}
+        self._extrinsics: Extrinsics | None = None
+        self._last_static: tuple | None = None
+        self.frames_written = 0
+        self._closed = False
+        try:
+            self._stream = open(self.path, "wb")  # noqa: SIM115 (closed in close())
+        except OSError as exc:
+            raise InputError(f"cannot create MCAP output {self.path}: {exc.strerror or exc}") from exc
+        try:
+            self._open(self._stream)
+        except BaseException:
+            self._stream.close()
+            raise
+
+    def _open(self, stream) -> None:
+        raise NotImplementedError
+
+    def _write_frame(self, frame: StereoFrame, result: FrameResult) -> None:
+        raise NotImplementedError
+
+    def _finish(self, metadata: dict[str, str]) -> None:
+        raise NotImplementedError
+
+    def write(self, frame: StereoFrame, result: FrameResult) -> None:
+        """Write all messages of one frame, stamped ``frame.stamp_ns``."""
+        if self._closed:
+            raise TerrainmapError(f"MCAP output {self.path} is already closed")
+        if self._extrinsics is None:
+            self._extrinsics = result.extrinsics
+        self._write_frame(frame, result)
+        self.frames_written += 1
+
+    def close(self) -> None:
+        """Write the metadata record, summary and index, and close the file. Safe to call twice."""
+        if self._closed:
+            return
+        self._closed = True
+        try:
+            self._finish(self._metadata_record())
+        finally:
+            self._stream.close()
+        log.info("wrote %d frames to %s", self.frames_written, self.path)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc_info) -> None:
+        self.close()
+
+    def _metadata_record(self) -> dict[str, str]:
+        from .. import __version__
+
+        record = {"version": __version__, "config": self._config.to_toml(), "frames": str(self.frames_written)}
+        if self._extrinsics is not None:
+            record["extrinsics"] = json.dumps(self._extrinsics.to_dict())
+        return {**record, **self._metadata}
+
+    def _tf_topic(self, result: FrameResult) -> str | None:
+        """Topic for this frame's camera transform, or None when it need not be written again.
+
+        Estimated extrinsics may change every frame and go on ``/tf``; fixed ones (from tf, a
+        calibration file or the defaults) go on ``/tf_static`` when first seen or changed.
+        """
+        ext = result.extrinsics
+        if ext.source == "estimated":
+            return "/tf"
+        key = camera_transform(ext)
+        if key == self._last_static:
+            return None
+        self._last_static = key
+        return "/tf_static"
+
+
+def camera_transform(extrinsics: Extrinsics) -> tuple[str, str, tuple, tuple]:
+    """``(parent, child, translation_m (x, y, z), rotation (x, y, z, w))`` of the camera in the vehicle frame."""
+    translation = tuple(float(v) for v in np.asarray(extrinsics.translation, float).reshape(3))
+    return (
+        extrinsics.vehicle_frame_id,
+        extrinsics.camera_frame_id,
+        translation,
+        quaternion_from_matrix(extrinsics.rotation),
+    )
+
+
+def grid_layers(result: FrameResult) -> dict[str, np.ndarray]:
+    """The grid layers to write, in :data:`GRID_LAYERS` order, as (m0, m1) float32 / uint8 arrays.
+
+    Elevation is NaN where the cell is not ``valid`` (no data), as grid_map expects.
+
+    Raises
+    ------
+    TerrainmapError
+        A layer's shape differs from the grid's.
+    """
+    shape = tuple(result.grid.config.shape)
+    layers = {}
+    for name in GRID_LAYERS:
+        if name not in result.layers:
+            continue
+        array = np.asarray(result.layers[name])
+        if array.shape != shape:
+            raise TerrainmapError(f"frame {result.index}: layer '{name}' has shape {array.shape}, grid is {shape}")
+        layers[name] = array.astype(np.float32 if name in FLOAT_LAYERS else np.uint8, copy=False)
+    if "elevation" in layers and "valid" in layers:
+        layers["elevation"] = np.where(layers["valid"] > 0, layers["elevation"], np.float32(np.nan))
+    return layers
+
+
+def packed_points(result: FrameResult) -> np.ndarray:
+    """Points and labels as a (N,) :data:`POINT_DTYPE` array (vehicle frame, metres).
+
+    Packed through a byte view (x, y, z copied as one 12-byte run per point): about twice as
+    fast as filling the four fields one by one.
+    """
+    points = np.ascontiguousarray(result.points_vehicle, dtype="<f4").reshape(-1, 3)
+    packed = np.empty(len(points), dtype=POINT_DTYPE)
+    raw = packed.view(np.uint8).reshape(len(points), POINT_DTYPE.itemsize)
+    raw[:, :12] = points.view(np.uint8)
+    raw[:, 12] = result.point_labels
+    return packed
+
+
+def yaw_quaternion(yaw_rad: float) -> tuple[float, float, float, float]:
+    """Quaternion (x, y, z, w) of a rotation by ``yaw_rad`` about z."""
+    return (0.0, 0.0, float(np.sin(yaw_rad / 2)), float(np.cos(yaw_rad / 2)))
+
+
+def obstacle_text(obstacle: Obstacle) -> str:
+    """Label shown next to an obstacle: ``"<track id> <kind> <height> m"``."""
+    return f"{obstacle.track_id} {obstacle.kind} {obstacle.height_m:.2f} m"
+
+
+def obstacle_rgba(obstacle: Obstacle) -> tuple[float, float, float, float]:
+    """Box colour (r, g, b, a in [0, 1]) by kind; confirmed tracks are more opaque."""
+    r, g, b, a = OBSTACLE_RGBA.get(obstacle.kind, (0.6, 0.6, 0.6, 0.6))
+    return (r, g, b, 0.85 if obstacle.confirmed else a)

@@ -1,0 +1,194 @@
+"""MCAP output with Foxglove protobuf schemas (the default flavour): opens in Foxglove with no setup.
+
+Topics, all in frame ``base_link`` and stamped with the source image's ``stamp_ns`` (log time,
+publish time and message timestamp):
+
+- ``/terrainmap/grid`` ``foxglove.Grid``: fields ``elevation`` (float32, m, NaN = no data),
+  ``slope`` (float32, rad), ``cost`` (float32, when computed), ``label`` (uint8 Label),
+  ``valid`` (uint8 0/1). Layout: foxglove.Grid is row-major with rows along y and columns along
+  x, so ``column_count = m0`` and the cell at byte offset ``(iy·m0 + ix)·cell_stride`` is the
+  terrainmap cell ``[ix, iy]``, centred at ``(x_min + (ix+½)c, y_min + (iy+½)c)``; the pose is
+  the grid's corner ``(x_min_m, y_min_m, 0)`` with identity orientation.
+- ``/terrainmap/points`` ``foxglove.PointCloud``: x, y, z float32 and uint8 ``label``.
+- ``/terrainmap/obstacles`` ``foxglove.SceneUpdate``: deletes all previous entities, then one
+  entity per obstacle with a cube (coloured by kind) and a text ``"<id> <kind> <height> m"``.
+- ``/tf`` and ``/tf_static`` ``foxglove.FrameTransforms``: ``base_link`` → camera frame.
+- metadata record ``terrainmap``: version, config (TOML), extrinsics (JSON), source...
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from foxglove_schemas_protobuf.Color_pb2 import Color
+from foxglove_schemas_protobuf.CubePrimitive_pb2 import CubePrimitive
+from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
+from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
+from foxglove_schemas_protobuf.Grid_pb2 import Grid
+from foxglove_schemas_protobuf.PackedElementField_pb2 import PackedElementField
+from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
+from foxglove_schemas_protobuf.Pose_pb2 import Pose
+from foxglove_schemas_protobuf.Quaternion_pb2 import Quaternion
+from foxglove_schemas_protobuf.SceneEntity_pb2 import SceneEntity
+from foxglove_schemas_protobuf.SceneEntityDeletion_pb2 import SceneEntityDeletion
+from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
+from foxglove_schemas_protobuf.TextPrimitive_pb2 import TextPrimitive
+from foxglove_schemas_protobuf.Vector2_pb2 import Vector2
+from foxglove_schemas_protobuf.Vector3_pb2 import Vector3
+from google.protobuf.timestamp_pb2 import Timestamp
+from mcap.writer import CompressionType
+from mcap_protobuf.writer import Writer
+
+from ..types import FrameResult, Obstacle, StereoFrame
+from .base import (
+    FLOAT_LAYERS,
+    METADATA_NAME,
+    POINT_DTYPE,
+    VEHICLE_FRAME,
+    McapSink,
+    camera_transform,
+    grid_layers,
+    obstacle_rgba,
+    obstacle_text,
+    packed_points,
+    yaw_quaternion,
+)
+
+FLOAT32 = PackedElementField.FLOAT32  # 7
+UINT8 = PackedElementField.UINT8  # 1 (ROS numbers UINT8 as 2)
+
+
+def _timestamp(stamp_ns: int) -> Timestamp:
+    sec, nanos = divmod(int(stamp_ns), 1_000_000_000)
+    return Timestamp(seconds=sec, nanos=nanos)
+
+
+def _pose(position, quaternion=(0.0, 0.0, 0.0, 1.0)) -> Pose:
+    x, y, z = (float(v) for v in position)
+    qx, qy, qz, qw = quaternion
+    return Pose(position=Vector3(x=x, y=y, z=z), orientation=Quaternion(x=qx, y=qy, z=qz, w=qw))
+
+
+def _fields(dtype: np.dtype) -> list[PackedElementField]:
+    return [
+        PackedElementField(name=name, offset=dtype.fields[name][1], type=FLOAT32 if dtype[name].kind == "f" else UINT8)
+        for name in dtype.names
+    ]
+
+
+def grid_message(result: FrameResult) -> Grid:
+    """``foxglove.Grid`` of the result's layers (see the module docstring for the layout)."""
+    layers = grid_layers(result)
+    grid = result.grid.config
+    m0, _ = grid.shape
+    dtype = np.dtype([(name, "<f4" if name in FLOAT_LAYERS else "u1") for name in layers])
+    cells = np.empty(grid.shape[::-1], dtype=dtype)  # (m1, m0): rows along y, columns along x
+    for name, array in layers.items():
+        cells[name] = array.T
+    return Grid(
+        timestamp=_timestamp(result.stamp_ns),
+        frame_id=VEHICLE_FRAME,
+        pose=_pose((grid.x_min_m, grid.y_min_m, 0.0)),
+        column_count=m0,
+        cell_size=Vector2(x=grid.cell_size_m, y=grid.cell_size_m),
+        row_stride=m0 * dtype.itemsize,
+        cell_stride=dtype.itemsize,
+        fields=_fields(dtype),
+        data=cells.tobytes(),
+    )
+
+
+def points_message(result: FrameResult) -> PointCloud:
+    """``foxglove.PointCloud`` with x, y, z (float32, m, vehicle frame) and uint8 ``label``."""
+    return PointCloud(
+        timestamp=_timestamp(result.stamp_ns),
+        frame_id=VEHICLE_FRAME,
+        pose=_pose((0.0, 0.0, 0.0)),
+        point_stride=POINT_DTYPE.itemsize,
+        fields=_fields(POINT_DTYPE),
+        data=packed_points(result).tobytes(),
+    )
+
+
+def _entity(obstacle: Obstacle, index: int, stamp: Timestamp) -> SceneEntity:
+    center = np.asarray(obstacle.center_m, float)
+    size = np.asarray(obstacle.size_m, float)
+    r, g, b, a = obstacle_rgba(obstacle)
+    top = center + [0.0, 0.0, size[2] / 2 + 0.3]
+    return SceneEntity(
+        timestamp=stamp,
+        frame_id=VEHICLE_FRAME,
+        id=f"obstacle/{obstacle.track_id if obstacle.track_id >= 0 else f'u{index}'}",
+        cubes=[
+            CubePrimitive(
+                pose=_pose(center, yaw_quaternion(obstacle.yaw_rad)),
+                size=Vector3(x=size[0], y=size[1], z=size[2]),
+                color=Color(r=r, g=g, b=b, a=a),
+            )
+        ],
+        texts=[
+            TextPrimitive(
+                pose=_pose(top),
+                billboard=True,
+                font_size=14.0,
+                scale_invariant=True,
+                color=Color(r=1.0, g=1.0, b=1.0, a=1.0),
+                text=obstacle_text(obstacle),
+            )
+        ],
+    )
+
+
+def obstacles_message(result: FrameResult) -> SceneUpdate:
+    """``foxglove.SceneUpdate`` that deletes every earlier entity and adds this frame's obstacles."""
+    stamp = _timestamp(result.stamp_ns)
+    return SceneUpdate(
+        deletions=[SceneEntityDeletion(timestamp=stamp, type=SceneEntityDeletion.ALL)],
+        entities=[_entity(obstacle, i, stamp) for i, obstacle in enumerate(result.obstacles)],
+    )
+
+
+def transforms_message(result: FrameResult) -> FrameTransforms:
+    """``foxglove.FrameTransforms`` with the camera pose in ``base_link``."""
+    parent, child, (x, y, z), (qx, qy, qz, qw) = camera_transform(result.extrinsics)
+    return FrameTransforms(
+        transforms=[
+            FrameTransform(
+                timestamp=_timestamp(result.stamp_ns),
+                parent_frame_id=parent,
+                child_frame_id=child,
+                translation=Vector3(x=x, y=y, z=z),
+                rotation=Quaternion(x=qx, y=qy, z=qz, w=qw),
+            )
+        ]
+    )
+
+
+class FoxgloveMcapSink(McapSink):
+    """Writes each frame as Foxglove protobuf messages to an MCAP file (see the module docstring).
+
+    Parameters are those of :class:`~terrainmap.sinks.base.McapSink`, plus ``compression``
+    (``"zstd"``, ``"lz4"`` or ``"none"``; zstd gives the smallest files).
+    """
+
+    def __init__(self, path, *, config, metadata=None, compression: str = "zstd"):
+        self._compression = CompressionType[compression.upper()]
+        super().__init__(path, config=config, metadata=metadata)
+
+    def _open(self, stream) -> None:
+        self._writer = Writer(stream, compression=self._compression)
+
+    def _log(self, topic: str, message, stamp_ns: int) -> None:
+        self._writer.write_message(topic, message, log_time=stamp_ns, publish_time=stamp_ns)
+
+    def _write_frame(self, frame: StereoFrame, result: FrameResult) -> None:
+        t = frame.stamp_ns
+        tf_topic = self._tf_topic(result)
+        if tf_topic:
+            self._log(tf_topic, transforms_message(result), t)
+        self._log("/terrainmap/grid", grid_message(result), t)
+        self._log("/terrainmap/points", points_message(result), t)
+        self._log("/terrainmap/obstacles", obstacles_message(result), t)
+
+    def _finish(self, metadata: dict[str, str]) -> None:
+        self._writer.add_metadata(METADATA_NAME, metadata)
+        self._writer.finish()

@@ -1,0 +1,190 @@
+"""MCAP output with ROS 2 messages (CDR, profile ``ros2``) for ROS users.
+
+Topics, all in frame ``base_link`` and stamped with the source image's ``stamp_ns``:
+
+- ``/terrainmap/grid_map`` ``grid_map_msgs/msg/GridMap``: layers ``elevation`` (m, NaN = no
+  data; the only basic layer), ``slope`` (rad), ``cost`` (when computed), ``label`` and
+  ``valid`` (as floats). Layout: grid_map stores each layer column-major with index (0, 0) at
+  the +x, +y corner: row i runs along −x, column j along −y, and the pose is the map centre.
+  So the terrainmap cell ``[ix, iy]`` is grid_map cell ``(i, j) = (m0−1−ix, m1−1−iy)``, at flat
+  position ``j·m0 + i`` of each layer's data (``dim[0]`` = ``column_index`` of size m1,
+  ``dim[1]`` = ``row_index`` of size m0, as grid_map_ros writes it).
+- ``/terrainmap/points`` ``sensor_msgs/msg/PointCloud2``: x, y, z FLOAT32 (7), label UINT8 (2).
+- ``/terrainmap/obstacles`` ``visualization_msgs/msg/MarkerArray``: a DELETEALL marker, then per
+  obstacle a CUBE (namespace ``obstacles``) and a TEXT_VIEW_FACING label (``obstacle_labels``).
+- ``/tf`` and ``/tf_static`` ``tf2_msgs/msg/TFMessage``: ``base_link`` → camera frame.
+- metadata record ``terrainmap``: version, config (TOML), extrinsics (JSON), source...
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from mcap.records import Schema
+from mcap.writer import CompressionType
+from mcap_ros2.writer import Writer
+
+from ..ros2defs import (
+    MARKER_ADD,
+    MARKER_CUBE,
+    MARKER_DELETEALL,
+    MARKER_TEXT_VIEW_FACING,
+    POINTFIELD_FLOAT32,
+    POINTFIELD_UINT8,
+    SCHEMAS,
+    header,
+    pose,
+    transform_stamped,
+)
+from ..types import FrameResult, Obstacle, StereoFrame
+from .base import (
+    METADATA_NAME,
+    POINT_DTYPE,
+    VEHICLE_FRAME,
+    McapSink,
+    camera_transform,
+    grid_layers,
+    obstacle_rgba,
+    obstacle_text,
+    packed_points,
+    yaw_quaternion,
+)
+from .cdr import encode_grid_map
+
+
+def grid_map_message(result: FrameResult) -> dict:
+    """GridMap dict (layer data as numpy arrays, for :func:`~terrainmap.sinks.cdr.encode_grid_map`)."""
+    layers = grid_layers(result)
+    grid = result.grid.config
+    m0, m1 = grid.shape
+    c = grid.cell_size_m
+    center = (grid.x_min_m + m0 * c / 2, grid.y_min_m + m1 * c / 2, 0.0)
+    layout = {
+        "dim": [
+            {"label": "column_index", "size": m1, "stride": m0 * m1},
+            {"label": "row_index", "size": m0, "stride": m0},
+        ],
+        "data_offset": 0,
+    }
+    return {
+        "header": header(result.stamp_ns, VEHICLE_FRAME),
+        "info": {"resolution": c, "length_x": m0 * c, "length_y": m1 * c, "pose": pose(center)},
+        "layers": list(layers),
+        "basic_layers": ["elevation"] if "elevation" in layers else [],
+        # [ix, iy] -> (i, j) = (m0-1-ix, m1-1-iy), stored [j][i] (column-major)
+        "data": [{"layout": layout, "data": a[::-1, ::-1].T.astype(np.float32)} for a in layers.values()],
+        "outer_start_index": 0,
+        "inner_start_index": 0,
+    }
+
+
+def point_cloud_message(result: FrameResult) -> dict:
+    """PointCloud2 dict: one row of packed (x, y, z float32, label uint8) points."""
+    packed = packed_points(result)
+    ros_type = {"f": POINTFIELD_FLOAT32, "u": POINTFIELD_UINT8}
+    fields = [
+        {"name": name, "offset": POINT_DTYPE.fields[name][1], "datatype": ros_type[POINT_DTYPE[name].kind], "count": 1}
+        for name in POINT_DTYPE.names
+    ]
+    return {
+        "header": header(result.stamp_ns, VEHICLE_FRAME),
+        "height": 1,
+        "width": len(packed),
+        "fields": fields,
+        "is_bigendian": False,
+        "point_step": POINT_DTYPE.itemsize,
+        "row_step": POINT_DTYPE.itemsize * len(packed),
+        "data": packed.tobytes(),
+        "is_dense": bool(np.isfinite(result.points_vehicle).all()),
+    }
+
+
+def _markers(obstacle: Obstacle, marker_id: int, stamp_ns: int) -> list[dict]:
+    center = np.asarray(obstacle.center_m, float)
+    size = np.asarray(obstacle.size_m, float)
+    r, g, b, a = obstacle_rgba(obstacle)
+    common = {"header": header(stamp_ns, VEHICLE_FRAME), "id": marker_id, "action": MARKER_ADD}
+    cube = {
+        **common,
+        "ns": "obstacles",
+        "type": MARKER_CUBE,
+        "pose": pose(center, yaw_quaternion(obstacle.yaw_rad)),
+        "scale": {"x": size[0], "y": size[1], "z": size[2]},
+        "color": {"r": r, "g": g, "b": b, "a": a},
+    }
+    text = {
+        **common,
+        "ns": "obstacle_labels",
+        "type": MARKER_TEXT_VIEW_FACING,
+        "pose": pose(center + [0.0, 0.0, size[2] / 2 + 0.3]),
+        "scale": {"x": 0.0, "y": 0.0, "z": 0.4},
+        "color": {"r": 1.0, "g": 1.0, "b": 1.0, "a": 1.0},
+        "text": obstacle_text(obstacle),
+    }
+    return [cube, text]
+
+
+def marker_array_message(result: FrameResult) -> dict:
+    """MarkerArray dict: DELETEALL, then a cube and a text marker per obstacle (id = track id or index)."""
+    markers = [{"header": header(result.stamp_ns, VEHICLE_FRAME), "action": MARKER_DELETEALL}]
+    for i, obstacle in enumerate(result.obstacles):
+        markers += _markers(obstacle, obstacle.track_id if obstacle.track_id >= 0 else i, result.stamp_ns)
+    return {"markers": markers}
+
+
+def tf_message(result: FrameResult) -> dict:
+    """TFMessage dict with the camera pose in ``base_link``."""
+    parent, child, translation, rotation = camera_transform(result.extrinsics)
+    return {"transforms": [transform_stamped(result.stamp_ns, parent, child, translation, rotation)]}
+
+
+class _Writer(Writer):
+    """mcap_ros2's writer plus ``write_encoded`` for messages this package encodes itself."""
+
+    def write_encoded(self, topic: str, schema: Schema, data: bytes, log_time: int) -> None:
+        if topic not in self._channel_ids:
+            self._channel_ids[topic] = self._writer.register_channel(
+                topic=topic, message_encoding="cdr", schema_id=schema.id
+            )
+        self._writer.add_message(
+            channel_id=self._channel_ids[topic], log_time=log_time, publish_time=log_time, sequence=0, data=data
+        )
+
+
+class Ros2McapSink(McapSink):
+    """Writes each frame as ROS 2 CDR messages to an MCAP file (see the module docstring).
+
+    Parameters are those of :class:`~terrainmap.sinks.base.McapSink`, plus ``compression``
+    (``"zstd"``, ``"lz4"`` or ``"none"``).
+    """
+
+    def __init__(self, path, *, config, metadata=None, compression: str = "zstd"):
+        self._compression = CompressionType[compression.upper()]
+        self._schemas: dict[str, Schema] = {}
+        super().__init__(path, config=config, metadata=metadata)
+
+    def _open(self, stream) -> None:
+        self._writer = _Writer(stream, compression=self._compression)
+
+    def _schema(self, type_name: str) -> Schema:
+        if type_name not in self._schemas:
+            self._schemas[type_name] = self._writer.register_msgdef(type_name, SCHEMAS[type_name])
+        return self._schemas[type_name]
+
+    def _log(self, topic: str, type_name: str, message: dict, stamp_ns: int) -> None:
+        self._writer.write_message(
+            topic, self._schema(type_name), message, log_time=stamp_ns, publish_time=stamp_ns
+        )
+
+    def _write_frame(self, frame: StereoFrame, result: FrameResult) -> None:
+        t = frame.stamp_ns
+        tf_topic = self._tf_topic(result)
+        if tf_topic:
+            self._log(tf_topic, "tf2_msgs/msg/TFMessage", tf_message(result), t)
+        grid_schema = self._schema("grid_map_msgs/msg/GridMap")
+        self._writer.write_encoded("/terrainmap/grid_map", grid_schema, encode_grid_map(grid_map_message(result)), t)
+        self._log("/terrainmap/points", "sensor_msgs/msg/PointCloud2", point_cloud_message(result), t)
+        self._log("/terrainmap/obstacles", "visualization_msgs/msg/MarkerArray", marker_array_message(result), t)
+
+    def _finish(self, metadata: dict[str, str]) -> None:
+        self._writer.add_metadata(METADATA_NAME, metadata)
+        self._writer.finish()
