@@ -1,1 +1,95 @@
-"""terrainmap.sources."""
+"""Stereo pairs from disk: image folders and logs, behind one small interface.
+
+    from terrainmap.sources import open_source
+
+    with open_source("run.mcap") as source:
+        print(source.describe())
+        for frame in source.frames(start_s=10, max_frames=5):
+            ...  # terrainmap.types.StereoFrame
+
+:func:`open_source` guesses the format from the path (first match wins, in this order):
+
+=================  ===================================================================
+``mcap``           an ``.mcap`` file, or a rosbag2 directory (``metadata.yaml`` + .mcap)
+``ros1-bag``       a ROS 1 ``.bag`` (read through ``rosbags``)
+``kitti-raw``      ``image_02/data``, ``image_03/data``, ``calib_cam_to_cam.txt`` up to two levels up
+``kitti-odometry`` ``image_2``, ``image_3``, ``calib.txt``, ``times.txt``
+``kitti-stereo``   ``image_2|colored_0|image_0`` + partner, ``calib_cam_to_cam/`` or ``calib/``
+``middlebury``     ``im0.png``, ``im1.png``, ``calib.txt`` (one scene or a folder of scenes)
+``folder``         ``left/``, ``right/``, ``calibration.yaml`` (format in :mod:`.calibration`)
+=================  ===================================================================
+
+Every source yields uint8 images (RGB or mono, left and right of one size) with a
+:class:`~terrainmap.types.StereoCalibration` and, when the source has them, extrinsics.
+Bad input raises :class:`~terrainmap.errors.InputError` / ``CalibrationError`` with a one-line
+message naming the path or topic.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from ..errors import InputError
+from .base import Source
+from .folder import GenericFolder
+from .kitti import KittiOdometryFolder, KittiRawFolder, KittiStereoFolder
+from .log import McapSource, Ros1BagSource
+from .middlebury import MiddleburyFolder
+
+SOURCES: tuple[type[Source], ...] = (
+    McapSource,
+    Ros1BagSource,
+    KittiRawFolder,
+    KittiOdometryFolder,
+    KittiStereoFolder,
+    MiddleburyFolder,
+    GenericFolder,
+)
+"""The registry: source classes in the order :func:`open_source` tries them."""
+
+__all__ = ["SOURCES", "Source", "open_source", "source_class"]
+
+
+def source_class(path: str | Path) -> type[Source]:
+    """The source class that reads ``path`` (path guessing only, nothing is opened)."""
+    path = Path(path)
+    if not path.exists():
+        raise InputError(f"{path}: does not exist")
+    for cls in SOURCES:
+        if cls.matches(path):
+            return cls
+    if path.is_dir() and any(path.glob("*.db3")):
+        raise InputError(f"{path}: rosbag2 with sqlite3 storage is not supported; convert it with "
+                         "`ros2 bag convert` to MCAP storage")
+    raise InputError(
+        f"{path}: not a known stereo source (expected an .mcap file, a rosbag2 or KITTI/Middlebury folder, "
+        "a ROS 1 .bag, or a folder with left/, right/ and calibration.yaml)"
+    )
+
+
+def open_source(
+    path: str | Path,
+    *,
+    left_topic: str | None = None,
+    right_topic: str | None = None,
+    calibration: str | Path | None = None,
+    pair_tolerance_ns: int = 10_000_000,
+) -> Source:
+    """Open a stereo source, guessing its format from the path.
+
+    Parameters
+    ----------
+    path : str or Path
+        A log file, rosbag2 directory or image folder.
+    left_topic, right_topic : str, optional
+        Image topics of a log (default: guessed by type and name). Ignored for folders.
+    calibration : str or Path, optional
+        Calibration file (YAML/TOML, KITTI or Middlebury text) overriding the source's own.
+    pair_tolerance_ns : int
+        Largest stamp difference of a left/right pair in a log, nanoseconds.
+    """
+    cls = source_class(path)
+    if issubclass(cls, (McapSource, Ros1BagSource)):
+        return cls(path, left_topic=left_topic, right_topic=right_topic, calibration=calibration,
+                   pair_tolerance_ns=pair_tolerance_ns)
+    return cls(path, calibration=calibration)

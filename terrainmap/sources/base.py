@@ -1,0 +1,119 @@
+"""The :class:`Source` interface every loader implements, and the frame selection they share."""
+
+from __future__ import annotations
+
+import logging
+from abc import ABC, abstractmethod
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+from ..errors import ConfigError
+from ..types import Extrinsics, StereoFrame
+
+logger = logging.getLogger(__name__)
+
+DEFAULT_PERIOD_NS = 100_000_000
+"""Stamp spacing of folders without timestamps: index × 100 ms."""
+
+
+@dataclass
+class PairRef:
+    """A stereo pair found in a source, not loaded yet (so skipped pairs cost no image decoding)."""
+
+    index: int
+    stamp_ns: int
+    load: Callable[[], StereoFrame]
+
+
+def describe_extrinsics(extrinsics: Extrinsics | None) -> dict | str:
+    """``describe()``'s view of the extrinsics: their dict, or a note that they will be estimated."""
+    return extrinsics.to_dict() if extrinsics is not None else "none (will be estimated from the ground)"
+
+
+def check_selection(start_s: float | None, end_s: float | None, every: int, max_frames: int | None) -> None:
+    """Raise :class:`ConfigError` naming the option for a selection that makes no sense."""
+    if every < 1:
+        raise ConfigError(f"every: must be >= 1, got {every}")
+    if max_frames is not None and max_frames < 0:
+        raise ConfigError(f"max_frames: must be >= 0, got {max_frames}")
+    if start_s is not None and end_s is not None and end_s < start_s:
+        raise ConfigError(f"end: {end_s} s is before start {start_s} s")
+
+
+class Source(ABC):
+    """Stereo pairs from a folder or a log; a context manager (``close()`` is idempotent).
+
+    Subclasses set ``format``, implement :meth:`matches` (path guessing for the registry),
+    :meth:`describe` and :meth:`_pairs` (pairs in time order, lazily loadable).
+    """
+
+    format: str = "source"
+
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+        self._closed = False
+
+    @classmethod
+    @abstractmethod
+    def matches(cls, path: Path) -> bool:
+        """True when ``path`` looks like this format (cheap: names and directory listings only)."""
+
+    @abstractmethod
+    def describe(self) -> dict:
+        """What the source holds and what ``process`` would use (format, counts, topics,
+        calibration summary, extrinsics)."""
+
+    @abstractmethod
+    def _pairs(self) -> Iterator[PairRef]:
+        """Every stereo pair of the source, from the start, in time order."""
+
+    def frames(
+        self,
+        *,
+        start_s: float | None = None,
+        end_s: float | None = None,
+        every: int = 1,
+        max_frames: int | None = None,
+    ) -> Iterator[StereoFrame]:
+        """Yield the selected stereo pairs as :class:`~terrainmap.types.StereoFrame`.
+
+        Parameters
+        ----------
+        start_s, end_s : float, optional
+            Window in seconds relative to the first stereo pair's stamp (inclusive).
+        every : int
+            Keep every N-th pair of the window.
+        max_frames : int, optional
+            Stop after this many frames.
+
+        ``StereoFrame.index`` counts pairs from the start of the source, not from ``start_s``.
+        """
+        check_selection(start_s, end_s, every, max_frames)
+        first_ns: int | None = None
+        in_window = kept = 0
+        for ref in self._pairs():
+            if max_frames is not None and kept >= max_frames:
+                return
+            first_ns = ref.stamp_ns if first_ns is None else first_ns
+            offset_s = (ref.stamp_ns - first_ns) / 1e9
+            if start_s is not None and offset_s < start_s:
+                continue
+            if end_s is not None and offset_s > end_s:
+                return
+            if in_window % every == 0:
+                kept += 1
+                yield ref.load()
+            in_window += 1
+
+    def close(self) -> None:
+        self._closed = True
+
+    def __enter__(self) -> Source:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}({str(self.path)!r})"

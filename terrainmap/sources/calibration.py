@@ -1,0 +1,247 @@
+"""Calibration files: terrainmap's YAML/TOML format, KITTI ``calib*.txt`` and Middlebury ``calib.txt``.
+
+terrainmap's own format (``calibration.yaml``, ``.yml`` or ``.toml``)::
+
+    width: 640          # pixels
+    height: 480
+    fx: 500.0           # rectified pinhole of the left camera, pixels
+    fy: 500.0
+    cx: 320.0
+    cy: 240.0
+    baseline_m: 0.30
+    cx_right: 320.0     # optional, default cx
+    doffs: 0.0          # optional (Middlebury-style disparity offset, px)
+    rectified: true     # optional, default true; when false also give K_left, K_right (3x3),
+                        # dist_left, dist_right (lists), R (3x3), T ([x, y, z] m, right wrt left)
+    extrinsics:         # optional: left camera optical frame in the vehicle frame (base_link)
+      translation_m: [0.0, 0.0, 1.5]
+      rotation: [[0, 0, 1], [-1, 0, 0], [0, -1, 0]]   # or quaternion_xyzw: [x, y, z, w]
+
+Calibrations read from KITTI/Middlebury text may not know the image size (``width = height = 0``);
+:func:`fit_to_image` fills it in from the first image and checks it otherwise.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import re
+import tomllib
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from ..errors import CalibrationError
+from ..types import Extrinsics, StereoCalibration
+from .tf import quaternion_to_matrix
+
+_REQUIRED = ("width", "height", "fx", "fy", "cx", "cy", "baseline_m")
+_UNRECTIFIED = ("K_left", "K_right", "dist_left", "dist_right", "R", "T")
+
+
+def check_calibration(calib: StereoCalibration) -> StereoCalibration:
+    """Raise :class:`CalibrationError` (naming ``calib.source``) for a nonsensical calibration."""
+    for name in ("fx", "fy", "baseline_m"):
+        value = getattr(calib, name)
+        if not (math.isfinite(value) and value > 0):
+            raise CalibrationError(f"{calib.source}: {name} must be > 0, got {value}")
+    for name in ("cx", "cy", "doffs"):
+        if not math.isfinite(getattr(calib, name)):
+            raise CalibrationError(f"{calib.source}: {name} is not finite")
+    if calib.width < 0 or calib.height < 0:
+        raise CalibrationError(f"{calib.source}: negative image size {calib.width}×{calib.height}")
+    return calib
+
+
+def fit_to_image(calib: StereoCalibration, shape: tuple[int, ...], image_name: str) -> StereoCalibration:
+    """Fill in an unknown image size from ``shape`` (H, W[, C]) or check a known one."""
+    height, width = int(shape[0]), int(shape[1])
+    if calib.width == 0 and calib.height == 0:
+        return dataclasses.replace(calib, width=width, height=height)
+    if (calib.width, calib.height) != (width, height):
+        raise CalibrationError(
+            f"{calib.source}: calibration is for {calib.width}×{calib.height} images but {image_name} is {width}×{height}"
+        )
+    return calib
+
+
+def from_projections(
+    P_left: np.ndarray, P_right: np.ndarray, *, source: str, width: int = 0, height: int = 0
+) -> StereoCalibration:
+    """Rectified pinhole from two 3×4 projection matrices (KITTI and ROS conventions).
+
+    ``baseline_m = (P_left[0,3] − P_right[0,3]) / fx``; ``cx_right`` is set when the principal
+    points differ.
+    """
+    P_left, P_right = (np.asarray(P, float).reshape(3, 4) for P in (P_left, P_right))
+    fx = float(P_left[0, 0])
+    baseline_m = float((P_left[0, 3] - P_right[0, 3]) / fx) if fx else 0.0
+    cx_right = float(P_right[0, 2])
+    return check_calibration(
+        StereoCalibration(
+            width=int(width),
+            height=int(height),
+            fx=fx,
+            fy=float(P_left[1, 1]),
+            cx=float(P_left[0, 2]),
+            cy=float(P_left[1, 2]),
+            baseline_m=baseline_m,
+            cx_right=None if math.isclose(cx_right, P_left[0, 2]) else cx_right,
+            source=source,
+        )
+    )
+
+
+def read_key_values(path: Path, separator: str) -> dict[str, str]:
+    """``key<separator> value`` lines of a text file (KITTI uses ':', Middlebury '=')."""
+    try:
+        lines = path.read_text().splitlines()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise CalibrationError(f"{path}: cannot read the calibration file ({exc})") from None
+    pairs = (line.split(separator, 1) for line in lines if separator in line)
+    return {key.strip(): value.strip() for key, value in pairs}
+
+
+def _numbers(text: str) -> np.ndarray:
+    return np.array([float(v) for v in re.split(r"[\s;,\[\]]+", text) if v], float)
+
+
+def kitti_calibration(path: Path, keys: tuple[str, str] | None = None) -> StereoCalibration:
+    """Calibration from a KITTI text file: ``P_rect_02/03`` (cam_to_cam), else ``P2/P3`` (object,
+    odometry, stereo 2012), or the two given keys (e.g. ``("P0", "P1")`` for the grey cameras)."""
+    values = read_key_values(path, ":")
+    candidates = [keys] if keys else [("P_rect_02", "P_rect_03"), ("P2", "P3")]
+    for left_key, right_key in candidates:
+        if left_key in values and right_key in values:
+            try:
+                P_left, P_right = _numbers(values[left_key]), _numbers(values[right_key])
+                size = _numbers(values.get(f"S_rect_{left_key[-2:]}", "0 0"))
+            except ValueError:
+                raise CalibrationError(f"{path}: {left_key}/{right_key} are not numbers") from None
+            if P_left.size != 12 or P_right.size != 12:
+                raise CalibrationError(f"{path}: {left_key} and {right_key} must have 12 values each")
+            width, height = (int(v) for v in size[:2]) if size.size >= 2 else (0, 0)
+            return from_projections(P_left, P_right, source=str(path), width=width, height=height)
+    wanted = " or ".join("/".join(k) for k in candidates)
+    raise CalibrationError(f"{path}: no {wanted} projection matrices in this KITTI calibration file")
+
+
+def middlebury_calibration(path: Path) -> StereoCalibration:
+    """Calibration from a Middlebury ``calib.txt`` (cam0/cam1 matrices, doffs, baseline in mm)."""
+    values = read_key_values(path, "=")
+    try:
+        K0 = _numbers(values["cam0"]).reshape(3, 3)
+        baseline_m = float(values["baseline"]) / 1000.0
+        calib = StereoCalibration(
+            width=int(float(values.get("width", 0))),
+            height=int(float(values.get("height", 0))),
+            fx=float(K0[0, 0]),
+            fy=float(K0[1, 1]),
+            cx=float(K0[0, 2]),
+            cy=float(K0[1, 2]),
+            baseline_m=baseline_m,
+            doffs=float(values.get("doffs", 0.0)),
+            source=str(path),
+        )
+    except KeyError as exc:
+        raise CalibrationError(f"{path}: Middlebury calibration lacks {exc.args[0]!r}") from None
+    except ValueError:
+        raise CalibrationError(f"{path}: cam0 must be a 3×3 matrix and baseline/doffs numbers") from None
+    return check_calibration(calib)
+
+
+def _array(data: dict, key: str, shape: tuple[int, ...] | None, path: Path) -> np.ndarray:
+    try:
+        value = np.asarray(data[key], float)
+        return value.reshape(shape) if shape else value.ravel()
+    except KeyError:
+        raise CalibrationError(f"{path}: rectified is false, so {key!r} is required") from None
+    except (TypeError, ValueError):
+        raise CalibrationError(f"{path}: {key!r} must be a numeric list of shape {shape or '(n,)'}") from None
+
+
+def extrinsics_from_dict(data: dict, path: Path) -> Extrinsics:
+    """The ``extrinsics:`` section: ``translation_m`` and ``rotation`` (3×3) or ``quaternion_xyzw``."""
+    if not isinstance(data, dict):
+        raise CalibrationError(f"{path}: 'extrinsics' must be a table with translation_m and rotation")
+    translation = _array({"translation_m": data.get("translation_m", [0, 0, 0])}, "translation_m", (3,), path)
+    if "quaternion_xyzw" in data:
+        rotation = quaternion_to_matrix(_array(data, "quaternion_xyzw", (4,), path))
+    else:
+        rotation = _array(data, "rotation", (3, 3), path)
+    if not np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-3) or np.linalg.det(rotation) < 0:
+        raise CalibrationError(f"{path}: extrinsics rotation is not a rotation matrix")
+    return Extrinsics(rotation=rotation, translation=translation, source="calibration")
+
+
+def _load_table(path: Path) -> dict:
+    try:
+        if path.suffix.lower() == ".toml":
+            return tomllib.loads(path.read_text())
+        data = yaml.safe_load(path.read_text())
+    except (OSError, UnicodeDecodeError, yaml.YAMLError, tomllib.TOMLDecodeError) as exc:
+        reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise CalibrationError(f"{path}: cannot parse the calibration file ({reason})") from None
+    if not isinstance(data, dict):
+        raise CalibrationError(f"{path}: calibration file must hold a mapping of keys (width, height, fx...)")
+    return data
+
+
+def terrainmap_calibration(path: Path) -> tuple[StereoCalibration, Extrinsics | None]:
+    """Read terrainmap's YAML/TOML calibration format (see the module docstring)."""
+    data = _load_table(path)
+    missing = [key for key in _REQUIRED if key not in data]
+    if missing:
+        raise CalibrationError(f"{path}: missing calibration keys: {', '.join(missing)}")
+    try:
+        numbers = {key: float(data[key]) for key in (*_REQUIRED, "doffs") if key in data}
+        cx_right = None if data.get("cx_right") is None else float(data["cx_right"])
+    except (TypeError, ValueError):
+        raise CalibrationError(f"{path}: width, height, fx, fy, cx, cy, baseline_m must be numbers") from None
+    rectified = bool(data.get("rectified", True))
+    extra = {} if rectified else {
+        key: _array(data, key, (3, 3) if key in ("K_left", "K_right", "R") else (3,) if key == "T" else None, path)
+        for key in _UNRECTIFIED
+    }
+    calib = StereoCalibration(
+        **{key: int(v) if key in ("width", "height") else v for key, v in numbers.items()},
+        cx_right=cx_right,
+        rectified=rectified,
+        source=str(path),
+        **extra,
+    )
+    extrinsics = extrinsics_from_dict(data["extrinsics"], path) if data.get("extrinsics") is not None else None
+    return check_calibration(calib), extrinsics
+
+
+def load_calibration_file(path: str | Path) -> tuple[StereoCalibration, Extrinsics | None]:
+    """Any supported calibration file, chosen by name: ``.yaml/.yml/.toml`` (terrainmap format),
+    Middlebury ``calib.txt`` (has ``cam0=``), or a KITTI ``.txt``."""
+    path = Path(path)
+    if not path.is_file():
+        raise CalibrationError(f"{path}: calibration file does not exist")
+    if path.suffix.lower() in (".yaml", ".yml", ".toml"):
+        return terrainmap_calibration(path)
+    if "cam0" in read_key_values(path, "="):
+        return middlebury_calibration(path), None
+    return kitti_calibration(path), None
+
+
+def summary(calib: StereoCalibration | None) -> dict | None:
+    """The calibration fields a human checks first (for ``describe()``)."""
+    if calib is None:
+        return None
+    return {
+        "fx": calib.fx,
+        "fy": calib.fy,
+        "cx": calib.cx,
+        "cy": calib.cy,
+        "cx_right": calib.cx_right,
+        "baseline_m": calib.baseline_m,
+        "doffs": calib.doffs,
+        "width": calib.width,
+        "height": calib.height,
+        "rectified": calib.rectified,
+        "source": calib.source,
+    }

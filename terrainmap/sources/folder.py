@@ -1,0 +1,174 @@
+"""Stereo pairs from image folders: the shared :class:`FolderSource` and the generic layout.
+
+Generic layout::
+
+    my_run/
+      left/   000000.png 000001.png ...   (png, jpg, pgm, ppm, bmp, tif)
+      right/  000000.png 000001.png ...   (the same file names)
+      calibration.yaml                     (or .yml / .toml; format in terrainmap.sources.calibration)
+      timestamps.txt                       (optional: one integer stamp in nanoseconds per line)
+
+Without timestamps, pair ``i`` is stamped ``i × 100 ms``.
+"""
+
+from __future__ import annotations
+
+import logging
+from abc import abstractmethod
+from collections.abc import Iterator
+from dataclasses import dataclass
+from functools import partial
+from pathlib import Path
+
+from ..errors import CalibrationError, InputError
+from ..types import Extrinsics, StereoCalibration, StereoFrame
+from . import calibration as calib_io
+from .base import DEFAULT_PERIOD_NS, PairRef, Source, describe_extrinsics
+from .images import read_image, stereo_pair
+
+logger = logging.getLogger(__name__)
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".pgm", ".ppm", ".bmp", ".tif", ".tiff")
+
+
+@dataclass(frozen=True)
+class ImagePair:
+    """Left and right image files of one pair, and the calibration file that applies to it."""
+
+    left: Path
+    right: Path
+    calibration: Path | None
+
+
+def image_names(folder: Path) -> list[str]:
+    """Sorted image file names in ``folder`` (empty when it is not a directory)."""
+    if not folder.is_dir():
+        return []
+    return sorted(p.name for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+
+
+def matching_pairs(left_dir: Path, right_dir: Path, calibration_for) -> list[ImagePair]:
+    """Pairs of same-named images in two folders; ``calibration_for(name)`` gives each one's file."""
+    right_names = set(image_names(right_dir))
+    left_names = image_names(left_dir)
+    pairs = [ImagePair(left_dir / n, right_dir / n, calibration_for(n)) for n in left_names if n in right_names]
+    if len(pairs) < max(len(left_names), len(right_names)):
+        logger.warning(
+            "%s: %d left and %d right images, %d with the same name on both sides",
+            left_dir.parent, len(left_names), len(right_names), len(pairs),
+        )
+    return pairs
+
+
+def read_lines(path: Path) -> list[str]:
+    """Non-empty lines of a text file, or InputError naming it."""
+    try:
+        return [line.strip() for line in path.read_text().splitlines() if line.strip()]
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(f"{path}: cannot read ({exc})") from None
+
+
+class FolderSource(Source):
+    """Base of the folder layouts: a list of :class:`ImagePair` with stamps and calibration files.
+
+    Subclasses implement :meth:`_find_pairs`, and may override :meth:`_stamps_ns` (None: index ×
+    100 ms) and :meth:`_read_calibration` (default: :func:`calibration.load_calibration_file`).
+    """
+
+    format = "folder"
+    calibration_hint = "a calibration file"
+
+    def __init__(self, path: str | Path, *, calibration: str | Path | None = None, **_log_options):
+        super().__init__(path)
+        self._override = calib_io.load_calibration_file(calibration) if calibration else None
+        self.pairs = self._find_pairs()
+        if not self.pairs:
+            raise InputError(f"{self.path}: {self.format} layout but no left/right image pairs in it")
+        stamps = self._stamps_ns()
+        if stamps is not None and len(stamps) < len(self.pairs):
+            raise InputError(f"{self.path}: {len(stamps)} timestamps for {len(self.pairs)} image pairs")
+        self.stamps_ns = stamps or [i * DEFAULT_PERIOD_NS for i in range(len(self.pairs))]
+        self._calibrations: dict[Path, tuple[StereoCalibration, Extrinsics | None]] = {}
+
+    @abstractmethod
+    def _find_pairs(self) -> list[ImagePair]:
+        """The layout's image pairs, in time order."""
+
+    def _stamps_ns(self) -> list[int] | None:
+        return None
+
+    def _read_calibration(self, path: Path) -> tuple[StereoCalibration, Extrinsics | None]:
+        return calib_io.load_calibration_file(path)
+
+    def calibration_for(self, pair: ImagePair) -> tuple[StereoCalibration, Extrinsics | None]:
+        """The pair's calibration and extrinsics: ``calibration=`` override, else its own file."""
+        if self._override is not None:
+            return self._override
+        if pair.calibration is None or not pair.calibration.is_file():
+            where = pair.calibration or self.path
+            raise CalibrationError(f"{where}: no calibration found (need {self.calibration_hint}, or pass --calibration)")
+        if pair.calibration not in self._calibrations:
+            self._calibrations[pair.calibration] = self._read_calibration(pair.calibration)
+        return self._calibrations[pair.calibration]
+
+    def _load(self, index: int) -> StereoFrame:
+        pair = self.pairs[index]
+        left, right = stereo_pair(read_image(pair.left), read_image(pair.right), str(pair.left), str(pair.right))
+        calib, extrinsics = self.calibration_for(pair)
+        return StereoFrame(
+            index=index,
+            stamp_ns=self.stamps_ns[index],
+            left=left,
+            right=right,
+            calibration=calib_io.fit_to_image(calib, left.shape, str(pair.left)),
+            extrinsics=extrinsics,
+            source=f"{pair.left} + {pair.right}",
+        )
+
+    def _pairs(self) -> Iterator[PairRef]:
+        for index, stamp_ns in enumerate(self.stamps_ns[: len(self.pairs)]):
+            yield PairRef(index, stamp_ns, partial(self._load, index))
+
+    def describe(self) -> dict:
+        first = self.pairs[0]
+        calib, extrinsics = self.calibration_for(first)
+        calib = calib_io.fit_to_image(calib, read_image(first.left).shape, str(first.left))
+        return {
+            "format": self.format,
+            "path": str(self.path),
+            "frames": len(self.pairs),
+            "duration_s": (self.stamps_ns[len(self.pairs) - 1] - self.stamps_ns[0]) / 1e9,
+            "left": str(first.left.parent),
+            "right": str(first.right.parent),
+            "first_pair": [first.left.name, first.right.name],
+            "calibration": calib_io.summary(calib),
+            "extrinsics": describe_extrinsics(extrinsics),
+        }
+
+
+class GenericFolder(FolderSource):
+    """``left/`` + ``right/`` + ``calibration.yaml`` (see the module docstring)."""
+
+    format = "folder"
+    calibration_hint = "calibration.yaml, .yml or .toml"
+
+    @classmethod
+    def matches(cls, path: Path) -> bool:
+        return (path / "left").is_dir() and (path / "right").is_dir()
+
+    def _calibration_file(self) -> Path | None:
+        found = [self.path / f"calibration{s}" for s in (".yaml", ".yml", ".toml")]
+        return next((p for p in found if p.is_file()), None)
+
+    def _find_pairs(self) -> list[ImagePair]:
+        calib = self._calibration_file()
+        return matching_pairs(self.path / "left", self.path / "right", lambda name: calib)
+
+    def _stamps_ns(self) -> list[int] | None:
+        path = self.path / "timestamps.txt"
+        if not path.is_file():
+            return None
+        try:
+            return [int(line) for line in read_lines(path)]
+        except ValueError:
+            raise InputError(f"{path}: need one integer stamp in nanoseconds per line") from None

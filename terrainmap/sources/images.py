@@ -1,0 +1,116 @@
+"""Image decoding shared by every source: files, compressed and raw image messages.
+
+Every function returns H×W (mono) or H×W×3 (RGB order) arrays; 16-bit images stay uint16
+until :func:`stereo_pair` scales the left and right image of a pair with one common factor
+(a per-image scale would make the two views differ in brightness and hurt matching).
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from ..errors import InputError
+
+# ROS / Foxglove raw encodings -> (dtype, channels, conversion to RGB or None)
+_RAW_ENCODINGS: dict[str, tuple[type, int, int | None]] = {
+    "rgb8": (np.uint8, 3, None),
+    "bgr8": (np.uint8, 3, cv2.COLOR_BGR2RGB),
+    "rgba8": (np.uint8, 4, cv2.COLOR_RGBA2RGB),
+    "bgra8": (np.uint8, 4, cv2.COLOR_BGRA2RGB),
+    "mono8": (np.uint8, 1, None),
+    "8uc1": (np.uint8, 1, None),
+    "8uc3": (np.uint8, 3, cv2.COLOR_BGR2RGB),
+    "mono16": (np.uint16, 1, None),
+    "16uc1": (np.uint16, 1, None),
+}
+
+
+def _to_rgb(image: np.ndarray) -> np.ndarray:
+    """OpenCV's BGR(A) or gray decoding result → RGB or mono (dtype kept)."""
+    if image.ndim == 3 and image.shape[2] == 1:
+        return image[:, :, 0]
+    if image.ndim == 3 and image.shape[2] == 4:
+        return cv2.cvtColor(image, cv2.COLOR_BGRA2RGB)
+    if image.ndim == 3:
+        return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+    return image
+
+
+def _check_dtype(image: np.ndarray, name: str) -> np.ndarray:
+    if image.dtype not in (np.uint8, np.uint16):
+        raise InputError(f"{name}: unsupported image depth {image.dtype} (need 8 or 16 bit)")
+    return image
+
+
+def read_image(path: str, name: str | None = None) -> np.ndarray:
+    """Read an image file (png, jpg, pgm, ppm...) as mono or RGB, uint8 or uint16.
+
+    Raises :class:`InputError` naming the file when it cannot be decoded.
+    """
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise InputError(f"{name or path}: cannot read the image file (missing, unreadable or not an image)")
+    return _check_dtype(_to_rgb(image), name or str(path))
+
+
+def decode_compressed(data: bytes, name: str) -> np.ndarray:
+    """Decode a compressed image (PNG, JPEG...) from bytes; ``name`` (topic) goes in errors."""
+    buffer = np.frombuffer(bytes(data), dtype=np.uint8)
+    image = cv2.imdecode(buffer, cv2.IMREAD_UNCHANGED) if buffer.size else None
+    if image is None:
+        raise InputError(f"{name}: cannot decode the compressed image ({buffer.size} bytes)")
+    return _check_dtype(_to_rgb(image), name)
+
+
+def decode_raw(
+    data: bytes, *, width: int, height: int, step: int, encoding: str, name: str, big_endian: bool = False
+) -> np.ndarray:
+    """Turn a raw image message's bytes into an array (RGB or mono, uint8 or uint16).
+
+    Supported encodings: rgb8, bgr8, rgba8, bgra8, mono8/8UC1, 8UC3 (as BGR), mono16/16UC1.
+    """
+    spec = _RAW_ENCODINGS.get(encoding.lower())
+    if spec is None:
+        supported = ", ".join(sorted(_RAW_ENCODINGS))
+        raise InputError(f"{name}: unsupported image encoding {encoding!r} (supported: {supported})")
+    dtype, channels, conversion = spec
+    itemsize = np.dtype(dtype).itemsize
+    row_bytes = width * channels * itemsize
+    step = step or row_bytes
+    if width <= 0 or height <= 0 or step < row_bytes or len(data) < step * (height - 1) + row_bytes:
+        raise InputError(
+            f"{name}: image of {width}×{height} {encoding} with step {step} needs more than the {len(data)} bytes given"
+        )
+    buffer = np.frombuffer(bytes(data), dtype=np.uint8)
+    if buffer.size < step * height:  # the last row may omit its padding
+        buffer = np.pad(buffer, (0, step * height - buffer.size))
+    pixels = np.ascontiguousarray(buffer[: step * height].reshape(height, step)[:, :row_bytes])
+    wire_dtype = np.dtype(dtype).newbyteorder(">" if big_endian else "<")
+    image = pixels.view(wire_dtype).astype(dtype).reshape(height, width, channels)
+    if conversion is not None:
+        image = cv2.cvtColor(image, conversion)
+    return image[:, :, 0] if channels == 1 else image
+
+
+def stereo_pair(
+    left: np.ndarray, right: np.ndarray, left_name: str, right_name: str
+) -> tuple[np.ndarray, np.ndarray]:
+    """Make a left/right pair the pipeline can use: same size, same channels, uint8.
+
+    16-bit images are scaled to 8 bit with one factor for both (255 / the pair's maximum).
+    A colour image paired with a mono one is converted to mono. Different sizes raise
+    :class:`InputError` naming both images and their sizes.
+    """
+    if left.shape[:2] != right.shape[:2]:
+        raise InputError(
+            f"left and right images differ in size: {left_name} is {left.shape[1]}×{left.shape[0]}, "
+            f"{right_name} is {right.shape[1]}×{right.shape[0]}"
+        )
+    if left.ndim != right.ndim:
+        left, right = (cv2.cvtColor(im, cv2.COLOR_RGB2GRAY) if im.ndim == 3 else im for im in (left, right))
+    if left.dtype != np.uint8 or right.dtype != np.uint8:
+        peak = float(max(int(left.max()), int(right.max()), 1))
+        left, right = (np.clip(im.astype(np.float32) * (255.0 / peak) + 0.5, 0, 255).astype(np.uint8)
+                       for im in (left, right))
+    return np.ascontiguousarray(left), np.ascontiguousarray(right)

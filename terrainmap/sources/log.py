@@ -1,0 +1,209 @@
+"""Stereo pairs from logs: MCAP files, rosbag2 directories (MCAP storage) and ROS 1 bags.
+
+Images: ROS 2/1 ``sensor_msgs/msg/Image`` and ``CompressedImage``, Foxglove ``RawImage`` and
+``CompressedImage``. Calibration: ``sensor_msgs/msg/CameraInfo`` or ``foxglove.CameraCalibration``
+matched to each image topic by namespace (or a calibration file). Extrinsics: the tf tree
+(``tf2_msgs/msg/TFMessage``, ``foxglove.FrameTransform(s)``) from ``base_link`` (else
+``base_footprint``, else the root) to the left image's frame.
+
+Calibration, the first left image (for its frame id) and the transforms are read at open, each
+through the topic index, so they are found whatever part of the log ``frames()`` selects. Then
+``frames()`` streams the two image topics once, pairs them by header stamp
+(:class:`~terrainmap.sources.pairing.StereoPairer`, bounded buffers) and decodes images only for
+the pairs it yields: memory stays bounded for a log of any length.
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+from abc import abstractmethod
+from collections.abc import Iterator
+from functools import partial
+from pathlib import Path
+
+from ..errors import CalibrationError, InputError
+from ..types import Extrinsics, StereoCalibration, StereoFrame
+from . import calibration as calib_io
+from . import messages as msgs
+from .base import PairRef, Source, describe_extrinsics
+from .images import stereo_pair
+from .pairing import StereoPairer
+from .readers import McapLog, Ros1Bag
+from .tf import TransformTree
+from .topics import calibration_topic, stereo_topics
+
+logger = logging.getLogger(__name__)
+
+MAX_DYNAMIC_TF_MESSAGES = 1000
+"""How many non-static tf messages are read at most while looking for the camera's parent frames."""
+
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+ROS1_MAGIC = b"#ROSBAG V2.0"
+
+
+def _starts_with(path: Path, magic: bytes) -> bool:
+    try:
+        with open(path, "rb") as f:
+            return f.read(len(magic)) == magic
+    except OSError:
+        return False
+
+
+class LogSource(Source):
+    """Stereo pairs from a log through a message reader (see the module docstring)."""
+
+    def __init__(
+        self,
+        path: str | Path,
+        *,
+        left_topic: str | None = None,
+        right_topic: str | None = None,
+        calibration: str | Path | None = None,
+        pair_tolerance_ns: int = 10_000_000,
+    ):
+        super().__init__(path)
+        self.reader = self._open_reader()
+        self.left_topic, self.right_topic = stereo_topics(self.reader.types, left_topic, right_topic, str(self.path))
+        if self.left_topic == self.right_topic:
+            raise InputError(f"{self.path}: left and right topic are the same ({self.left_topic})")
+        self.pair_tolerance_ns = int(pair_tolerance_ns)
+        first_left = self._first(self.left_topic)
+        self.frame_id = msgs.frame_id(first_left) if first_left is not None else "camera_optical"
+        override = calib_io.load_calibration_file(calibration) if calibration else None
+        self.calibration_topics: tuple[str | None, str | None] = (None, None)
+        self.calibration_error: CalibrationError | None = None
+        self.calibration: StereoCalibration | None = override[0] if override else self._log_calibration()
+        self.extrinsics: Extrinsics | None = (override[1] if override else None) or self._tf_extrinsics()
+
+    @abstractmethod
+    def _open_reader(self) -> McapLog | Ros1Bag:
+        """The message reader of ``self.path``."""
+
+    def _first(self, topic: str):
+        stream = self.reader.messages([topic])
+        try:
+            return next((m for _, _, m in stream), None)
+        finally:
+            stream.close()
+
+    def _log_calibration(self) -> StereoCalibration | None:
+        topics = [t for t, kind in self.reader.types.items() if kind in msgs.CALIBRATION_TYPES]
+        left = calibration_topic(self.left_topic, topics)
+        right = calibration_topic(self.right_topic, topics, exclude=left)
+        self.calibration_topics = (left, right)
+        try:
+            if left is None or right is None:
+                raise CalibrationError(
+                    f"{self.path}: no camera calibration topic for {self.left_topic} and {self.right_topic} "
+                    f"(calibration topics: {', '.join(topics) or 'none'}); pass --calibration"
+                )
+            infos = [self._first(t) for t in (left, right)]
+            if any(info is None for info in infos):
+                raise CalibrationError(f"{self.path}: {left} or {right} holds no message; pass --calibration")
+            return msgs.calibration_from_infos(
+                msgs.camera_info(infos[0], left),
+                msgs.camera_info(infos[1], right),
+                rectified_images="rect" in self.left_topic.lower(),
+                source=f"{left} + {right}",
+            )
+        except CalibrationError as exc:
+            self.calibration_error = exc
+            return None
+
+    def _tf_extrinsics(self) -> Extrinsics | None:
+        tf_topics = sorted(t for t, kind in self.reader.types.items() if kind in msgs.TF_TYPES)
+        static = [t for t in tf_topics if "static" in t]
+        dynamic = [t for t in tf_topics if t not in static]
+        tree = TransformTree()
+        for topics, limit in ((static, None), (dynamic, MAX_DYNAMIC_TF_MESSAGES)):
+            if not topics or tree.resolves(self.frame_id):
+                continue
+            stream = self.reader.messages(topics)
+            try:
+                for topic, _, msg in itertools.islice(stream, limit):
+                    for transform in msgs.transforms(msg, self.reader.types[topic]):
+                        tree.add(*transform)
+                    if limit and tree.resolves(self.frame_id):
+                        break
+            finally:
+                stream.close()
+        return tree.extrinsics(self.frame_id)
+
+    def _pairs(self) -> Iterator[PairRef]:
+        if self.calibration is None:
+            raise self.calibration_error
+        pairer = StereoPairer(self.pair_tolerance_ns)
+        index = 0
+        for topic, _, msg in self.reader.messages([self.left_topic, self.right_topic]):
+            pair = pairer.push(0 if topic == self.left_topic else 1, msgs.stamp_ns(msg), msg)
+            if pair is not None:
+                yield PairRef(index, pair[0], partial(self._load, index, *pair))
+                index += 1
+        if pairer.dropped:
+            logger.info("%s: %d image messages had no partner within %.1f ms", self.path, pairer.dropped,
+                        self.pair_tolerance_ns / 1e6)
+
+    def _load(self, index: int, stamp_ns: int, left_msg, right_msg) -> StereoFrame:
+        types = self.reader.types
+        left = msgs.image_array(left_msg, types[self.left_topic], self.left_topic)
+        right = msgs.image_array(right_msg, types[self.right_topic], self.right_topic)
+        left, right = stereo_pair(left, right, self.left_topic, self.right_topic)
+        return StereoFrame(
+            index=index,
+            stamp_ns=stamp_ns,
+            left=left,
+            right=right,
+            calibration=calib_io.fit_to_image(self.calibration, left.shape, self.left_topic),
+            extrinsics=self.extrinsics,
+            frame_id=msgs.frame_id(left_msg),
+            source=f"{self.path} {self.left_topic} + {self.right_topic}",
+        )
+
+    def describe(self) -> dict:
+        counts = self.reader.counts
+        pairs = min(counts.get(self.left_topic) or 0, counts.get(self.right_topic) or 0)
+        return {
+            "format": self.format,
+            "path": str(self.path),
+            "files": [str(f.path) for f in getattr(self.reader, "files", [self.reader])],
+            "topics": [{"topic": t, "type": k, "count": counts.get(t)} for t, k in sorted(self.reader.types.items())],
+            "left_topic": self.left_topic,
+            "right_topic": self.right_topic,
+            "frames": pairs,
+            "frames_note": "at most; from message counts, pairs are matched by stamp",
+            "frame_id": self.frame_id,
+            "calibration_topics": list(self.calibration_topics),
+            "calibration": calib_io.summary(self.calibration) or f"missing: {self.calibration_error}",
+            "extrinsics": describe_extrinsics(self.extrinsics),
+        }
+
+
+class McapSource(LogSource):
+    """An ``.mcap`` file, or a rosbag2 directory (``metadata.yaml`` + ``.mcap`` files)."""
+
+    @classmethod
+    def matches(cls, path: Path) -> bool:
+        if path.is_dir():
+            return any(path.glob("*.mcap"))
+        return path.suffix.lower() == ".mcap" or _starts_with(path, MCAP_MAGIC)
+
+    @property
+    def format(self) -> str:
+        return "rosbag2" if self.path.is_dir() else "mcap"
+
+    def _open_reader(self) -> McapLog:
+        return McapLog(self.path)
+
+
+class Ros1BagSource(LogSource):
+    """A ROS 1 bag (v2.0)."""
+
+    format = "ros1-bag"
+
+    @classmethod
+    def matches(cls, path: Path) -> bool:
+        return path.is_file() and (path.suffix.lower() == ".bag" or _starts_with(path, ROS1_MAGIC))
+
+    def _open_reader(self) -> Ros1Bag:
+        return Ros1Bag(self.path)

@@ -1,0 +1,119 @@
+"""Reading the fields terrainmap needs from ROS 2, ROS 1 (rosbags) and Foxglove messages.
+
+The three families name things differently (ROS 2 ``header.stamp.nanosec`` and ``k``/``p``,
+ROS 1 ``K``/``P``, Foxglove ``timestamp.nanos`` and ``K``/``P``); these helpers hide that.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Iterator
+
+import numpy as np
+
+from ..errors import CalibrationError
+from ..types import StereoCalibration
+from . import calibration as calib_io
+from .images import decode_compressed, decode_raw
+
+RAW_IMAGE_TYPES = ("sensor_msgs/msg/Image", "foxglove.RawImage")
+COMPRESSED_IMAGE_TYPES = ("sensor_msgs/msg/CompressedImage", "foxglove.CompressedImage")
+IMAGE_TYPES = RAW_IMAGE_TYPES + COMPRESSED_IMAGE_TYPES
+CALIBRATION_TYPES = ("sensor_msgs/msg/CameraInfo", "foxglove.CameraCalibration")
+TF_TYPES = ("tf2_msgs/msg/TFMessage", "foxglove.FrameTransform", "foxglove.FrameTransforms")
+
+
+def normalize_type(name: str) -> str:
+    """``sensor_msgs/Image`` (ROS 1 style) → ``sensor_msgs/msg/Image``; others unchanged."""
+    parts = name.split("/")
+    return f"{parts[0]}/msg/{parts[1]}" if len(parts) == 2 else name
+
+
+def stamp_ns(msg) -> int:
+    """Header stamp (ROS) or ``timestamp`` (Foxglove) in nanoseconds."""
+    if hasattr(msg, "header"):
+        stamp = msg.header.stamp
+        return int(stamp.sec) * 1_000_000_000 + int(getattr(stamp, "nanosec", getattr(stamp, "nsec", 0)))
+    return int(msg.timestamp.seconds) * 1_000_000_000 + int(msg.timestamp.nanos)
+
+
+def frame_id(msg) -> str:
+    return str(msg.header.frame_id if hasattr(msg, "header") else msg.frame_id).lstrip("/")
+
+
+def image_array(msg, msg_type: str, topic: str) -> np.ndarray:
+    """Decode an image message into an RGB / mono array (uint8 or uint16)."""
+    if msg_type in COMPRESSED_IMAGE_TYPES:
+        return decode_compressed(msg.data, topic)
+    return decode_raw(
+        msg.data,
+        width=int(msg.width),
+        height=int(msg.height),
+        step=int(msg.step),
+        encoding=str(msg.encoding),
+        name=topic,
+        big_endian=bool(getattr(msg, "is_bigendian", False)),
+    )
+
+
+def _field(msg, name: str) -> np.ndarray:
+    """``k`` (ROS 2) or ``K`` (ROS 1, Foxglove) as a float array."""
+    return np.asarray(getattr(msg, name.lower()) if hasattr(msg, name.lower()) else getattr(msg, name), float)
+
+
+def camera_info(msg, topic: str) -> dict:
+    """K (3×3), D, R (3×3), P (3×4), width, height of a CameraInfo / CameraCalibration."""
+    try:
+        info = {
+            "K": _field(msg, "K").reshape(3, 3),
+            "D": _field(msg, "D").ravel(),
+            "R": _field(msg, "R").reshape(3, 3) if _field(msg, "R").size == 9 else np.eye(3),
+            "P": _field(msg, "P").reshape(3, 4) if _field(msg, "P").size == 12 else None,
+            "width": int(msg.width),
+            "height": int(msg.height),
+        }
+    except ValueError:
+        raise CalibrationError(f"{topic}: camera calibration without a 3×3 K matrix") from None
+    if info["P"] is None or not info["P"][0, 0]:
+        raise CalibrationError(f"{topic}: camera calibration without a projection matrix P")
+    return info
+
+
+def calibration_from_infos(
+    left: dict, right: dict, *, rectified_images: bool, source: str
+) -> StereoCalibration:
+    """Stereo calibration from the left and right camera infos (ROS stereo convention).
+
+    Rectified images (``image_rect*`` topics, or no distortion): pinhole from P, baseline
+    ``(P_left[0,3] − P_right[0,3]) / fx`` (= ``−P_right[0,3]/P_right[0,0]`` in ROS).
+    Raw distorted images: ``rectified=False`` with K, D and the right camera's pose wrt the left,
+    ``R = R_rᵀ R_l``, ``T = −R_rᵀ (B, 0, 0)`` (R_l, R_r: the rectifying rotations of the infos).
+    """
+    rectified = rectified_images or not (np.any(left["D"]) or np.any(right["D"]))
+    calib = calib_io.from_projections(
+        left["P"], right["P"], source=source, width=left["width"], height=left["height"]
+    )
+    if rectified:
+        return calib
+    return dataclasses.replace(
+        calib,
+        rectified=False,
+        K_left=left["K"],
+        K_right=right["K"],
+        dist_left=left["D"],
+        dist_right=right["D"],
+        R=right["R"].T @ left["R"],
+        T=-right["R"].T @ np.array([calib.baseline_m, 0.0, 0.0]),
+    )
+
+
+def transforms(msg, msg_type: str) -> Iterator[tuple[str, str, list[float], list[float]]]:
+    """(parent, child, translation xyz, quaternion xyzw) of each transform in a TF message."""
+    if msg_type == "tf2_msgs/msg/TFMessage":
+        for t in msg.transforms:
+            tr, q = t.transform.translation, t.transform.rotation
+            yield t.header.frame_id, t.child_frame_id, [tr.x, tr.y, tr.z], [q.x, q.y, q.z, q.w]
+        return
+    for t in msg.transforms if msg_type == "foxglove.FrameTransforms" else [msg]:
+        tr, q = t.translation, t.rotation
+        yield t.parent_frame_id, t.child_frame_id, [tr.x, tr.y, tr.z], [q.x, q.y, q.z, q.w]

@@ -1,0 +1,188 @@
+"""Message readers under :class:`~terrainmap.sources.log.LogSource`: MCAP files (a single file or
+a rosbag2 directory of them) and ROS 1 bags (through ``rosbags``).
+
+A reader knows its topics (``types``: topic → message type, ``counts``: topic → messages or None)
+and streams decoded messages of chosen topics in log-time order, one file at a time. Read errors
+(truncated or corrupt files) become :class:`InputError` naming the file, raised after the messages
+that could be read.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from ..errors import InputError
+from .messages import normalize_type
+
+logger = logging.getLogger(__name__)
+
+
+def _reason(exc: Exception) -> str:
+    return f"{type(exc).__name__}: {exc}".splitlines()[0][:200]
+
+
+def _decoder_factories() -> list:
+    from mcap_protobuf.decoder import DecoderFactory as ProtobufDecoderFactory
+    from mcap_ros2.decoder import DecoderFactory as Ros2DecoderFactory
+
+    return [Ros2DecoderFactory(), ProtobufDecoderFactory()]
+
+
+class McapFile:
+    """One MCAP file: its channels from the summary, or from a linear scan when it has none."""
+
+    def __init__(self, path: Path):
+        from mcap.reader import make_reader
+
+        self.path = path
+        self.types: dict[str, str] = {}
+        self.counts: dict[str, int | None] = {}
+        self.indexed = False
+        try:
+            with open(path, "rb") as stream:
+                reader = make_reader(stream)
+                summary = self._summary(reader)
+                if summary is not None:
+                    self._from_summary(summary)
+                else:
+                    stream.seek(0)
+                    self._scan(stream)
+        except OSError as exc:
+            raise InputError(f"{path}: cannot read the log ({exc.strerror or exc})") from None
+        except Exception as exc:  # mcap raises many kinds on a file that is not MCAP
+            raise InputError(f"{path}: not a readable MCAP file ({_reason(exc)})") from exc
+
+    def _summary(self, reader):
+        try:
+            return reader.get_summary()
+        except Exception as exc:  # no footer: a truncated or still-recording file
+            logger.warning("%s: no readable summary (%s); scanning the file", self.path, _reason(exc))
+            return None
+
+    def _from_summary(self, summary) -> None:
+        self.indexed = bool(summary.chunk_indexes)
+        counts = summary.statistics.channel_message_counts if summary.statistics else {}
+        for channel in summary.channels.values():
+            schema = summary.schemas.get(channel.schema_id)
+            self.types[channel.topic] = normalize_type(schema.name if schema else "")
+            self.counts[channel.topic] = self.counts.get(channel.topic, 0) + counts.get(channel.id, 0)
+
+    def _scan(self, stream) -> None:
+        from mcap.reader import NonSeekingReader
+
+        try:
+            for schema, channel, _ in NonSeekingReader(stream).iter_messages(log_time_order=False):
+                self.types[channel.topic] = normalize_type(schema.name if schema else "")
+                self.counts[channel.topic] = self.counts.get(channel.topic, 0) + 1
+        except Exception as exc:
+            logger.warning("%s: truncated or corrupt after %d messages (%s)", self.path, sum(self.counts.values()), _reason(exc))
+
+    def messages(self, topics: list[str]) -> Iterator[tuple[str, int, Any]]:
+        """(topic, log_time_ns, decoded message) of ``topics`` in log-time order."""
+        from mcap.reader import NonSeekingReader, SeekingReader
+
+        factories, decoders = _decoder_factories(), {}
+        count = 0
+        try:
+            with open(self.path, "rb") as stream:
+                reader = SeekingReader(stream) if self.indexed else NonSeekingReader(stream)
+                for schema, channel, message in reader.iter_messages(topics=topics):
+                    if channel.id not in decoders:
+                        decoders[channel.id] = next(
+                            (d for f in factories if (d := f.decoder_for(channel.message_encoding, schema))), None
+                        )
+                    if decoders[channel.id] is None:
+                        raise InputError(f"{self.path}: no decoder for topic {channel.topic} ({channel.message_encoding})")
+                    yield channel.topic, message.log_time, decoders[channel.id](message.data)
+                    count += 1
+        except InputError:
+            raise
+        except Exception as exc:
+            raise InputError(
+                f"{self.path}: log is truncated or corrupt after {count} messages of {', '.join(topics)} ({_reason(exc)})"
+            ) from exc
+
+
+def mcap_files(path: Path) -> list[Path]:
+    """The MCAP files of a log: the file itself, or a rosbag2 directory's files in metadata order."""
+    if path.is_file():
+        return [path]
+    metadata = path / "metadata.yaml"
+    names: list[str] = []
+    if metadata.is_file():
+        try:
+            info = yaml.safe_load(metadata.read_text())["rosbag2_bagfile_information"]
+            names = list(info.get("relative_file_paths") or [])
+        except (OSError, yaml.YAMLError, KeyError, TypeError) as exc:
+            logger.warning("%s: unreadable (%s); using the .mcap files in the folder", metadata, _reason(exc))
+    files = [path / n for n in names if (path / n).suffix == ".mcap" and (path / n).is_file()]
+    return files or sorted(path.glob("*.mcap"))
+
+
+class McapLog:
+    """An MCAP file or a rosbag2 directory of MCAP files, read one file at a time."""
+
+    format = "mcap"
+
+    def __init__(self, path: Path):
+        self.files = [McapFile(f) for f in mcap_files(path)]
+        if not self.files:
+            raise InputError(f"{path}: no .mcap files in this folder")
+        self.types: dict[str, str] = {}
+        self.counts: dict[str, int | None] = {}
+        for f in self.files:
+            self.types.update(f.types)
+            for topic, n in f.counts.items():
+                self.counts[topic] = (self.counts.get(topic) or 0) + (n or 0)
+
+    def messages(self, topics: list[str]) -> Iterator[tuple[str, int, Any]]:
+        for f in self.files:
+            yield from f.messages(topics)
+
+
+class Ros1Bag:
+    """A ROS 1 bag (v2.0), read with ``rosbags``."""
+
+    format = "ros1-bag"
+
+    def __init__(self, path: Path):
+        from rosbags.typesys import Stores, get_typestore
+
+        self.path = path
+        self._typestore = get_typestore(Stores.ROS1_NOETIC)
+        with self._open() as bag:
+            self.types = {c.topic: normalize_type(c.msgtype) for c in bag.connections}
+            self.counts = {}
+            for c in bag.connections:
+                self.counts[c.topic] = self.counts.get(c.topic, 0) + c.msgcount
+
+    @contextmanager
+    def _open(self):
+        from rosbags.rosbag1 import Reader
+
+        try:
+            reader = Reader(self.path)
+            reader.open()
+        except Exception as exc:  # rosbags raises ReaderError, but also struct/OS errors on garbage
+            raise InputError(f"{self.path}: not a readable ROS 1 bag ({_reason(exc)})") from exc
+        try:
+            yield reader
+        finally:
+            reader.close()
+
+    def messages(self, topics: list[str]) -> Iterator[tuple[str, int, Any]]:
+        count = 0
+        with self._open() as bag:
+            connections = [c for c in bag.connections if c.topic in topics]
+            try:
+                for connection, log_time, raw in bag.messages(connections=connections):
+                    yield connection.topic, log_time, self._typestore.deserialize_ros1(raw, connection.msgtype)
+                    count += 1
+            except Exception as exc:
+                raise InputError(f"{self.path}: bag is truncated or corrupt after {count} messages ({_reason(exc)})") from exc
