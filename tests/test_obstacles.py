@@ -1,0 +1,189 @@
+"""Obstacle extraction: synthetic planes with boxes and ditches, filters, many tiny clusters."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+from obstacle_scenes import GRID, Plane, box_points, labelled, terrain_points
+
+from terrainmap.config import ConfigError, ObstacleConfig
+from terrainmap.errors import InputError
+from terrainmap.obstacles import extract_obstacles, terrain_at
+from terrainmap.types import Label
+
+
+def test_box_on_flat_ground_is_one_positive_obstacle():
+    plane = Plane()
+    box = box_points(plane, (10.0, 2.0), 1.5, 1.0, 1.2)
+    points, labels = labelled(plane, terrain_points(plane), box)
+    (obstacle,) = extract_obstacles(points, labels, GRID, plane, ObstacleConfig())
+    assert obstacle.kind == "positive"
+    assert obstacle.track_id == -1 and not obstacle.confirmed
+    np.testing.assert_allclose(obstacle.center_m[:2], [10.0, 2.0], atol=0.05)
+    np.testing.assert_allclose(obstacle.center_m[2], 0.6, atol=0.05)  # from the ground to the top
+    np.testing.assert_allclose(sorted(obstacle.size_m[:2]), [1.0, 1.5], atol=0.06)
+    assert obstacle.size_m[2] == pytest.approx(1.2, abs=0.02)
+    assert obstacle.height_m == pytest.approx(1.2, abs=1e-3)
+    assert obstacle.point_count == int((labels == Label.OBSTACLE).sum())
+    nearest = np.linalg.norm(box[box[:, 2] > 0.25], axis=1).min()
+    assert obstacle.range_m == pytest.approx(nearest, abs=1e-4)
+
+
+def test_rotated_box_on_tilted_plane_height_is_above_the_surface():
+    plane = Plane(gx=np.tan(np.deg2rad(10)), gy=-0.05, z0=0.4)
+    yaw = np.deg2rad(30)
+    box = box_points(plane, (15.0, -3.0), 3.0, 1.0, 0.8, yaw=yaw)
+    points, labels = labelled(plane, terrain_points(plane), box)
+    (obstacle,) = extract_obstacles(points, labels, GRID, plane, ObstacleConfig())
+    assert obstacle.yaw_rad == pytest.approx(yaw, abs=np.deg2rad(2))
+    np.testing.assert_allclose(obstacle.size_m[:2], [3.0, 1.0], atol=0.06)
+    np.testing.assert_allclose(obstacle.center_m[:2], [15.0, -3.0], atol=0.05)
+    # Box top is 0.8 m above the plane; the plane rises 0.53 m across the box's x extent.
+    assert obstacle.height_m == pytest.approx(0.8, abs=0.02)
+
+
+def test_ditch_is_a_negative_obstacle_with_its_depth():
+    plane = Plane(gy=0.02)
+    ground = terrain_points(plane)
+    ditch = (np.abs(ground[:, 0] - 20.0) < 0.6) & (np.abs(ground[:, 1]) < 3.0)
+    ground[ditch, 2] -= 0.7
+    points, labels = labelled(plane, ground)
+    (obstacle,) = extract_obstacles(points, labels, GRID, plane, ObstacleConfig())
+    assert obstacle.kind == "negative"
+    assert obstacle.height_m == pytest.approx(0.7, abs=1e-3)
+    # The box spans from the deepest point (low side of the tilted ditch) up to the terrain.
+    ground_z = plane.evaluate(*obstacle.center_m[:2])
+    assert obstacle.size_m[2] == pytest.approx(ground_z - points[ditch, 2].min(), abs=1e-4)
+    assert obstacle.center_m[2] == pytest.approx(ground_z - obstacle.size_m[2] / 2, abs=1e-6)
+    np.testing.assert_allclose(obstacle.center_m[:2], [20.0, 0.0], atol=0.1)
+    assert extract_obstacles(points, labels, GRID, plane, ObstacleConfig(negative=False)) == []
+
+
+def test_frame_without_obstacles_gives_none():
+    plane = Plane(gx=0.1)
+    points, labels = labelled(plane, terrain_points(plane))
+    assert extract_obstacles(points, labels, GRID, plane, ObstacleConfig()) == []
+    empty = np.zeros((0, 3), np.float32)
+    assert extract_obstacles(empty, np.zeros(0, np.uint8), GRID, plane, ObstacleConfig()) == []
+
+
+def test_separate_boxes_are_separate_and_diagonal_neighbours_join():
+    plane = Plane()
+    a = box_points(plane, (8.0, 0.0), 0.8, 0.8, 1.0)
+    b = box_points(plane, (8.0, 4.0), 0.8, 0.8, 1.0)
+    points, labels = labelled(plane, a, b)
+    found = extract_obstacles(points, labels, GRID, plane, ObstacleConfig())
+    assert sorted(round(o.center_m[1]) for o in found) == [0, 4]
+    # Two single-cell clusters touching at a corner are one cluster (8-connectivity).
+    corner = np.array([[10.25, 0.25, 1.0]] * 6 + [[10.75, 0.75, 1.0]] * 6)
+    labels = np.full(len(corner), Label.OBSTACLE, np.uint8)
+    (joined,) = extract_obstacles(corner, labels, GRID, plane, ObstacleConfig(min_points=1))
+    assert joined.point_count == 12
+
+
+@pytest.mark.parametrize(
+    ("field", "value", "kept"),
+    [
+        ("min_height_m", 1.1, False),
+        ("min_height_m", 0.9, True),
+        ("min_points", 10_000, False),
+        ("min_cells", 20, False),
+    ],
+)
+def test_filters(field, value, kept):
+    plane = Plane()
+    points, labels = labelled(plane, box_points(plane, (10.0, 0.0), 1.0, 1.0, 1.0))
+    found = extract_obstacles(points, labels, GRID, plane, ObstacleConfig(**{field: value}))
+    assert len(found) == int(kept)
+
+
+def test_min_cell_points_drops_sparse_cells():
+    plane = Plane()
+    sparse = np.array([[10.25, 0.25, 1.0], [10.75, 0.25, 1.0]])  # one point in each of two cells
+    labels = np.full(2, Label.OBSTACLE, np.uint8)
+    assert len(extract_obstacles(sparse, labels, GRID, plane, ObstacleConfig(min_points=1))) == 1
+    assert (
+        extract_obstacles(sparse, labels, GRID, plane, ObstacleConfig(min_points=1, min_cell_points=2)) == []
+    )
+
+
+def test_thousands_of_tiny_clusters_are_cheap():
+    plane = Plane()
+    m0, m1 = GRID.shape
+    ix, iy = np.meshgrid(np.arange(0, m0, 2), np.arange(0, m1, 2), indexing="ij")
+    n_clusters = ix.size  # isolated cells: every other cell along both axes
+    x = GRID.x_min_m + (ix.ravel() + 0.5) * GRID.cell_size_m
+    y = GRID.y_min_m + (iy.ravel() + 0.5) * GRID.cell_size_m
+    rng = np.random.default_rng(1)
+    per_cluster = 5
+    jitter = rng.uniform(-0.2, 0.2, (per_cluster * n_clusters, 2))
+    pts = np.column_stack(
+        [np.repeat(x, per_cluster) + jitter[:, 0], np.repeat(y, per_cluster) + jitter[:, 1]]
+    )
+    pts = np.column_stack([pts, rng.uniform(0.4, 1.0, len(pts))])
+    labels = np.full(len(pts), Label.OBSTACLE, np.uint8)
+    config = ObstacleConfig(min_points=1)
+    extract_obstacles(pts, labels, GRID, plane, config)  # warm-up
+    start = time.perf_counter()
+    found = extract_obstacles(pts, labels, GRID, plane, config)
+    elapsed = time.perf_counter() - start
+    assert n_clusters > 700 and len(found) == n_clusters
+    assert all(o.point_count == per_cluster for o in found)
+    assert elapsed < 0.1  # ~3 ms measured; generous for a loaded machine
+    assert extract_obstacles(pts, labels, GRID, plane, ObstacleConfig(min_points=6)) == []
+
+
+def test_points_outside_the_area_are_ignored():
+    plane = Plane()
+    outside = box_points(plane, (-5.0, 0.0), 1.0, 1.0, 1.0)
+    points, labels = labelled(plane, outside)
+    assert extract_obstacles(points, labels, GRID, plane, ObstacleConfig()) == []
+
+
+def test_bad_input_raises_input_error():
+    with pytest.raises(InputError, match="N×3"):
+        extract_obstacles(np.zeros((4, 2)), np.zeros(4, np.uint8), GRID, Plane(), ObstacleConfig())
+    with pytest.raises(InputError, match="labels"):
+        extract_obstacles(np.zeros((4, 3)), np.zeros(3, np.uint8), GRID, Plane(), ObstacleConfig())
+
+
+def test_terrain_at_is_exact_on_a_plane():
+    plane = Plane(gx=0.3, gy=-0.2, z0=1.0)
+    xs, ys = np.random.default_rng(0).uniform([2.5, -10.7], [35.7, 10.7], (500, 2)).T
+    elevation = plane.on_grid(
+        GRID.x_min_m + (np.arange(68) + 0.5) * 0.5, GRID.y_min_m + (np.arange(44) + 0.5) * 0.5
+    )
+    got = terrain_at(np.column_stack([xs, ys]), elevation, GRID)
+    np.testing.assert_allclose(got, plane.evaluate(xs, ys), atol=1e-9)
+
+
+@pytest.mark.parametrize(
+    "field", ["min_height_m", "min_depth_m", "min_points", "min_cells", "min_cell_points"]
+)
+def test_config_rejects_nonsense(field):
+    with pytest.raises(ConfigError, match=f"obstacles.{field}"):
+        ObstacleConfig(**{field: 0}).validate()
+
+
+def test_boxes_found_on_the_real_terrain_estimate():
+    """End to end with the core: synthetic cloud → grid → surface → labels → obstacles."""
+    from terrainmap.config import SegmentationConfig, TerrainConfig
+    from terrainmap.grid import quantize
+    from terrainmap.segmentation import label_points
+    from terrainmap.synthetic import BOXES, cloud
+    from terrainmap.terrain import estimate_terrain
+
+    points = cloud(150_000, seed=3)
+    estimate = estimate_terrain(quantize(points, GRID), TerrainConfig())
+    labels = label_points(points, estimate.surface, GRID, SegmentationConfig())
+    found = [
+        o
+        for o in extract_obstacles(points, labels, GRID, estimate.surface, ObstacleConfig())
+        if o.kind == "positive"
+    ]
+    for bx, by, width, height in BOXES:
+        near = [o for o in found if np.hypot(o.center_m[0] - bx, o.center_m[1] - by) < width / 2 + 0.3]
+        assert len(near) == 1, (bx, by, [o.center_m for o in found])
+        assert near[0].height_m == pytest.approx(height, abs=0.25)

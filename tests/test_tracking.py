@@ -1,0 +1,201 @@
+"""Obstacle tracking: confirmation, false-positive pruning, stable ids, leaving the area, poses."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from obstacle_scenes import GRID, Plane, box_points, labelled, terrain_points
+
+from terrainmap.config import ConfigError, GridConfig, ObstacleConfig, TrackingConfig
+from terrainmap.errors import InputError
+from terrainmap.obstacles import extract_obstacles
+from terrainmap.tracking import ObstacleTracker
+from terrainmap.types import Obstacle
+
+DT_NS = 100_000_000  # 10 Hz
+
+
+def detection(x: float, y: float, kind: str = "positive") -> Obstacle:
+    return Obstacle(
+        center_m=np.array([x, y, 0.5]),
+        size_m=np.array([1.0, 1.0, 1.0]),
+        yaw_rad=0.0,
+        height_m=1.0,
+        point_count=50,
+        range_m=float(np.hypot(x, y)),
+        kind=kind,
+    )
+
+
+def pose(x: float, y: float = 0.0, yaw: float = 0.0) -> np.ndarray:
+    T = np.eye(4)
+    c, s = np.cos(yaw), np.sin(yaw)
+    T[:2, :2] = [[c, -s], [s, c]]
+    T[:2, 3] = x, y
+    return T
+
+
+def test_static_obstacle_is_confirmed_on_its_second_frame_and_keeps_its_id():
+    tracker = ObstacleTracker(TrackingConfig(confirm_hits=2))
+    (first,) = tracker.update([detection(10, 1)], 0)
+    assert first.track_id >= 1 and not first.confirmed
+    for k in range(1, 6):
+        (out,) = tracker.update([detection(10 + 0.02 * (-1) ** k, 1)], k * DT_NS)
+        assert out.track_id == first.track_id and out.confirmed
+    np.testing.assert_allclose(out.center_m[:2], [10, 1], atol=0.05)
+    assert np.linalg.norm(out.velocity_mps) < 0.5 and out.velocity_mps[2] == 0
+
+
+def test_single_frame_false_positive_in_the_points_is_never_confirmed():
+    """A spurious cluster injected into the points of one frame never becomes an obstacle."""
+    plane = Plane()
+    ground = terrain_points(plane, spacing=0.25)
+    box = box_points(plane, (12.0, 0.0), 1.0, 1.0, 1.0)
+    ghost = box_points(plane, (25.0, -5.0), 0.8, 0.8, 1.5)
+    tracker = ObstacleTracker(TrackingConfig(), area=GRID)
+    ghost_ids = set()
+    for k in range(8):
+        parts = (ground, box, ghost) if k == 3 else (ground, box)
+        points, labels = labelled(plane, *parts)
+        tracked = tracker.update(extract_obstacles(points, labels, GRID, plane, ObstacleConfig()), k * DT_NS)
+        ghosts = [o for o in tracked if o.center_m[0] > 20]
+        assert not any(o.confirmed for o in ghosts)
+        ghost_ids |= {o.track_id for o in ghosts}
+        assert len(ghosts) == (1 if k == 3 else 0)
+    assert len(ghost_ids) == 1
+    assert [o.confirmed for o in tracked] == [True]
+
+
+@pytest.mark.parametrize("height", [0.5, 1.0])
+def test_obstacle_from_half_a_metre_is_confirmed_within_three_frames(height):
+    plane = Plane(gx=0.05)
+    ground = terrain_points(plane, spacing=0.25)
+    tracker = ObstacleTracker(TrackingConfig(), area=GRID)
+    confirmed_at = None
+    for k in range(6):
+        parts = (ground,) if k < 2 else (ground, box_points(plane, (18.0, 3.0), 0.6, 0.6, height))
+        points, labels = labelled(plane, *parts)
+        tracked = tracker.update(extract_obstacles(points, labels, GRID, plane, ObstacleConfig()), k * DT_NS)
+        if confirmed_at is None and any(o.confirmed for o in tracked):
+            confirmed_at = k
+    assert confirmed_at is not None and confirmed_at - 2 + 1 <= 3  # first visible at frame 2
+
+
+def test_moving_obstacles_keep_their_ids_and_get_their_velocity():
+    tracker = ObstacleTracker(TrackingConfig())
+    va, vb = np.array([3.0, 0.5]), np.array([-1.0, -2.0])
+    a0, b0 = np.array([8.0, -3.0]), np.array([20.0, 4.0])
+    ids = None
+    rng = np.random.default_rng(0)
+    for k in range(15):
+        t = k * DT_NS * 1e-9
+        dets = [
+            detection(*(a0 + va * t + rng.normal(0, 0.05, 2))),
+            detection(*(b0 + vb * t + rng.normal(0, 0.05, 2))),
+        ]
+        out = tracker.update(dets[::-1] if k % 2 else dets, k * DT_NS)  # order must not matter
+        by_x = sorted(out, key=lambda o: o.center_m[1])
+        current = [o.track_id for o in by_x]
+        assert ids is None or current == ids
+        ids = current
+    a, b = by_x
+    np.testing.assert_allclose(a.velocity_mps[:2], va, atol=0.4)
+    np.testing.assert_allclose(b.velocity_mps[:2], vb, atol=0.4)
+    assert a.confirmed and b.confirmed
+
+
+def test_track_leaving_the_area_is_dropped_at_once_and_its_id_not_reused():
+    tracker = ObstacleTracker(TrackingConfig(max_misses=5), area=GRID)
+    seen = set()
+    x = 33.0
+    for k in range(8):  # moving forward at 5 m/s across the far edge (36 m), unseen beyond it
+        out = tracker.update([detection(x, 0)] if x < 36 else [], k * DT_NS)
+        seen |= {o.track_id for o in out}
+        x += 0.5
+    # Predicted 0.5 m beyond the area → dropped without coasting through max_misses.
+    assert out == [] and tracker.track_count == 0
+    (new,) = tracker.update([detection(10, 0)], 8 * DT_NS)
+    assert new.track_id not in seen
+
+
+def test_confirmed_track_coasts_through_misses_then_is_dropped():
+    tracker = ObstacleTracker(TrackingConfig(confirm_hits=2, max_misses=2))
+    for k in range(3):
+        (out,) = tracker.update([detection(10 + 0.1 * k, 0)], k * DT_NS)
+    track_id = out.track_id
+    for k in range(3, 5):  # two misses: still reported, at the predicted position
+        (coast,) = tracker.update([], k * DT_NS)
+        assert coast.track_id == track_id and coast.confirmed
+        assert coast.center_m[0] == pytest.approx(10 + 0.1 * k, abs=0.1)
+    assert tracker.update([], 5 * DT_NS) == []  # third miss > max_misses
+    assert tracker.track_count == 0
+
+
+def test_world_frame_tracking_with_vehicle_pose():
+    """A static obstacle seen from a vehicle driving at 5 m/s: standing still in the world frame."""
+    with_pose = ObstacleTracker(TrackingConfig())
+    without = ObstacleTracker(TrackingConfig())
+    yaw = 0.3
+    heading = np.array([np.cos(yaw), np.sin(yaw)])
+    world_xy = np.array([25.0, 10.0])
+    for k in range(10):
+        vehicle_xy = heading * 5.0 * k * 0.1
+        rel = world_xy - vehicle_xy
+        local = np.array([rel @ heading, rel @ [-heading[1], heading[0]]])
+        dets = [detection(*local)]
+        (a,) = with_pose.update(dets, k * DT_NS, pose(*vehicle_xy, yaw))
+        (b,) = without.update(dets, k * DT_NS)
+    np.testing.assert_allclose(a.center_m[:2], local, atol=0.05)  # reported in the vehicle frame
+    assert a.center_m[2] == pytest.approx(0.5)
+    assert np.linalg.norm(a.velocity_mps) < 0.2  # over ground
+    np.testing.assert_allclose(b.velocity_mps[:2], [-5.0, 0.0], atol=0.3)  # relative to the vehicle
+    assert a.track_id == 1 and b.track_id == 1
+
+
+def test_positive_and_negative_obstacles_do_not_associate():
+    tracker = ObstacleTracker(TrackingConfig())
+    (pos,) = tracker.update([detection(10, 0, "positive")], 0)
+    out = tracker.update([detection(10, 0, "negative")], DT_NS)
+    assert [o.kind for o in out] == ["negative"] and out[0].track_id != pos.track_id
+
+
+def test_far_detection_outside_the_gate_starts_a_new_track():
+    tracker = ObstacleTracker(TrackingConfig(gate_m=1.0))
+    (a,) = tracker.update([detection(10, 0)], 0)
+    (b,) = tracker.update([detection(12, 0)], DT_NS)
+    assert b.track_id != a.track_id and not b.confirmed
+
+
+def test_stamp_going_back_resets_the_tracks():
+    tracker = ObstacleTracker(TrackingConfig())
+    tracker.update([detection(10, 0)], 5 * DT_NS)
+    (out,) = tracker.update([detection(10, 0)], 6 * DT_NS)
+    assert out.confirmed
+    (after,) = tracker.update([detection(10, 0)], DT_NS)
+    assert not after.confirmed and after.track_id != out.track_id
+
+
+def test_bad_pose_raises_input_error():
+    with pytest.raises(InputError, match="vehicle_pose"):
+        ObstacleTracker(TrackingConfig()).update([], 0, np.eye(3))
+
+
+def test_many_detections_are_tracked_quickly():
+    rng = np.random.default_rng(2)
+    xy = rng.uniform([3, -10], [35, 10], (300, 2))
+    tracker = ObstacleTracker(TrackingConfig(gate_m=0.3), area=GridConfig())
+    for k in range(3):
+        out = tracker.update([detection(*p) for p in xy + rng.normal(0, 0.02, xy.shape)], k * DT_NS)
+    assert len(out) == 300 and all(o.confirmed for o in out)
+    assert len({o.track_id for o in out}) == 300
+
+
+@pytest.mark.parametrize(
+    "field",
+    ["confirm_hits", "gate_m", "measurement_std_m", "acceleration_std_mps2", "initial_velocity_std_mps"],
+)
+def test_config_rejects_nonsense(field):
+    with pytest.raises(ConfigError, match=f"tracking.{field}"):
+        TrackingConfig(**{field: 0}).validate()
+    with pytest.raises(ConfigError, match="tracking.max_misses"):
+        TrackingConfig(max_misses=-1).validate()
