@@ -1,0 +1,49 @@
+"""``terrainmap info``: what a log or image folder holds and what ``process`` would use."""
+
+from __future__ import annotations
+
+import json
+
+import click
+
+from .source_options import SourceOptions, open_options
+
+
+def _value(value) -> str:
+    if isinstance(value, float):
+        return f"{value:.10g}"
+    if isinstance(value, list):
+        return "[" + ", ".join(_value(v) for v in value) + "]"
+    return "-" if value is None else str(value)
+
+
+def format_description(description: dict) -> str:
+    """``Source.describe()`` as aligned text: scalars as ``key: value``, tables and sections indented."""
+    lines = []
+    width = max(len(key) for key in description) + 1
+    for key, value in description.items():
+        label = f"{key.replace('_', ' ')}:".ljust(width + 1)
+        if isinstance(value, dict):
+            lines.append(label.rstrip())
+            lines += [f"  {k}: {_value(v)}" for k, v in value.items()]
+        elif isinstance(value, list) and value and isinstance(value[0], dict):
+            lines.append(label.rstrip())
+            columns = list(value[0])
+            widths = [max(len(_value(row[c])) for row in value) for c in columns]
+            lines += ["  " + "  ".join(_value(row[c]).ljust(w) for c, w in zip(columns, widths, strict=True)).rstrip()
+                      for row in value]
+        else:
+            lines.append(f"{label}{_value(value)}")
+    return "\n".join(lines)
+
+
+@click.command()
+@click.argument("log", type=click.Path())
+@open_options
+@click.option("--json", "as_json", is_flag=True, help="Print the description as JSON.")
+def info(log: str, source_opts: SourceOptions, as_json: bool) -> None:
+    """Describe LOG (an MCAP file, rosbag2 or ROS 1 bag, or an image folder): topics, the chosen
+    stereo pair, calibration and extrinsics."""
+    with source_opts.open(log) as source:
+        description = source.describe()
+    click.echo(json.dumps(description, indent=2) if as_json else format_description(description))
