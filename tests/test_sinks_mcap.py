@@ -1,0 +1,312 @@
+"""MCAP sinks: write synthetic frames, read them back with independent decoders, compare every field."""
+
+from __future__ import annotations
+
+import json
+import math
+import tomllib
+from pathlib import Path
+
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+from mcap_protobuf.decoder import DecoderFactory as ProtobufDecoderFactory
+from scipy.spatial.transform import Rotation
+
+import terrainmap
+from terrainmap.config import Config, GridConfig
+from terrainmap.errors import ConfigError, InputError, TerrainmapError
+from terrainmap.grid import HeightGrid, cell_index
+from terrainmap.sinks import Sink, open_mcap_sink
+from terrainmap.types import Extrinsics, FrameResult, Obstacle, StereoCalibration, StereoFrame
+
+DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+# 4 m × 3 m at 0.5 m: m0 = 8 cells along x, m1 = 6 along y (not square, so transposes show).
+GRID = GridConfig(x_min_m=2.0, length_m=4.0, width_m=3.0, y_center_m=0.5, cell_size_m=0.5)
+STAMP0 = 1_700_000_000_123_456_789
+CAM_ROTATION = Rotation.from_euler("xyz", [-90 - 5, 1.0, -90], degrees=True).as_matrix()  # optical, pitched
+
+
+def make_layers(grid: GridConfig, *, cost: bool = True) -> dict[str, np.ndarray]:
+    m0, m1 = grid.shape
+    ix, iy = np.meshgrid(np.arange(m0), np.arange(m1), indexing="ij")
+    layers = {
+        "elevation": (ix * 10 + iy).astype(np.float32) / 100,  # unique per cell: 0.01·(10·ix + iy)
+        "slope": (ix + iy / 10).astype(np.float32),
+        "label": ((ix + 2 * iy) % 4).astype(np.uint8),
+        "valid": (ix + iy) % 5 != 0,
+    }
+    if cost:
+        layers["cost"] = np.where(iy == 1, np.nan, ix / m0).astype(np.float32)
+    return layers
+
+
+def make_frame(index: int, *, grid: GridConfig = GRID, points: int = 50, source: str = "calibration", cost=True):
+    rng = np.random.default_rng(index)
+    stamp_ns = STAMP0 + index * 100_000_000
+    pts = np.c_[rng.uniform(2, 6, points), rng.uniform(-1, 2, points), rng.normal(0, 0.2, points)].astype(np.float32)
+    m0, m1 = grid.shape
+    height_grid = HeightGrid(
+        z=np.zeros((m0, m1)),
+        z_top=np.zeros((m0, m1)),
+        count=np.ones((m0, m1), int),
+        observed=np.ones((m0, m1), bool),
+        valid=np.ones((m0, m1), bool),
+        config=grid,
+    )
+    extrinsics = Extrinsics(CAM_ROTATION, np.array([0.2, -0.1, 1.6]), source=source, camera_frame_id="left_optical")
+    obstacles = [
+        Obstacle(np.array([4.0, 0.5, 0.4]), np.array([1.0, 0.6, 0.8]), 0.3, 0.8, 40, 4.0, "positive", 7, True),
+        Obstacle(np.array([5.0, -0.5, -0.2]), np.array([0.5, 0.5, 0.3]), -1.0, 0.3, 9, 5.0, "negative", -1, False),
+    ]
+    result = FrameResult(
+        index=index,
+        stamp_ns=stamp_ns,
+        extrinsics=extrinsics,
+        points_vehicle=pts,
+        pixels=np.zeros((points, 2), np.int32),
+        point_labels=rng.integers(0, 4, points).astype(np.uint8),
+        grid=height_grid,
+        terrain=None,
+        layers=make_layers(grid, cost=cost),
+        obstacles=obstacles[: index % 3],  # 0, 1, 2 obstacles: entities must be replaced
+    )
+    calibration = StereoCalibration(width=4, height=3, fx=1.0, fy=1.0, cx=2.0, cy=1.5, baseline_m=0.5)
+    image = np.zeros((3, 4), np.uint8)
+    return StereoFrame(index, stamp_ns, image, image, calibration, frame_id="left_optical"), result
+
+
+def write_frames(path: Path, flavor: str, frames: list, **kwargs) -> None:
+    with open_mcap_sink(path, flavor, config=Config(), metadata={"source": "/logs/run.mcap"}, **kwargs) as sink:
+        assert isinstance(sink, Sink)
+        for frame, result in frames:
+            sink.write(frame, result)
+
+
+def read_messages(path: Path, factory) -> dict[str, list]:
+    """topic → [(log_time, publish_time, decoded)] in log order."""
+    topics: dict[str, list] = {}
+    with open(path, "rb") as f:
+        for _schema, channel, message, decoded in make_reader(f, decoder_factories=[factory]).iter_decoded_messages():
+            topics.setdefault(channel.topic, []).append((message.log_time, message.publish_time, decoded))
+    return topics
+
+
+def read_metadata(path: Path) -> dict[str, str]:
+    with open(path, "rb") as f:
+        records = {m.name: m.metadata for m in make_reader(f).iter_metadata()}
+    return records["terrainmap"]
+
+
+def expected_quaternion() -> np.ndarray:
+    q = Rotation.from_matrix(CAM_ROTATION).as_quat()
+    return -q if q[3] < 0 else q
+
+
+def assert_stamps(topics: dict[str, list], stamp_of) -> None:
+    for entries in topics.values():
+        for log_time, publish_time, msg in entries:
+            assert log_time == publish_time
+            assert stamp_of(msg) == log_time
+
+
+def cell_of(grid: GridConfig, x: float, y: float) -> tuple[int, int]:
+    flat = int(cell_index(np.array([[x, y, 0.0]]), grid)[0])
+    return divmod(flat, grid.shape[1])
+
+
+# ---------------------------------------------------------------- Foxglove flavour
+
+
+def fox_stamp(msg) -> int:
+    if hasattr(msg, "transforms"):
+        ts = msg.transforms[0].timestamp
+    elif hasattr(msg, "deletions"):
+        ts = msg.deletions[0].timestamp
+    else:
+        ts = msg.timestamp
+    return ts.seconds * 1_000_000_000 + ts.nanos
+
+
+def unpack(fields, stride: int, data: bytes, count: int) -> np.ndarray:
+    types = {7: "<f4", 1: "u1"}
+    dtype = np.dtype(
+        {"names": [f.name for f in fields], "formats": [types[f.type] for f in fields],
+         "offsets": [f.offset for f in fields], "itemsize": stride}
+    )
+    return np.frombuffer(data, dtype=dtype, count=count)
+
+
+@pytest.fixture(scope="module")
+def fox_file(tmp_path_factory):
+    path = tmp_path_factory.mktemp("fox") / "out.mcap"
+    frames = [make_frame(i) for i in range(3)]
+    write_frames(path, "foxglove", frames)
+    return path, frames
+
+
+def test_foxglove_grid_layout_and_values(fox_file):
+    path, frames = fox_file
+    grids = read_messages(path, ProtobufDecoderFactory())["/terrainmap/grid"]
+    assert len(grids) == 3
+    m0, m1 = GRID.shape
+    for (_, _, grid), (_frame, result) in zip(grids, frames, strict=True):
+        assert grid.frame_id == "base_link"
+        assert grid.column_count == m0
+        assert (grid.cell_size.x, grid.cell_size.y) == (0.5, 0.5)
+        assert (grid.pose.position.x, grid.pose.position.y, grid.pose.position.z) == (2.0, -1.0, 0.0)
+        assert grid.pose.orientation.w == 1.0
+        assert [f.name for f in grid.fields] == ["elevation", "slope", "cost", "label", "valid"]
+        assert [f.type for f in grid.fields] == [7, 7, 7, 1, 1]
+        assert grid.row_stride == m0 * grid.cell_stride and len(grid.data) == m1 * grid.row_stride
+        cells = unpack(grid.fields, grid.cell_stride, grid.data, m0 * m1).reshape(m1, m0)
+        layers = result.layers
+        valid = layers["valid"]
+        np.testing.assert_array_equal(cells["elevation"].T, np.where(valid, layers["elevation"], np.nan))
+        for name in ("slope", "cost", "label"):
+            np.testing.assert_array_equal(cells[name].T, layers[name])
+        np.testing.assert_array_equal(cells["valid"].T, valid.astype(np.uint8))
+
+
+def test_foxglove_grid_cell_at_known_position(fox_file):
+    """The byte offset of the cell holding (x, y) follows foxglove.Grid's documented formula."""
+    path, frames = fox_file
+    _, _, grid = read_messages(path, ProtobufDecoderFactory())["/terrainmap/grid"][0]
+    slope = frames[0][1].layers["slope"]
+    for x, y in [(2.1, -0.9), (5.9, 1.9), (3.3, 1.2)]:
+        col = math.floor((x - grid.pose.position.x) / grid.cell_size.x)
+        row = math.floor((y - grid.pose.position.y) / grid.cell_size.y)
+        offset = row * grid.row_stride + col * grid.cell_stride + grid.fields[1].offset
+        value = np.frombuffer(grid.data, "<f4", count=1, offset=offset)[0]
+        assert value == slope[cell_of(GRID, x, y)]
+    # (3.3, 1.2) is ix = 2, iy = 4: slope 2.4
+    assert cell_of(GRID, 3.3, 1.2) == (2, 4)
+
+
+def test_foxglove_points(fox_file):
+    path, frames = fox_file
+    clouds = read_messages(path, ProtobufDecoderFactory())["/terrainmap/points"]
+    for (_, _, cloud), (_frame, result) in zip(clouds, frames, strict=True):
+        assert cloud.frame_id == "base_link"
+        assert [(f.name, f.offset, f.type) for f in cloud.fields] == [("x", 0, 7), ("y", 4, 7), ("z", 8, 7), ("label", 12, 1)]
+        points = unpack(cloud.fields, cloud.point_stride, cloud.data, len(cloud.data) // cloud.point_stride)
+        np.testing.assert_array_equal(np.c_[points["x"], points["y"], points["z"]], result.points_vehicle)
+        np.testing.assert_array_equal(points["label"], result.point_labels)
+
+
+def test_foxglove_obstacles_replace_previous_entities(fox_file):
+    path, frames = fox_file
+    updates = read_messages(path, ProtobufDecoderFactory())["/terrainmap/obstacles"]
+    for (_, _, update), (_frame, result) in zip(updates, frames, strict=True):
+        assert [d.type for d in update.deletions] == [1]  # ALL
+        assert len(update.entities) == len(result.obstacles)
+        for entity, obstacle in zip(update.entities, result.obstacles, strict=True):
+            cube, text = entity.cubes[0], entity.texts[0]
+            assert entity.frame_id == "base_link"
+            np.testing.assert_allclose([cube.pose.position.x, cube.pose.position.y, cube.pose.position.z], obstacle.center_m)
+            np.testing.assert_allclose([cube.size.x, cube.size.y, cube.size.z], obstacle.size_m)
+            yaw = 2 * math.atan2(cube.pose.orientation.z, cube.pose.orientation.w)
+            assert yaw == pytest.approx(obstacle.yaw_rad)
+            assert text.text == f"{obstacle.track_id} {obstacle.kind} {obstacle.height_m:.2f} m"
+        if len(result.obstacles) == 2:
+            assert update.entities[0].id == "obstacle/7"
+            assert update.entities[0].cubes[0].color.r > update.entities[0].cubes[0].color.b  # positive: red
+            assert update.entities[1].cubes[0].color.b > update.entities[1].cubes[0].color.r  # negative: blue
+
+
+def test_foxglove_static_transform_once_and_stamps(fox_file):
+    path, _frames = fox_file
+    topics = read_messages(path, ProtobufDecoderFactory())
+    assert "/tf" not in topics and len(topics["/tf_static"]) == 1
+    (tf,) = topics["/tf_static"][0][2].transforms
+    assert (tf.parent_frame_id, tf.child_frame_id) == ("base_link", "left_optical")
+    assert (tf.translation.x, tf.translation.y, tf.translation.z) == (0.2, -0.1, 1.6)
+    q = [tf.rotation.x, tf.rotation.y, tf.rotation.z, tf.rotation.w]
+    np.testing.assert_allclose(q, expected_quaternion(), atol=1e-12)
+    assert_stamps(topics, fox_stamp)
+    assert [t for t, _, _ in topics["/terrainmap/grid"]] == [STAMP0, STAMP0 + 100_000_000, STAMP0 + 200_000_000]
+
+
+def test_estimated_extrinsics_go_on_tf_every_frame(tmp_path):
+    path = tmp_path / "est.mcap"
+    write_frames(path, "foxglove", [make_frame(i, source="estimated") for i in range(3)])
+    topics = read_messages(path, ProtobufDecoderFactory())
+    assert "/tf_static" not in topics and len(topics["/tf"]) == 3
+
+
+def test_grid_without_cost_layer(tmp_path):
+    path = tmp_path / "nocost.mcap"
+    write_frames(path, "foxglove", [make_frame(0, cost=False)])
+    (_, _, grid), = read_messages(path, ProtobufDecoderFactory())["/terrainmap/grid"]
+    assert [f.name for f in grid.fields] == ["elevation", "slope", "label", "valid"]
+    assert grid.cell_stride == 10
+
+
+@pytest.mark.parametrize("flavor", ["foxglove", "ros2"])
+def test_metadata_record(tmp_path, flavor):
+    path = tmp_path / "meta.mcap"
+    frames = [make_frame(i) for i in range(2)]
+    write_frames(path, flavor, frames)
+    meta = read_metadata(path)
+    assert meta["version"] == terrainmap.__version__
+    assert meta["source"] == "/logs/run.mcap"
+    assert meta["frames"] == "2"
+    assert tomllib.loads(meta["config"]) == tomllib.loads(Config().to_toml())
+    assert json.loads(meta["extrinsics"]) == frames[0][1].extrinsics.to_dict()
+
+
+# ---------------------------------------------------------------- failure handling
+
+
+@pytest.mark.parametrize("flavor", ["foxglove", "ros2"])
+def test_exception_mid_run_leaves_a_finalised_file(tmp_path, flavor):
+    path = tmp_path / "crash.mcap"
+    with pytest.raises(RuntimeError, match="boom"):
+        with open_mcap_sink(path, flavor, config=Config()) as sink:
+            for i in range(2):
+                sink.write(*make_frame(i))
+            raise RuntimeError("boom")
+    with open(path, "rb") as f:
+        reader = make_reader(f)
+        summary = reader.get_summary()
+        assert summary is not None and summary.statistics is not None  # footer, summary and index written
+        assert len(summary.chunk_indexes) >= 1
+        grid_topic = "/terrainmap/grid" if flavor == "foxglove" else "/terrainmap/grid_map"
+        assert len([m for _, ch, m in reader.iter_messages(topics=[grid_topic])]) == 2
+    assert read_metadata(path)["frames"] == "2"
+
+
+@pytest.mark.parametrize("flavor", ["foxglove", "ros2"])
+def test_close_twice_and_write_after_close(tmp_path, flavor):
+    path = tmp_path / "twice.mcap"
+    sink = open_mcap_sink(path, flavor, config=Config())
+    sink.write(*make_frame(0))
+    sink.close()
+    size = path.stat().st_size
+    sink.close()
+    assert path.stat().st_size == size
+    with pytest.raises(TerrainmapError, match="already closed"):
+        sink.write(*make_frame(1))
+
+
+def test_empty_run_is_readable(tmp_path):
+    path = tmp_path / "empty.mcap"
+    open_mcap_sink(path, "ros2", config=Config()).close()
+    assert read_metadata(path)["frames"] == "0"
+
+
+def test_bad_arguments(tmp_path):
+    with pytest.raises(ConfigError, match="flavor"):
+        open_mcap_sink(tmp_path / "x.mcap", "rosbag", config=Config())
+    with pytest.raises(ConfigError, match="compression"):
+        open_mcap_sink(tmp_path / "x.mcap", "ros2", config=Config(), compression="gzip")
+    with pytest.raises(InputError, match="no_such_dir"):
+        open_mcap_sink(tmp_path / "no_such_dir" / "x.mcap", config=Config())
+
+
+def test_layer_shape_mismatch_is_reported(tmp_path):
+    frame, result = make_frame(0)
+    result.layers["slope"] = np.zeros((3, 3), np.float32)
+    with open_mcap_sink(tmp_path / "bad.mcap", config=Config()) as sink:
+        with pytest.raises(TerrainmapError, match="layer 'slope' has shape"):
+            sink.write(frame, result)
