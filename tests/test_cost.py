@@ -1,0 +1,192 @@
+"""Traversability cost: the documented formula on hand-built cells, occupancy, steps, invariants."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
+from obstacle_scenes import GRID, Plane, box_points, labelled, terrain_points
+
+from terrainmap.config import Config, ConfigError, CostConfig, GridConfig
+from terrainmap.cost import occupancy, smoothstep, step_height, traversability_cost
+from terrainmap.errors import InputError
+from terrainmap.grid import cell_centers, quantize
+from terrainmap.obstacle_stage import make_tracker, run_obstacle_stage
+from terrainmap.types import Obstacle
+
+SMALL = GridConfig(x_min_m=0.0, length_m=3.0, width_m=2.0, cell_size_m=0.5)  # 6×4 cells, y ∈ [−1, 1]
+SHAPE = SMALL.shape
+
+
+def obstacle(x: float, y: float, length: float = 0.0, width: float = 0.0, yaw: float = 0.0, confirmed=True):
+    return Obstacle(
+        center_m=np.array([x, y, 0.5]),
+        size_m=np.array([length, width, 1.0]),
+        yaw_rad=yaw,
+        height_m=1.0,
+        point_count=20,
+        range_m=float(np.hypot(x, y)),
+        confirmed=confirmed,
+    )
+
+
+def cost_of(slope_deg, *, valid=None, step=None, obstacles=(), config=None, grid=SMALL):
+    slope = np.broadcast_to(np.deg2rad(np.asarray(slope_deg, float)), grid.shape)
+    valid = np.ones(grid.shape, bool) if valid is None else valid
+    return traversability_cost(
+        np.zeros(grid.shape), slope, valid, grid, list(obstacles), config or CostConfig(), step=step
+    )
+
+
+def test_formula_on_hand_built_cells():
+    config = CostConfig(max_slope_deg=20.0, max_step_m=0.4)
+    slope = np.array([[0, 10, 20, 30], [5, 0, 0, 0], [0, 0, 0, 0], [0] * 4, [0] * 4, [0] * 4], float)
+    step = np.zeros(SHAPE)
+    step[1, 1], step[1, 2], step[1, 3] = 0.2, 0.4, np.nan
+    valid = np.ones(SHAPE, bool)
+    valid[2, 0] = False
+    cost = cost_of(slope, valid=valid, step=step, config=config)
+    assert cost.dtype == np.float32 and cost.shape == SHAPE
+    assert cost[0, 0] == 0  # flat
+    assert cost[0, 1] == pytest.approx(0.5)  # half the limit: s(½) = ½
+    assert cost[0, 2] == 1 and cost[0, 3] == 1  # at and beyond the limit
+    assert cost[1, 0] == pytest.approx(3 * 0.25**2 - 2 * 0.25**3)  # s(¼) = 0.15625
+    assert cost[1, 1] == pytest.approx(0.5) and cost[1, 2] == 1  # step at ½ and at the limit
+    assert cost[1, 3] == 0  # unknown step counts as none
+    assert np.isnan(cost[2, 0])  # no data
+    assert cost[1, 0] == pytest.approx(np.maximum(smoothstep(5 / 20), 0.0))
+
+
+def test_cost_is_the_max_of_the_terms():
+    cost = cost_of(
+        np.full(SHAPE, 10.0), step=np.full(SHAPE, 0.1), config=CostConfig(max_slope_deg=20, max_step_m=0.4)
+    )
+    np.testing.assert_allclose(cost, max(smoothstep(0.5), smoothstep(0.25)))
+
+
+def test_confirmed_obstacle_occupies_its_footprint_and_clearance():
+    # A point obstacle at a cell centre, no clearance: exactly that cell.
+    cost = cost_of(0.0, obstacles=[obstacle(1.25, 0.25)], config=CostConfig(clearance_m=0.0))
+    assert np.argwhere(cost == 1).tolist() == [[2, 2]]
+    assert np.nansum(cost) == 1
+    # 0.5 m clearance reaches the 8 neighbours' centres (≤ 0.5·√2 < 0.5 + 0.25) but no further.
+    occupied = occupancy([obstacle(1.25, 0.25)], SMALL, clearance_m=0.5)
+    assert occupied.sum() == 9 and occupied[1:4, 1:4].all()
+
+
+def test_unconfirmed_obstacles_do_not_occupy():
+    cost = cost_of(0.0, obstacles=[obstacle(1.25, 0.25, 1.0, 1.0, confirmed=False)])
+    assert np.all(cost == 0)
+
+
+def test_rotated_footprint_occupies_the_diagonal():
+    grid = GridConfig(x_min_m=0.0, length_m=5.0, width_m=5.0, cell_size_m=0.5)  # y ∈ [−2.5, 2.5]
+    diagonal = obstacle(2.5, 0.0, length=4.0, width=0.1, yaw=np.pi / 4)
+    occupied = occupancy([diagonal], grid, clearance_m=0.0)
+    ix, iy = np.nonzero(occupied)
+    # Cell centres lie on the line; the 4 m footprint spans 2.83 m along x, six of them; the cells
+    # beside the line are 0.35 m from it (> ½ cell + ½ width).
+    assert len(ix) == 6 and np.all(ix - iy == ix[0] - iy[0])
+    # All occupied cell centres lie within half a cell of the diagonal line y = x − 2.5.
+    xc, yc = (ix + 0.5) * 0.5, -2.5 + (iy + 0.5) * 0.5
+    assert np.all(np.abs(yc - (xc - 2.5)) / np.sqrt(2) <= 0.25 + 0.05 + 1e-9)
+    assert not occupied[0, -1] and not occupied[-1, 0]  # far corners off the diagonal
+
+
+def test_occupied_unknown_cell_is_one_and_unknown_elsewhere_is_nan():
+    valid = np.zeros(SHAPE, bool)
+    cost = cost_of(0.0, valid=valid, obstacles=[obstacle(0.25, -0.75)], config=CostConfig(clearance_m=0.0))
+    assert cost[0, 0] == 1 and np.isnan(cost).sum() == cost.size - 1
+
+
+def test_many_obstacles_are_rasterised_in_chunks():
+    rng = np.random.default_rng(0)
+    many = [obstacle(*xy, 0.3, 0.3, yaw) for *xy, yaw in rng.uniform([2, -11, 0], [36, 11, 3], (200, 3))]
+    occupied = occupancy(many, GridConfig(), clearance_m=0.0)
+    one_by_one = np.any([occupancy([o], GridConfig(), clearance_m=0.0) for o in many], axis=0)
+    np.testing.assert_array_equal(occupied, one_by_one)
+
+
+def test_step_height_finds_a_kerb_and_ignores_slopes():
+    xs = np.arange(SHAPE[0])[:, None] * 0.5
+    elevation = np.broadcast_to(0.2 * xs, SHAPE)  # 11° ramp, explained by the surface
+    samples = elevation.copy()
+    samples[3:] += 0.15  # a 15 cm kerb between rows 2 and 3
+    observed = np.ones(SHAPE, bool)
+    observed[0, 0] = False
+    step = step_height(samples, elevation, observed)
+    assert np.isnan(step[0, 0])
+    np.testing.assert_allclose(step[2:4], 0.15)
+    np.testing.assert_allclose(step[[0, 1, 4, 5]][~np.isnan(step[[0, 1, 4, 5]])], 0.0, atol=1e-12)
+
+
+def test_shape_mismatch_raises_input_error():
+    with pytest.raises(InputError, match="slope"):
+        traversability_cost(np.zeros(SHAPE), np.zeros((3, 3)), np.ones(SHAPE, bool), SMALL, [], CostConfig())
+
+
+@pytest.mark.parametrize(
+    ("field", "value"), [("max_slope_deg", 0), ("max_slope_deg", 90), ("max_step_m", 0), ("clearance_m", -1)]
+)
+def test_config_rejects_nonsense(field, value):
+    with pytest.raises(ConfigError, match=f"cost.{field}"):
+        CostConfig(**{field: value}).validate()
+
+
+slopes = arrays(np.float64, SHAPE, elements=st.one_of(st.floats(0, np.pi / 2), st.just(np.nan)))
+masks = arrays(bool, SHAPE)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    slope=slopes,
+    valid=masks,
+    step=arrays(np.float64, SHAPE, elements=st.floats(0, 2)),
+    x=st.floats(0, 3),
+    y=st.floats(-1, 1),
+)
+def test_cost_is_in_unit_interval_or_nan_exactly_where_unknown(slope, valid, step, x, y):
+    obstacles = [obstacle(x, y)]
+    cost = traversability_cost(np.zeros(SHAPE), slope, valid, SMALL, obstacles, CostConfig(), step=step)
+    occupied = occupancy(obstacles, SMALL, CostConfig().clearance_m)
+    known = valid & np.isfinite(slope)
+    finite = np.isfinite(cost)
+    assert np.all((cost[finite] >= 0) & (cost[finite] <= 1))
+    np.testing.assert_array_equal(finite, known | occupied)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    base=arrays(np.float64, SHAPE, elements=st.floats(0, np.pi / 2)),
+    extra=arrays(np.float64, SHAPE, elements=st.floats(0, 1)),
+)
+def test_cost_is_monotone_in_slope(base, extra):
+    valid = np.ones(SHAPE, bool)
+    low = traversability_cost(np.zeros(SHAPE), base, valid, SMALL, [], CostConfig())
+    high = traversability_cost(np.zeros(SHAPE), base + extra, valid, SMALL, [], CostConfig())
+    assert np.all(high >= low)
+
+
+def test_stage_on_a_scene_marks_the_confirmed_box_and_its_clearance():
+    """The whole step over three frames: a box becomes an occupied, clearance-grown patch."""
+    plane = Plane(gx=np.tan(np.deg2rad(5)))
+    points, labels = labelled(
+        plane, terrain_points(plane, spacing=0.2), box_points(plane, (12.0, 0.0), 1.0, 1.0, 1.0)
+    )
+    config = Config()
+    grid = quantize(points, GRID)
+    elevation = plane.on_grid(*cell_centers(GRID))
+    slope = np.full(GRID.shape, np.deg2rad(5))
+    tracker = make_tracker(config)
+    for k in range(2):
+        obstacles, cost = run_obstacle_stage(
+            points, labels, grid, plane, elevation, slope, k * 10**8, tracker, config
+        )
+    (box,) = obstacles
+    assert box.confirmed
+    ix, iy = int((12.0 - GRID.x_min_m) / 0.5), int((0.0 - GRID.y_min_m) / 0.5)
+    assert np.all(cost[ix - 1 : ix + 1, iy - 1 : iy + 1] == 1)  # the box's own 2×2 cells
+    free = cost[: ix - 4]  # well in front of the box
+    np.testing.assert_allclose(free[np.isfinite(free)], smoothstep(5 / 25), atol=1e-6)
