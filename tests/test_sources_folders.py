@@ -1,0 +1,249 @@
+"""Folder sources: generic, KITTI (stereo, object, raw, odometry), Middlebury; selection; errors."""
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from terrainmap.errors import CalibrationError, ConfigError, InputError
+from terrainmap.sources import open_source, source_class
+from terrainmap.sources.folder import GenericFolder
+from terrainmap.sources.kitti import KittiOdometryFolder, KittiRawFolder, KittiStereoFolder
+from terrainmap.sources.middlebury import MiddleburyFolder
+
+DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+KITTI = DATA / "kitti2015_000005"
+
+CALIB_YAML = """width: 8
+height: 6
+fx: 500.0
+fy: 501.0
+cx: 4.0
+cy: 3.0
+baseline_m: 0.3
+"""
+KITTI_P2 = "7.215377e+02 0 6.095593e+02 4.485728e+01 0 7.215377e+02 1.728540e+02 2.163791e-01 0 0 1 2.745884e-03"
+KITTI_P3 = "7.215377e+02 0 6.095593e+02 -3.395242e+02 0 7.215377e+02 1.728540e+02 2.199936e+00 0 0 1 2.729905e-03"
+KITTI_BASELINE = (44.85728 + 339.5242) / 721.5377
+
+
+def image(seed: int, shape=(6, 8, 3), dtype=np.uint8) -> np.ndarray:
+    return np.random.default_rng(seed).integers(0, np.iinfo(dtype).max, shape, dtype=dtype)
+
+
+def write(path: Path, array: np.ndarray) -> Path:
+    """Write an RGB (or mono) array as an image file; OpenCV stores BGR."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(str(path), cv2.cvtColor(array, cv2.COLOR_RGB2BGR) if array.ndim == 3 else array)
+    return path
+
+
+def generic_folder(root: Path, n: int = 5, calib: str = CALIB_YAML, suffix: str = ".png") -> Path:
+    for i in range(n):
+        write(root / "left" / f"{i:06d}{suffix}", image(2 * i))
+        write(root / "right" / f"{i:06d}{suffix}", image(2 * i + 1))
+    (root / "calibration.yaml").write_text(calib)
+    return root
+
+
+def test_generic_folder_yields_rgb_pairs_with_calibration(tmp_path):
+    root = generic_folder(tmp_path)
+    with open_source(root) as source:
+        assert isinstance(source, GenericFolder)
+        frames = list(source.frames())
+        info = source.describe()
+    assert [f.index for f in frames] == list(range(5))
+    assert [f.stamp_ns for f in frames] == [i * 100_000_000 for i in range(5)]
+    np.testing.assert_array_equal(frames[2].left, image(4))
+    np.testing.assert_array_equal(frames[2].right, image(5))
+    assert frames[0].left.dtype == np.uint8 and frames[0].left.shape == (6, 8, 3)
+    calib = frames[0].calibration
+    assert (calib.fx, calib.fy, calib.cx, calib.cy, calib.baseline_m) == (500.0, 501.0, 4.0, 3.0, 0.3)
+    assert frames[0].extrinsics is None
+    assert info["format"] == "folder" and info["frames"] == 5
+    assert info["calibration"]["baseline_m"] == 0.3 and "estimated" in info["extrinsics"]
+
+
+def test_selection_start_end_every_max_and_index_from_source_start(tmp_path):
+    root = generic_folder(tmp_path, n=10)
+    (root / "timestamps.txt").write_text("\n".join(str(1_000_000_000 + i * 50_000_000) for i in range(10)))
+    with open_source(root) as source:
+        assert [f.index for f in source.frames(start_s=0.1, end_s=0.35)] == [2, 3, 4, 5, 6, 7]
+        assert [f.index for f in source.frames(start_s=0.1, every=3)] == [2, 5, 8]
+        assert [f.index for f in source.frames(every=2, max_frames=3)] == [0, 2, 4]
+        assert list(source.frames(max_frames=0)) == []
+        assert next(source.frames(start_s=0.2)).stamp_ns == 1_200_000_000
+        with pytest.raises(ConfigError, match="every"):
+            list(source.frames(every=0))
+
+
+def test_calibration_toml_extrinsics_and_unrectified(tmp_path):
+    root = generic_folder(tmp_path, n=1)
+    (root / "calibration.yaml").unlink()
+    (root / "calibration.toml").write_text(
+        CALIB_YAML.replace(": ", " = ")
+        + "rectified = false\nK_left = [[500, 0, 4], [0, 500, 3], [0, 0, 1]]\nK_right = [[500, 0, 4], [0, 500, 3], [0, 0, 1]]\n"
+        "dist_left = [0.1, 0, 0, 0, 0]\ndist_right = [0.1, 0, 0, 0, 0]\nR = [[1, 0, 0], [0, 1, 0], [0, 0, 1]]\n"
+        "T = [-0.3, 0, 0]\n[extrinsics]\ntranslation_m = [0.5, 0.0, 1.5]\nquaternion_xyzw = [-0.5, 0.5, -0.5, 0.5]\n"
+    )
+    frame = next(open_source(root).frames())
+    calib, ext = frame.calibration, frame.extrinsics
+    assert not calib.rectified and calib.K_left.shape == (3, 3) and calib.T.tolist() == [-0.3, 0, 0]
+    assert ext.source == "calibration" and ext.translation.tolist() == [0.5, 0.0, 1.5]
+    # optical z (forward) maps to vehicle x, optical x (right) to vehicle -y, optical y (down) to -z
+    np.testing.assert_allclose(ext.rotation, [[0, 0, 1], [-1, 0, 0], [0, -1, 0]], atol=1e-12)
+
+
+def kitti_stereo(root: Path, left="image_2", right="image_3", calib_dir="calib_cam_to_cam", names=("000000_10", "000000_11")):
+    for i, name in enumerate(names):
+        write(root / left / f"{name}.png", image(i))
+        write(root / right / f"{name}.png", image(10 + i))
+    (root / calib_dir).mkdir()
+    keys = ("P_rect_02", "P_rect_03") if calib_dir == "calib_cam_to_cam" else ("P2", "P3")
+    text = f"{keys[0]}: {KITTI_P2}\n{keys[1]}: {KITTI_P3}\n"
+    if left == "image_0":
+        text = f"P0: {KITTI_P2}\nP1: {KITTI_P3}\nP2: 1 0 0 0 0 1 0 0 0 0 1 0\nP3: 1 0 0 0 0 1 0 0 0 0 1 0\n"
+    (root / calib_dir / f"{names[0].split('_')[0]}.txt").write_text(text)
+    return root
+
+
+@pytest.mark.parametrize(
+    "layout",
+    [
+        {},  # stereo 2015
+        {"calib_dir": "calib", "names": ("000007",)},  # object
+        {"left": "colored_0", "right": "colored_1", "calib_dir": "calib"},  # stereo 2012 colour
+        {"left": "image_0", "right": "image_1", "calib_dir": "calib"},  # stereo 2012 grey
+    ],
+)
+def test_kitti_stereo_layouts(tmp_path, layout):
+    root = kitti_stereo(tmp_path, **layout)
+    assert source_class(root) is KittiStereoFolder
+    frames = list(open_source(root).frames())
+    assert len(frames) == len(layout.get("names", (1, 2)))
+    np.testing.assert_array_equal(frames[0].left, image(0))
+    calib = frames[0].calibration
+    assert calib.fx == pytest.approx(721.5377) and calib.cx == pytest.approx(609.5593)
+    assert calib.baseline_m == pytest.approx(KITTI_BASELINE) and (calib.width, calib.height) == (8, 6)
+
+
+def test_kitti_raw_drive_with_timestamps_and_calibration_two_levels_up(tmp_path):
+    drive = tmp_path / "2011_09_26" / "2011_09_26_drive_0001_sync"
+    for i in range(3):
+        write(drive / "image_02" / "data" / f"{i:010d}.png", image(i))
+        write(drive / "image_03" / "data" / f"{i:010d}.png", image(5 + i))
+    (drive / "image_02" / "timestamps.txt").write_text(
+        "2011-09-26 13:02:25.964389445\n2011-09-26 13:02:26.074343666\n2011-09-26 13:02:26.184319344\n"
+    )
+    cx_right = "7.215377e+02 0 6.1e+02 -3.395242e+02 0 7.215377e+02 1.728540e+02 0 0 0 1 0"
+    (tmp_path / "2011_09_26" / "calib_cam_to_cam.txt").write_text(
+        f"calib_time: 09-Jan-2012 13:57:47\nS_rect_02: 8 6\nP_rect_02: {KITTI_P2}\nP_rect_03: {cx_right}\n"
+    )
+    source = open_source(drive)
+    assert isinstance(source, KittiRawFolder)
+    frames = list(source.frames(start_s=0.1))
+    assert [f.index for f in frames] == [1, 2]
+    assert frames[0].stamp_ns == 1317042146074343666  # 2011-09-26 13:02:26.074343666 UTC
+    assert frames[0].calibration.cx_right == pytest.approx(610.0)
+
+
+def test_kitti_odometry_sequence(tmp_path):
+    for i in range(4):
+        write(tmp_path / "image_2" / f"{i:06d}.png", image(i))
+        write(tmp_path / "image_3" / f"{i:06d}.png", image(9 + i))
+    (tmp_path / "calib.txt").write_text(f"P0: {KITTI_P2}\nP1: {KITTI_P3}\nP2: {KITTI_P2}\nP3: {KITTI_P3}\n")
+    (tmp_path / "times.txt").write_text("0.0\n1.036e-01\n2.072e-01\n3.108e-01\n")
+    source = open_source(tmp_path)
+    assert isinstance(source, KittiOdometryFolder)
+    frames = list(source.frames(every=2))
+    assert [f.stamp_ns for f in frames] == [0, 207_200_000]
+    assert frames[1].calibration.baseline_m == pytest.approx(KITTI_BASELINE)
+
+
+MIDDLEBURY_CALIB = """cam0=[1758.23 0 953.34; 0 1758.23 552.29; 0 0 1]
+cam1=[1758.23 0 953.34; 0 1758.23 552.29; 0 0 1]
+doffs=12.5
+baseline=97.99
+width=8
+height=6
+ndisp=290
+"""
+
+
+def test_middlebury_folder_of_scenes(tmp_path):
+    for k, scene in enumerate(("Adirondack", "Jadeplant")):
+        write(tmp_path / scene / "im0.png", image(k))
+        write(tmp_path / scene / "im1.png", image(k + 3))
+        (tmp_path / scene / "calib.txt").write_text(MIDDLEBURY_CALIB)
+    assert source_class(tmp_path / "Adirondack") is MiddleburyFolder
+    frames = list(open_source(tmp_path).frames())
+    assert len(frames) == 2
+    np.testing.assert_array_equal(frames[1].right, image(4))
+    calib = frames[0].calibration
+    assert calib.baseline_m == pytest.approx(0.09799) and calib.doffs == 12.5 and calib.fx == pytest.approx(1758.23)
+
+
+def test_sixteen_bit_grey_images_are_scaled_together(tmp_path):
+    root = generic_folder(tmp_path, n=1)
+    left, right = image(1, (6, 8), np.uint16) // 4, image(2, (6, 8), np.uint16) // 2
+    write(root / "left" / "000000.png", left)
+    write(root / "right" / "000000.png", right)
+    frame = next(open_source(root).frames())
+    assert frame.left.dtype == np.uint8 and frame.left.shape == (6, 8)
+    scale = 255.0 / max(left.max(), right.max())
+    np.testing.assert_allclose(frame.left, np.round(left * scale), atol=1)
+    np.testing.assert_allclose(frame.right, np.round(right * scale), atol=1)
+
+
+def test_real_kitti_folder():
+    if not KITTI.is_dir():
+        pytest.skip("shared KITTI data not available")
+    with open_source(KITTI) as source:
+        frames = list(source.frames())
+    assert len(frames) == 1 and frames[0].left.shape == (375, 1242, 3) and frames[0].right.shape == (375, 1242, 3)
+    calib = frames[0].calibration
+    assert calib.fx == pytest.approx(721.5377) and calib.cx == pytest.approx(609.5593)
+    assert calib.cy == pytest.approx(172.854) and calib.baseline_m == pytest.approx(0.5327, abs=1e-4)
+    assert calib.cx_right is None and frames[0].extrinsics is None
+
+
+def test_calibration_override_replaces_the_folder_calibration(tmp_path):
+    root = generic_folder(tmp_path / "run", n=1)
+    other = tmp_path / "other.yaml"
+    other.write_text(CALIB_YAML.replace("baseline_m: 0.3", "baseline_m: 0.12"))
+    assert next(open_source(root, calibration=other).frames()).calibration.baseline_m == 0.12
+
+
+@pytest.mark.parametrize(
+    "break_it, error, match",
+    [
+        (lambda r: (r / "calibration.yaml").unlink(), CalibrationError, "no calibration found"),
+        (lambda r: (r / "calibration.yaml").write_text(CALIB_YAML.replace("0.3", "0.0")), CalibrationError, "baseline_m must be > 0"),
+        (lambda r: (r / "calibration.yaml").write_text(CALIB_YAML.replace("500.0", "-1")), CalibrationError, "fx must be > 0"),
+        (lambda r: (r / "calibration.yaml").write_text("width: 8\nfx: [1"), CalibrationError, "cannot parse"),
+        (lambda r: (r / "calibration.yaml").write_text("width: 8\n"), CalibrationError, "missing calibration keys: height"),
+        (lambda r: (r / "calibration.yaml").write_text(CALIB_YAML.replace("width: 8", "width: 9")), CalibrationError, "9×6"),
+        (lambda r: write(r / "right" / "000000.png", image(0, (7, 8, 3))), InputError, "differ in size.*8×6.*8×7"),
+        (lambda r: (r / "left" / "000000.png").write_bytes(b"not a png"), InputError, "000000.png: cannot read the image"),
+        (lambda r: (r / "timestamps.txt").write_text("12\nabc\n"), InputError, "timestamps.txt"),
+    ],
+)
+def test_bad_folders_raise_one_line_errors(tmp_path, break_it, error, match):
+    root = generic_folder(tmp_path, n=1)
+    break_it(root)
+    with pytest.raises(error, match=match) as info:
+        list(open_source(root).frames())
+    assert "\n" not in str(info.value)
+
+
+def test_unknown_and_missing_paths(tmp_path):
+    with pytest.raises(InputError, match="does not exist"):
+        open_source(tmp_path / "nope")
+    (tmp_path / "stuff").mkdir()
+    with pytest.raises(InputError, match="not a known stereo source"):
+        open_source(tmp_path / "stuff")
+    (tmp_path / "left").mkdir()
+    (tmp_path / "right").mkdir()
+    with pytest.raises(InputError, match="no left/right image pairs"):
+        open_source(tmp_path)
