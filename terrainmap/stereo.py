@@ -1,0 +1,293 @@
+"""Stereo front end (paper Sec. III): rectification, SGM disparity, reprojection to 3D points.
+
+One :class:`StereoMatcher` per calibration caches everything that does not change between frames:
+the rectification maps (when the calibration is not rectified yet), the OpenCV ``StereoSGBM``
+matcher and the per-pixel ray grid used by :meth:`StereoMatcher.reproject`::
+
+    matcher = StereoMatcher(frame.calibration, config.stereo)
+    result = matcher.compute(frame.left, frame.right)        # disparity, rectified image, pinhole
+    points_cam, pixels = matcher.reproject(result.disparity)
+    points_vehicle = to_vehicle(points_cam, extrinsics)
+
+Disparity convention: ``d = u_left − u_right`` as SGBM measures it on the rectified pair; depth is
+``Z = fx·B / (d + doffs)`` with the effective ``doffs = calibration.doffs + (cx_right − cx)``
+(KITTI-style different principal points and Middlebury's ``doffs`` are the same offset and add up).
+
+Threads: OpenCV runs SGBM on all cores by default, which is what the single-process runner wants
+(the ``sgbm_3way`` mode halves its time with 2 threads, see :class:`~terrainmap.config.StereoConfig`).
+A runner that processes frames in several worker processes should call ``cv2.setNumThreads(1)`` in
+each worker; the library never changes this global setting itself.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from .config import StereoConfig
+from .errors import CalibrationError, InputError
+from .types import Extrinsics, StereoCalibration
+
+log = logging.getLogger(__name__)
+
+_MODES = {
+    "sgbm": cv2.STEREO_SGBM_MODE_SGBM,
+    "hh": cv2.STEREO_SGBM_MODE_HH,
+    "sgbm_3way": cv2.STEREO_SGBM_MODE_SGBM_3WAY,
+    "hh4": cv2.STEREO_SGBM_MODE_HH4,
+}
+
+
+@dataclass(frozen=True)
+class RectifiedPinhole:
+    """The pinhole model of the rectified left camera, the one disparities and points refer to.
+
+    ``fx, fy, cx, cy`` in pixels, ``baseline_m`` in metres, ``doffs`` the disparity offset in pixels
+    (``Z = fx·baseline_m / (d + doffs)``), ``width × height`` the image size in pixels.
+    """
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    baseline_m: float
+    doffs: float
+    width: int
+    height: int
+
+
+@dataclass
+class StereoResult:
+    """One matched pair.
+
+    ``disparity``: H×W float32, pixels, NaN where SGBM found no valid match.
+    ``image``: the rectified left image, H×W or H×W×3 uint8 as given (RGB stays RGB).
+    ``pinhole``: the rectified camera model the disparity refers to.
+    """
+
+    disparity: np.ndarray
+    image: np.ndarray
+    pinhole: RectifiedPinhole
+
+
+def check_calibration(calibration: StereoCalibration) -> None:
+    """Raise :class:`CalibrationError` (one line, naming the problem) if the calibration is unusable."""
+    name = calibration.source or "stereo calibration"
+    for field, value in (
+        ("fx", calibration.fx),
+        ("fy", calibration.fy),
+        ("baseline_m", calibration.baseline_m),
+    ):
+        if not (math.isfinite(value) and value > 0):
+            raise CalibrationError(f"{name}: {field} must be a positive number, got {value}")
+    if calibration.width <= 0 or calibration.height <= 0:
+        raise CalibrationError(
+            f"{name}: image size must be positive, got {calibration.width}×{calibration.height}"
+        )
+    if not calibration.rectified:
+        for field, shape in (("K_left", (3, 3)), ("K_right", (3, 3)), ("R", (3, 3)), ("T", (3,))):
+            value = getattr(calibration, field)
+            if value is None or np.asarray(value).size != math.prod(shape):
+                raise CalibrationError(
+                    f"{name}: rectified is false, so {field} must be given with shape {shape}"
+                )
+        if not np.all(np.isfinite(np.asarray(calibration.T, float))) or np.linalg.norm(calibration.T) <= 0:
+            raise CalibrationError(f"{name}: T must be a non-zero finite translation (the baseline)")
+
+
+def _rectification(calibration: StereoCalibration) -> tuple[tuple, tuple, RectifiedPinhole]:
+    """``cv2.stereoRectify`` + ``initUndistortRectifyMap``: maps for left and right and the new pinhole."""
+    size = (calibration.width, calibration.height)
+    K1, K2 = (np.asarray(k, np.float64).reshape(3, 3) for k in (calibration.K_left, calibration.K_right))
+    D1, D2 = (
+        np.zeros(5) if d is None else np.asarray(d, np.float64).ravel()
+        for d in (calibration.dist_left, calibration.dist_right)
+    )
+    R = np.asarray(calibration.R, np.float64).reshape(3, 3)
+    T = np.asarray(calibration.T, np.float64).reshape(3)
+    try:
+        R1, R2, P1, P2, *_ = cv2.stereoRectify(
+            K1, D1, K2, D2, size, R, T, flags=cv2.CALIB_ZERO_DISPARITY, alpha=0
+        )
+        maps_left = cv2.initUndistortRectifyMap(K1, D1, R1, P1, size, cv2.CV_16SC2)
+        maps_right = cv2.initUndistortRectifyMap(K2, D2, R2, P2, size, cv2.CV_16SC2)
+    except cv2.error as exc:
+        raise CalibrationError(
+            f"{calibration.source or 'stereo calibration'}: cannot rectify ({exc.err})"
+        ) from None
+    if abs(P2[1, 3]) > abs(P2[0, 3]):
+        raise CalibrationError(
+            f"{calibration.source or 'stereo calibration'}: vertical stereo is not supported"
+        )
+    baseline_m = -P2[0, 3] / P2[0, 0]
+    if not baseline_m > 0:
+        raise CalibrationError(
+            f"{calibration.source or 'stereo calibration'}: the right camera is not to the right of the left "
+            f"(rectified baseline {baseline_m:.4f} m); swap the images"
+        )
+    pinhole = RectifiedPinhole(
+        float(P1[0, 0]), float(P1[1, 1]), float(P1[0, 2]), float(P1[1, 2]), float(baseline_m),
+        float(P2[0, 2] - P1[0, 2]), calibration.width, calibration.height,
+    )  # fmt: skip
+    return maps_left, maps_right, pinhole
+
+
+def _rectified_pinhole(calibration: StereoCalibration) -> RectifiedPinhole:
+    cx_right = calibration.cx if calibration.cx_right is None else calibration.cx_right
+    return RectifiedPinhole(
+        float(calibration.fx), float(calibration.fy), float(calibration.cx), float(calibration.cy),
+        float(calibration.baseline_m), float(calibration.doffs + cx_right - calibration.cx),
+        calibration.width, calibration.height,
+    )  # fmt: skip
+
+
+def create_sgbm(config: StereoConfig) -> cv2.StereoSGBM:
+    """The OpenCV matcher configured from ``config`` (P1, P2 scaled by the block area, one channel)."""
+    area = config.block_size**2
+    return cv2.StereoSGBM.create(
+        minDisparity=config.min_disparity,
+        numDisparities=config.num_disparities,
+        blockSize=config.block_size,
+        P1=config.p1_per_pixel * area,
+        P2=config.p2_per_pixel * area,
+        disp12MaxDiff=config.disp12_max_diff,
+        preFilterCap=config.pre_filter_cap,
+        uniquenessRatio=config.uniqueness_ratio,
+        speckleWindowSize=config.speckle_window_size,
+        speckleRange=config.speckle_range,
+        mode=_MODES[config.mode],
+    )
+
+
+class StereoMatcher:
+    """Rectification, SGBM and reprojection for one calibration, with everything cached.
+
+    Parameters
+    ----------
+    calibration : StereoCalibration
+        Checked here; :class:`CalibrationError` if unusable.
+    config : StereoConfig, optional
+        SGBM parameters and the depth range of :meth:`reproject`; defaults if omitted.
+    """
+
+    def __init__(self, calibration: StereoCalibration, config: StereoConfig | None = None):
+        check_calibration(calibration)
+        self.calibration = calibration
+        self.config = config or StereoConfig()
+        self.sgbm = create_sgbm(self.config)
+        """The bare ``cv2.StereoSGBM`` (``sgbm.compute(grey_left, grey_right)`` is "SGBM alone")."""
+        if calibration.rectified:
+            self._maps = None
+            self.pinhole = _rectified_pinhole(calibration)
+        else:
+            *self._maps, self.pinhole = _rectification(calibration)
+        p = self.pinhole
+        u = np.arange(p.width, dtype=np.int32)
+        v = np.arange(p.height, dtype=np.int32)
+        self._pixels = np.stack(np.meshgrid(u, v), axis=-1).reshape(-1, 2)  # (H·W, 2) int32 (u, v)
+        self._ray_x = ((self._pixels[:, 0] - p.cx) / p.fx).astype(np.float32)  # X / Z per pixel
+        self._ray_y = ((self._pixels[:, 1] - p.cy) / p.fy).astype(np.float32)  # Y / Z per pixel
+
+    def same_setup(self, calibration: StereoCalibration, config: StereoConfig) -> bool:
+        """Whether this matcher serves ``calibration`` and ``config`` (so a pipeline can keep it)."""
+        return config == self.config and (
+            calibration is self.calibration
+            or _calibration_key(calibration) == _calibration_key(self.calibration)
+        )
+
+    def rectify(self, left: np.ndarray, right: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Check the pair against the calibration and rectify it (a no-op for rectified input)."""
+        self._check_images(left, right)
+        if self._maps is None:
+            return left, right
+        (l1, l2), (r1, r2) = self._maps
+        return cv2.remap(left, l1, l2, cv2.INTER_LINEAR), cv2.remap(right, r1, r2, cv2.INTER_LINEAR)
+
+    def match(self, left_rect: np.ndarray, right_rect: np.ndarray) -> np.ndarray:
+        """SGBM on a rectified pair → disparity H×W float32 in pixels, NaN where invalid."""
+        raw = self.sgbm.compute(_grey(left_rect), _grey(right_rect))  # int16, disparity × 16
+        disparity = raw.astype(np.float32)
+        disparity *= 1.0 / 16.0
+        disparity[raw < self.config.min_disparity * 16] = np.nan
+        return disparity
+
+    def compute(self, left: np.ndarray, right: np.ndarray) -> StereoResult:
+        """Rectify (if needed) and match one pair of uint8 images (H×W mono or H×W×3 RGB)."""
+        left_rect, right_rect = self.rectify(left, right)
+        return StereoResult(self.match(left_rect, right_rect), left_rect, self.pinhole)
+
+    def reproject(self, disparity: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Disparities → 3D points in the left camera optical frame (x right, y down, z forward).
+
+        ``Z = fx·B / (d + doffs)``, ``X = (u − cx)·Z/fx``, ``Y = (v − cy)·Z/fy``; NaN disparities and
+        depths outside ``[min_range_m, max_range_m]`` are skipped (tested on the disparity, so only
+        the kept pixels pay for a division).
+
+        Returns
+        -------
+        points_cam : (N, 3) float32, metres, camera optical frame.
+        pixels : (N, 2) int32, the (u, v) pixel of each point in the rectified left image.
+        """
+        p = self.pinhole
+        if disparity.shape != (p.height, p.width):
+            raise InputError(f"disparity is {disparity.shape}, the calibration expects {(p.height, p.width)}")
+        focal_baseline = np.float32(p.fx * p.baseline_m)
+        doffs = np.float32(p.doffs)
+        d = disparity.reshape(-1)
+        with np.errstate(invalid="ignore"):  # NaN compares false: invalid pixels drop out here
+            keep = (d >= focal_baseline / self.config.max_range_m - doffs) & (
+                d <= focal_baseline / self.config.min_range_m - doffs
+            )
+        index = np.flatnonzero(keep)  # take() with indices is ~3x faster than boolean indexing here
+        z = focal_baseline / (d.take(index) + doffs)
+        points_cam = np.empty((index.size, 3), np.float32)
+        np.multiply(self._ray_x.take(index), z, out=points_cam[:, 0])
+        np.multiply(self._ray_y.take(index), z, out=points_cam[:, 1])
+        points_cam[:, 2] = z
+        return points_cam, self._pixels.take(index, axis=0)
+
+    def _check_images(self, left: np.ndarray, right: np.ndarray) -> None:
+        name = self.calibration.source or "stereo calibration"
+        for side, image in (("left", left), ("right", right)):
+            if not isinstance(image, np.ndarray) or image.dtype != np.uint8 or image.ndim not in (2, 3):
+                raise InputError(f"{side} image must be a uint8 H×W or H×W×3 array")
+            if image.ndim == 3 and image.shape[2] != 3:
+                raise InputError(f"{side} image has {image.shape[2]} channels, expected 1 or 3")
+        if left.shape[:2] != right.shape[:2]:
+            raise CalibrationError(f"left image is {_size(left)} but right image is {_size(right)}")
+        if left.shape[:2] != (self.calibration.height, self.calibration.width):
+            raise CalibrationError(
+                f"{name}: images are {_size(left)} but the calibration is for "
+                f"{self.calibration.width}×{self.calibration.height}"
+            )
+
+
+def to_vehicle(points_cam: np.ndarray, extrinsics: Extrinsics) -> np.ndarray:
+    """Camera optical frame → vehicle frame: ``p_vehicle = R @ p_cam + t``; (N, 3) float32, metres.
+
+    Uses ``cv2.transform`` (SIMD, ~0.1 ms for 250k points; numpy's ``points @ R.T`` takes ~2 ms).
+    """
+    points = np.ascontiguousarray(points_cam, np.float32).reshape(-1, 3)
+    if points.shape[0] == 0:
+        return points.copy()
+    transform = np.hstack([np.asarray(extrinsics.rotation), np.reshape(extrinsics.translation, (3, 1))])
+    return cv2.transform(points.reshape(-1, 1, 3), transform.astype(np.float32)).reshape(-1, 3)
+
+
+def _grey(image: np.ndarray) -> np.ndarray:
+    return image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
+
+
+def _size(image: np.ndarray) -> str:
+    return f"{image.shape[1]}×{image.shape[0]}"
+
+
+def _calibration_key(calibration: StereoCalibration) -> tuple:
+    return tuple(
+        np.asarray(value).tobytes() if isinstance(value, np.ndarray) else value
+        for value in vars(calibration).values()
+    )
