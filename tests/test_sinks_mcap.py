@@ -310,3 +310,19 @@ def test_layer_shape_mismatch_is_reported(tmp_path):
     with open_mcap_sink(tmp_path / "bad.mcap", config=Config()) as sink:
         with pytest.raises(TerrainmapError, match="layer 'slope' has shape"):
             sink.write(frame, result)
+
+
+def test_foxglove_layout_names_written_topics_and_fields(fox_file):
+    """examples/foxglove_layout.json colours the grid by slope and the points by label, on our topics."""
+    layout = json.loads((Path(__file__).resolve().parents[1] / "examples" / "foxglove_layout.json").read_text())
+    panel = layout["configById"][layout["layout"]["first"]]
+    assert layout["layout"]["first"].startswith("3D!")
+    topics = read_messages(fox_file[0], ProtobufDecoderFactory())
+    assert set(panel["topics"]) <= set(topics)
+    grid_fields = {f.name for f in topics["/terrainmap/grid"][0][2].fields}
+    point_fields = {f.name for f in topics["/terrainmap/points"][0][2].fields}
+    grid, points = panel["topics"]["/terrainmap/grid"], panel["topics"]["/terrainmap/points"]
+    assert grid["colorField"] == "slope" and grid["colorField"] in grid_fields
+    assert grid["elevationField"] in grid_fields
+    assert points["colorField"] == "label" and points["colorField"] in point_fields
+    assert panel["followTf"] == "base_link"
