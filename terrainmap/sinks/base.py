@@ -172,18 +172,22 @@ def grid_layers(result: FrameResult) -> dict[str, np.ndarray]:
     return layers
 
 
-def packed_points(result: FrameResult) -> np.ndarray:
-    """Points and labels as a (N,) :data:`POINT_DTYPE` array (vehicle frame, metres).
+def points_record(result: FrameResult, head: bytes, tail: bytes = b"") -> bytearray:
+    """``head`` + the points packed as :data:`POINT_DTYPE` records + ``tail``, in one buffer.
 
-    Packed through a byte view (x, y, z copied as one 12-byte run per point): about twice as
-    fast as filling the four fields one by one.
+    Both flavours serialize a point cloud as a small header, the packed points and (ROS 2) a
+    trailing field; packing straight into the final buffer saves two 4 MB copies per frame at
+    300k points. x, y, z go in as one 12-byte run per point (twice as fast as field by field).
     """
     points = np.ascontiguousarray(result.points_vehicle, dtype="<f4").reshape(-1, 3)
-    packed = np.empty(len(points), dtype=POINT_DTYPE)
-    raw = packed.view(np.uint8).reshape(len(points), POINT_DTYPE.itemsize)
+    n, step = len(points), POINT_DTYPE.itemsize
+    record = bytearray(len(head) + n * step + len(tail))
+    record[: len(head)] = head
+    record[len(record) - len(tail) :] = tail
+    raw = np.frombuffer(record, np.uint8, count=n * step, offset=len(head)).reshape(n, step)
     raw[:, :12] = points.view(np.uint8)
     raw[:, 12] = result.point_labels
-    return packed
+    return record
 
 
 def yaw_quaternion(yaw_rad: float) -> tuple[float, float, float, float]:

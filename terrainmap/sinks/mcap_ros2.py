@@ -45,10 +45,10 @@ from .base import (
     grid_layers,
     obstacle_rgba,
     obstacle_text,
-    packed_points,
+    points_record,
     yaw_quaternion,
 )
-from .cdr import encode_grid_map
+from .cdr import encode_grid_map, point_cloud2_head_tail
 
 
 def grid_map_message(result: FrameResult) -> dict:
@@ -77,25 +77,27 @@ def grid_map_message(result: FrameResult) -> dict:
     }
 
 
-def point_cloud_message(result: FrameResult) -> dict:
-    """PointCloud2 dict: one row of packed (x, y, z float32, label uint8) points."""
-    packed = packed_points(result)
+def encode_point_cloud2(result: FrameResult) -> bytearray:
+    """CDR bytes of a PointCloud2: one row of packed (x, y, z float32, label uint8) points."""
+    n, step = len(result.points_vehicle), POINT_DTYPE.itemsize
     ros_type = {"f": POINTFIELD_FLOAT32, "u": POINTFIELD_UINT8}
     fields = [
         {"name": name, "offset": POINT_DTYPE.fields[name][1], "datatype": ros_type[POINT_DTYPE[name].kind], "count": 1}
         for name in POINT_DTYPE.names
     ]
-    return {
-        "header": header(result.stamp_ns, VEHICLE_FRAME),
-        "height": 1,
-        "width": len(packed),
-        "fields": fields,
-        "is_bigendian": False,
-        "point_step": POINT_DTYPE.itemsize,
-        "row_step": POINT_DTYPE.itemsize * len(packed),
-        "data": packed.tobytes(),
-        "is_dense": bool(np.isfinite(result.points_vehicle).all()),
-    }
+    head, tail = point_cloud2_head_tail(
+        {
+            "header": header(result.stamp_ns, VEHICLE_FRAME),
+            "height": 1,
+            "width": n,
+            "fields": fields,
+            "is_bigendian": False,
+            "point_step": step,
+            "row_step": step * n,
+            "is_dense": bool(np.isfinite(result.points_vehicle).all()),
+        }
+    )
+    return points_record(result, head, tail)
 
 
 def _markers(obstacle: Obstacle, marker_id: int, stamp_ns: int) -> list[dict]:
@@ -140,7 +142,7 @@ def tf_message(result: FrameResult) -> dict:
 class _Writer(Writer):
     """mcap_ros2's writer plus ``write_encoded`` for messages this package encodes itself."""
 
-    def write_encoded(self, topic: str, schema: Schema, data: bytes, log_time: int) -> None:
+    def write_encoded(self, topic: str, schema: Schema, data: bytes | bytearray, log_time: int) -> None:
         if topic not in self._channel_ids:
             self._channel_ids[topic] = self._writer.register_channel(
                 topic=topic, message_encoding="cdr", schema_id=schema.id
@@ -182,7 +184,8 @@ class Ros2McapSink(McapSink):
             self._log(tf_topic, "tf2_msgs/msg/TFMessage", tf_message(result), t)
         grid_schema = self._schema("grid_map_msgs/msg/GridMap")
         self._writer.write_encoded("/terrainmap/grid_map", grid_schema, encode_grid_map(grid_map_message(result)), t)
-        self._log("/terrainmap/points", "sensor_msgs/msg/PointCloud2", point_cloud_message(result), t)
+        cloud_schema = self._schema("sensor_msgs/msg/PointCloud2")
+        self._writer.write_encoded("/terrainmap/points", cloud_schema, encode_point_cloud2(result), t)
         self._log("/terrainmap/obstacles", "visualization_msgs/msg/MarkerArray", marker_array_message(result), t)
 
     def _finish(self, metadata: dict[str, str]) -> None:
