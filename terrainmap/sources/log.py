@@ -64,7 +64,11 @@ class LogSource(Source):
     ):
         super().__init__(path)
         self.reader = self._open_reader()
-        self.left_topic, self.right_topic = stereo_topics(self.reader.types, left_topic, right_topic, str(self.path))
+        try:
+            self.left_topic, self.right_topic = stereo_topics(self.reader.types, left_topic, right_topic, str(self.path))
+        except InputError as exc:
+            damage = self.reader.damage
+            raise InputError(f"{damage}; {exc}" if damage else str(exc)) from None
         if self.left_topic == self.right_topic:
             raise InputError(f"{self.path}: left and right topic are the same ({self.left_topic})")
         self.pair_tolerance_ns = int(pair_tolerance_ns)
@@ -126,6 +130,8 @@ class LogSource(Source):
                         tree.add(*transform)
                     if limit and tree.resolves(self.frame_id):
                         break
+            except InputError as exc:  # a damaged log: keep the transforms read before the damage
+                logger.warning("reading transforms: %s", exc)
             finally:
                 stream.close()
         return tree.extrinsics(self.frame_id)

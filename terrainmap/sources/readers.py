@@ -44,6 +44,8 @@ class McapFile:
         self.types: dict[str, str] = {}
         self.counts: dict[str, int | None] = {}
         self.indexed = False
+        self.damage: str | None = None
+        """Why a scan of a file without a summary stopped early (None: read to the end)."""
         try:
             with open(path, "rb") as stream:
                 reader = make_reader(stream)
@@ -81,7 +83,8 @@ class McapFile:
                 self.types[channel.topic] = normalize_type(schema.name if schema else "")
                 self.counts[channel.topic] = self.counts.get(channel.topic, 0) + 1
         except Exception as exc:
-            logger.warning("%s: truncated or corrupt after %d messages (%s)", self.path, sum(self.counts.values()), _reason(exc))
+            self.damage = f"{self.path}: truncated or corrupt after {sum(self.counts.values())} messages ({_reason(exc)})"
+            logger.warning("%s", self.damage)
 
     def messages(self, topics: list[str]) -> Iterator[tuple[str, int, Any]]:
         """(topic, log_time_ns, decoded message) of ``topics`` in log-time order."""
@@ -92,7 +95,7 @@ class McapFile:
         try:
             with open(self.path, "rb") as stream:
                 reader = SeekingReader(stream) if self.indexed else NonSeekingReader(stream)
-                for schema, channel, message in reader.iter_messages(topics=topics):
+                for schema, channel, message in reader.iter_messages(topics=topics, log_time_order=self.indexed):
                     if channel.id not in decoders:
                         decoders[channel.id] = next(
                             (d for f in factories if (d := f.decoder_for(channel.message_encoding, schema))), None
@@ -136,6 +139,7 @@ class McapLog:
             raise InputError(f"{path}: no .mcap files in this folder")
         self.types: dict[str, str] = {}
         self.counts: dict[str, int | None] = {}
+        self.damage = next((f.damage for f in self.files if f.damage), None)
         for f in self.files:
             self.types.update(f.types)
             for topic, n in f.counts.items():
@@ -150,6 +154,7 @@ class Ros1Bag:
     """A ROS 1 bag (v2.0), read with ``rosbags``."""
 
     format = "ros1-bag"
+    damage: str | None = None  # rosbags reads the index at open and fails there on a damaged bag
 
     def __init__(self, path: Path):
         from rosbags.typesys import Stores, get_typestore

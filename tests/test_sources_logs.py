@@ -1,0 +1,338 @@
+"""Log sources: real rosbag2/ROS 1 logs, ROS 2 and Foxglove logs written here, bad logs."""
+
+import shutil
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
+from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
+from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
+from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
+from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
+from mcap_protobuf.writer import Writer as ProtobufWriter
+from mcap_ros2.writer import Writer as Ros2Writer
+
+from terrainmap.errors import CalibrationError, InputError
+from terrainmap.sources import open_source
+
+DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+KITTI = DATA / "kitti2015_000005"
+REAL_LOGS = ["kitti2015_000005_ros2_raw", "kitti2015_000005_ros2_compressed", "kitti2015_000005_ros1_raw.bag"]
+
+HEADER = """================================================================================
+MSG: std_msgs/Header
+builtin_interfaces/Time stamp
+string frame_id
+================================================================================
+MSG: builtin_interfaces/Time
+int32 sec
+uint32 nanosec
+"""
+IMAGE_DEF = "std_msgs/Header header\nuint32 height\nuint32 width\nstring encoding\nuint8 is_bigendian\nuint32 step\nuint8[] data\n"
+INFO_DEF = """std_msgs/Header header
+uint32 height
+uint32 width
+string distortion_model
+float64[] d
+float64[9] k
+float64[9] r
+float64[12] p
+uint32 binning_x
+uint32 binning_y
+sensor_msgs/RegionOfInterest roi
+================================================================================
+MSG: sensor_msgs/RegionOfInterest
+uint32 x_offset
+uint32 y_offset
+uint32 height
+uint32 width
+bool do_rectify
+"""
+TF_DEF = """geometry_msgs/TransformStamped[] transforms
+================================================================================
+MSG: geometry_msgs/TransformStamped
+std_msgs/Header header
+string child_frame_id
+geometry_msgs/Transform transform
+================================================================================
+MSG: geometry_msgs/Transform
+geometry_msgs/Vector3 translation
+geometry_msgs/Quaternion rotation
+================================================================================
+MSG: geometry_msgs/Vector3
+float64 x
+float64 y
+float64 z
+================================================================================
+MSG: geometry_msgs/Quaternion
+float64 x
+float64 y
+float64 z
+float64 w
+"""
+OPTICAL_Q = [-0.5, 0.5, -0.5, 0.5]  # camera link (x fwd, y left, z up) -> optical (x right, y down, z fwd)
+OPTICAL_R = [[0, 0, 1], [-1, 0, 0], [0, -1, 0]]
+T0 = 1_700_000_000_000_000_000
+
+
+def header(stamp_ns: int, frame: str) -> dict:
+    return {"stamp": {"sec": stamp_ns // 10**9, "nanosec": stamp_ns % 10**9}, "frame_id": frame}
+
+
+def ros_image(stamp_ns: int, frame: str, array: np.ndarray, encoding: str) -> dict:
+    h, w = array.shape[:2]
+    return {"header": header(stamp_ns, frame), "height": h, "width": w, "encoding": encoding,
+            "is_bigendian": 0, "step": array.strides[0], "data": array.tobytes()}
+
+
+def ros_info(stamp_ns: int, frame: str, w: int, h: int, tx: float, d=(0.0,) * 5, r=np.eye(3)) -> dict:
+    return {"header": header(stamp_ns, frame), "height": h, "width": w, "distortion_model": "plumb_bob",
+            "d": list(d), "k": [400.0, 0, w / 2, 0, 400.0, h / 2, 0, 0, 1], "r": np.ravel(r).tolist(),
+            "p": [400.0, 0, w / 2, tx, 0, 400.0, h / 2, 0, 0, 0, 1, 0], "binning_x": 0, "binning_y": 0,
+            "roi": {"x_offset": 0, "y_offset": 0, "height": 0, "width": 0, "do_rectify": False}}
+
+
+def tf_message(stamp_ns: int, parent: str, child: str, xyz, q) -> dict:
+    x, y, z = xyz
+    return {"transforms": [{"header": header(stamp_ns, parent), "child_frame_id": child, "transform": {
+        "translation": {"x": x, "y": y, "z": z}, "rotation": dict(zip("xyzw", q, strict=True))}}]}
+
+
+def pair_images(i: int, shape=(6, 8, 3)) -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(i)
+    return rng.integers(0, 255, shape, dtype=np.uint8), rng.integers(0, 255, shape, dtype=np.uint8)
+
+
+def write_ros2_log(path: Path, n: int = 6, *, camera_info=True, tf=True, topics=("/cam/left/image_rect", "/cam/right/image_rect"),
+                   encode=lambda a: (a, "rgb8"), d=(0.0,) * 5, right_offset_ns=2_000_000, chunk_size=1024) -> Path:
+    """A ROS 2 MCAP: tf_static and camera_info first, then n pairs at 10 Hz (right 2 ms late) and
+    one unpaired left image in the middle."""
+    with open(path, "wb") as f, Ros2Writer(f, chunk_size=chunk_size) as writer:
+        image_schema = writer.register_msgdef("sensor_msgs/msg/Image", IMAGE_DEF + HEADER)
+        if tf:
+            tf_schema = writer.register_msgdef("tf2_msgs/msg/TFMessage", TF_DEF + HEADER)
+            for parent, child, xyz, q in (("base_link", "cam_link", (1.0, 0.0, 1.5), (0, 0, 0, 1)),
+                                          ("cam_link", "left_optical", (0.0, 0.1, 0.0), OPTICAL_Q),
+                                          ("odom", "base_link", (5.0, 5.0, 0.0), (0, 0, 0, 1))):
+                writer.write_message("/tf_static", tf_schema, tf_message(T0, parent, child, xyz, q), T0)
+        if camera_info:
+            info_schema = writer.register_msgdef("sensor_msgs/msg/CameraInfo", INFO_DEF + HEADER)
+            for side, tx in (("left", 0.0), ("right", -400.0 * 0.25)):
+                writer.write_message(f"/cam/{side}/camera_info", info_schema, ros_info(T0, f"{side}_optical", 8, 6, tx, d), T0)
+        for i in range(n):
+            stamp = T0 + i * 100_000_000
+            left, right = pair_images(i)
+            writer.write_message(topics[0], image_schema, ros_image(stamp, "left_optical", *encode(left)), stamp)
+            if i == n // 2:
+                writer.write_message(topics[0], image_schema, ros_image(stamp + 50_000_000, "left_optical", *encode(left)), stamp + 1)
+            writer.write_message(topics[1], image_schema, ros_image(stamp + right_offset_ns, "right_optical", *encode(right)),
+                                 stamp + right_offset_ns)
+    return path
+
+
+@pytest.fixture
+def kitti():
+    if not KITTI.is_dir():
+        pytest.skip("shared KITTI data not available")
+    with open_source(KITTI) as source:
+        return next(source.frames())
+
+
+@pytest.mark.parametrize("log", REAL_LOGS)
+def test_real_logs_give_the_folder_images_and_calibration(kitti, log):
+    with open_source(DATA / log) as source:
+        frames = list(source.frames())
+        info = source.describe()
+    assert len(frames) == 1
+    np.testing.assert_array_equal(frames[0].left, kitti.left)
+    np.testing.assert_array_equal(frames[0].right, kitti.right)
+    for field in ("width", "height", "fx", "fy", "cx", "cy", "baseline_m", "cx_right", "doffs", "rectified"):
+        assert getattr(frames[0].calibration, field) == pytest.approx(getattr(kitti.calibration, field)), field
+    assert frames[0].stamp_ns == 1317380000 * 10**9 and frames[0].frame_id == "left_camera_optical"
+    assert info["left_topic"].startswith("/stereo/left/image_rect_color") and info["right_topic"].startswith("/stereo/right/")
+    assert info["calibration_topics"] == ["/stereo/left/camera_info", "/stereo/right/camera_info"]
+    assert frames[0].extrinsics is None and "estimated" in info["extrinsics"]
+
+
+def test_foxglove_protobuf_log_from_kitti_images(kitti, tmp_path):
+    path = tmp_path / "foxglove.mcap"
+    calib = kitti.calibration
+    fx, cx, cy, b = calib.fx, calib.cx, calib.cy, calib.baseline_m
+    h, w = kitti.left.shape[:2]
+    with open(path, "wb") as f, ProtobufWriter(f) as writer:
+        transforms = FrameTransforms(transforms=[
+            FrameTransform(parent_frame_id="base_link", child_frame_id="camera", translation={"x": 0.5, "z": 1.6},
+                           rotation={"w": 1.0}),
+            FrameTransform(parent_frame_id="camera", child_frame_id="left_optical", rotation=dict(zip("xyzw", OPTICAL_Q, strict=True))),
+        ])
+        writer.write_message("/tf_static", transforms, log_time=T0, publish_time=T0)
+        for side, tx in (("left", 0.0), ("right", -fx * b)):
+            info = CameraCalibration(frame_id=f"{side}_optical", width=w, height=h, distortion_model="plumb_bob",
+                                     D=[0.0] * 5, K=[fx, 0, cx, 0, fx, cy, 0, 0, 1], R=[1, 0, 0, 0, 1, 0, 0, 0, 1],
+                                     P=[fx, 0, cx, tx, 0, fx, cy, 0, 0, 0, 1, 0])
+            info.timestamp.FromNanoseconds(T0)
+            writer.write_message(f"/stereo/{side}/calibration", info, log_time=T0, publish_time=T0)
+        left = RawImage(frame_id="left_optical", width=w, height=h, encoding="rgb8", step=w * 3, data=kitti.left.tobytes())
+        ok, png = cv2.imencode(".png", cv2.cvtColor(kitti.right, cv2.COLOR_RGB2BGR))
+        right = CompressedImage(frame_id="right_optical", format="png", data=png.tobytes())
+        for msg, topic in ((left, "/stereo/left/image"), (right, "/stereo/right/image")):
+            msg.timestamp.FromNanoseconds(T0 + 1000)
+            writer.write_message(topic, msg, log_time=T0 + 1000, publish_time=T0 + 1000)
+    # a raw and a compressed topic do not form a pair by guessing: name them
+    with open_source(path, left_topic="/stereo/left/image", right_topic="/stereo/right/image") as source:
+        frame = next(source.frames())
+        info = source.describe()
+    np.testing.assert_array_equal(frame.left, kitti.left)
+    np.testing.assert_array_equal(frame.right, kitti.right)
+    assert frame.calibration.baseline_m == pytest.approx(b) and frame.calibration.fx == fx
+    assert info["format"] == "mcap" and {t["type"] for t in info["topics"]} >= {"foxglove.RawImage", "foxglove.CameraCalibration"}
+    ext = frame.extrinsics
+    assert ext.source == "tf" and ext.vehicle_frame_id == "base_link" and ext.camera_frame_id == "left_optical"
+    np.testing.assert_allclose(ext.translation, [0.5, 0.0, 1.6])
+    np.testing.assert_allclose(ext.rotation, OPTICAL_R, atol=1e-12)
+
+
+def test_ros2_log_pairs_by_stamp_selects_and_composes_tf(tmp_path):
+    path = write_ros2_log(tmp_path / "run.mcap")
+    with open_source(path) as source:
+        frames = list(source.frames())
+        late = list(source.frames(start_s=0.3, every=2))
+    assert [f.index for f in frames] == list(range(6))  # the extra left image found no partner
+    assert [f.stamp_ns - T0 for f in frames] == [i * 100_000_000 for i in range(6)]
+    np.testing.assert_array_equal(frames[4].right, pair_images(4)[1])
+    assert [f.index for f in late] == [3, 5]
+    calib = late[0].calibration
+    assert calib.baseline_m == pytest.approx(0.25) and (calib.width, calib.height) == (8, 6)
+    ext = late[0].extrinsics
+    assert ext.vehicle_frame_id == "base_link"  # not odom: the chain stops at the vehicle frame
+    np.testing.assert_allclose(ext.translation, [1.0, 0.1, 1.5])
+    np.testing.assert_allclose(ext.rotation, OPTICAL_R, atol=1e-12)
+    with open_source(path, pair_tolerance_ns=1_000_000) as strict:
+        assert list(strict.frames()) == []
+
+
+def test_rosbag2_directory_of_several_files(tmp_path):
+    bag = tmp_path / "bag"
+    bag.mkdir()
+    write_ros2_log(bag / "bag_0.mcap", n=2)
+    write_ros2_log(bag / "bag_1.mcap", n=2, tf=False, camera_info=False)
+    (bag / "metadata.yaml").write_text("rosbag2_bagfile_information:\n  relative_file_paths: [bag_0.mcap, bag_1.mcap]\n")
+    with open_source(bag) as source:
+        info = source.describe()
+        assert info["format"] == "rosbag2" and len(info["files"]) == 2 and info["frames"] == 4
+        assert len(list(source.frames())) == 4
+
+
+@pytest.mark.parametrize(
+    "encode, expect",
+    [
+        (lambda a: (cv2.cvtColor(a, cv2.COLOR_RGB2BGR), "bgr8"), lambda a: a),
+        (lambda a: (cv2.cvtColor(a, cv2.COLOR_RGB2BGRA), "bgra8"), lambda a: a),
+        (lambda a: (cv2.cvtColor(a, cv2.COLOR_RGB2RGBA), "rgba8"), lambda a: a),
+        (lambda a: (a[:, :, 1].copy(), "mono8"), lambda a: a[:, :, 1]),
+        (lambda a: (a[:, :, 1].astype(np.uint16) * 4, "16UC1"), None),
+    ],
+)
+def test_ros_image_encodings(tmp_path, encode, expect):
+    path = write_ros2_log(tmp_path / "enc.mcap", n=1, encode=encode)
+    frame = next(open_source(path).frames())
+    left, right = pair_images(0)
+    if expect is None:  # 16 bit: one common scale for the pair
+        scale = 255.0 / max(left[:, :, 1].max(), right[:, :, 1].max())
+        np.testing.assert_allclose(frame.left, np.round(left[:, :, 1] * scale), atol=1)
+    else:
+        np.testing.assert_array_equal(frame.left, expect(left))
+        np.testing.assert_array_equal(frame.right, expect(right))
+
+
+def test_unsupported_encoding_names_topic_and_encoding(tmp_path):
+    path = write_ros2_log(tmp_path / "bayer.mcap", n=1, encode=lambda a: (a[:, :, 0].copy(), "bayer_rggb8"))
+    with pytest.raises(InputError, match="/cam/left/image_rect: unsupported image encoding 'bayer_rggb8'"):
+        list(open_source(path).frames())
+
+
+def test_topic_overrides_and_partner_guessing(tmp_path):
+    path = write_ros2_log(tmp_path / "cams.mcap", n=2, topics=("/cam0/image_raw", "/cam1/image_raw"), camera_info=False)
+    calib = tmp_path / "calib.yaml"
+    calib.write_text("width: 8\nheight: 6\nfx: 400\nfy: 400\ncx: 4\ncy: 3\nbaseline_m: 0.2\n")
+    with open_source(path, right_topic="/cam1/image_raw", calibration=calib) as source:
+        assert (source.left_topic, source.right_topic) == ("/cam0/image_raw", "/cam1/image_raw")
+        assert next(source.frames()).calibration.baseline_m == 0.2
+    with open_source(path, left_topic="/cam1/image_raw", right_topic="/cam0/image_raw", calibration=calib) as swapped:
+        np.testing.assert_array_equal(next(swapped.frames()).left, pair_images(0)[1])
+    with pytest.raises(InputError, match="'/nope' is not an image topic.*/cam0/image_raw"):
+        open_source(path, left_topic="/nope")
+
+
+def test_missing_camera_info_is_reported_then_raised(tmp_path):
+    path = write_ros2_log(tmp_path / "nocal.mcap", n=1, camera_info=False)
+    with open_source(path) as source:
+        assert source.describe()["calibration"].startswith("missing")
+        with pytest.raises(CalibrationError, match="no camera calibration topic.*--calibration"):
+            next(source.frames())
+
+
+def test_raw_distorted_images_give_an_unrectified_calibration(tmp_path):
+    path = write_ros2_log(tmp_path / "raw.mcap", n=1, topics=("/cam/left/image_raw", "/cam/right/image_raw"), d=(0.1, -0.05, 0, 0, 0))
+    calib = next(open_source(path).frames()).calibration
+    assert not calib.rectified and calib.dist_left[0] == 0.1
+    np.testing.assert_allclose(calib.R, np.eye(3))
+    np.testing.assert_allclose(calib.T, [-0.25, 0, 0])
+
+
+@pytest.mark.parametrize("log", ["negative/rosbag2_cdr_test", "negative/rosbag2_talker", "negative/grid_map_ros1.bag"])
+def test_logs_without_stereo_say_so(log):
+    if not (DATA / log).exists():
+        pytest.skip("shared negative logs not available")
+    with pytest.raises(InputError, match="no stereo image topics found") as info:
+        open_source(DATA / log)
+    assert "\n" not in str(info.value)
+
+
+def test_truncated_log_yields_what_it_can_then_raises(tmp_path):
+    path = write_ros2_log(tmp_path / "full.mcap", n=20)
+    cut = tmp_path / "cut.mcap"
+    data = path.read_bytes()
+    cut.write_bytes(data[: len(data) // 2])
+    with open_source(cut) as source:
+        frames = []
+        with pytest.raises(InputError, match="cut.mcap: log is truncated or corrupt"):
+            for frame in source.frames():
+                frames.append(frame)
+    assert 3 <= len(frames) < 20
+    np.testing.assert_array_equal(frames[2].left, pair_images(2)[0])
+
+
+@pytest.mark.parametrize("damage", ["half", "overwrite", "garbage"])
+def test_corrupt_real_log_gives_one_line_error(tmp_path, damage):
+    real = DATA / "kitti2015_000005_ros2_raw" / "kitti2015_000005_ros2_raw.mcap"
+    if not real.is_file():
+        pytest.skip("shared ROS 2 log not available")
+    bad = tmp_path / "bad.mcap"
+    data = bytearray(real.read_bytes())
+    if damage == "half":
+        data = data[: len(data) // 2]
+    elif damage == "overwrite":
+        data[len(data) // 3: len(data) // 3 + 4096] = b"\xff" * 4096
+        data[-200:-8] = b"\x00" * 192
+    else:
+        data = b"\x89MCAP0\r\n" + b"\x07" * 100
+    bad.write_bytes(bytes(data))
+    with pytest.raises(InputError) as info:
+        with open_source(bad) as source:
+            list(source.frames())
+    assert "bad.mcap" in str(info.value) and "\n" not in str(info.value)
+    assert "truncated or corrupt" in str(info.value) or "not a readable MCAP file" in str(info.value)
+
+
+def test_ros1_bag_truncated(tmp_path):
+    real = DATA / "kitti2015_000005_ros1_raw.bag"
+    if not real.is_file():
+        pytest.skip("shared ROS 1 bag not available")
+    bad = tmp_path / "bad.bag"
+    shutil.copy(real, bad)
+    bad.write_bytes(real.read_bytes()[:4000])
+    with pytest.raises(InputError, match="bad.bag"):
+        list(open_source(bad).frames())
