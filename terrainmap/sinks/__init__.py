@@ -21,7 +21,7 @@ def open_mcap_sink(
     *,
     config: Config,
     metadata: Mapping[str, str] | None = None,
-    compression: str = "zstd",
+    compression: str = "lz4",
 ) -> McapSink:
     """Create an MCAP sink writing ``path`` (overwritten).
 
@@ -35,8 +35,9 @@ def open_mcap_sink(
         Effective configuration, saved in the ``terrainmap`` metadata record.
     metadata : mapping of str to str, optional
         Extra metadata entries, e.g. ``{"source": "<input log>"}``.
-    compression : {"zstd", "lz4", "none"}
-        Chunk compression.
+    compression : {"lz4", "zstd", "none"}
+        Chunk compression. At 300k points per frame (4 MB), lz4 costs ~8 ms per frame and
+        saves ~35 %; zstd saves ~55 % but costs ~30 ms per frame (measured on a 2-core VM).
 
     Raises
     ------

@@ -207,10 +207,10 @@ class FoxgloveMcapSink(McapSink):
     """Writes each frame as Foxglove protobuf messages to an MCAP file (see the module docstring).
 
     Parameters are those of :class:`~terrainmap.sinks.base.McapSink`, plus ``compression``
-    (``"zstd"``, ``"lz4"`` or ``"none"``; zstd gives the smallest files).
+    (``"lz4"``, ``"zstd"`` or ``"none"``; see :func:`terrainmap.sinks.open_mcap_sink`).
     """
 
-    def __init__(self, path, *, config, metadata=None, compression: str = "zstd"):
+    def __init__(self, path, *, config, metadata=None, compression: str = "lz4"):
         self._compression = CompressionType[compression.upper()]
         super().__init__(path, config=config, metadata=metadata)
 

@@ -156,10 +156,10 @@ class Ros2McapSink(McapSink):
     """Writes each frame as ROS 2 CDR messages to an MCAP file (see the module docstring).
 
     Parameters are those of :class:`~terrainmap.sinks.base.McapSink`, plus ``compression``
-    (``"zstd"``, ``"lz4"`` or ``"none"``).
+    (``"lz4"``, ``"zstd"`` or ``"none"``; see :func:`terrainmap.sinks.open_mcap_sink`).
     """
 
-    def __init__(self, path, *, config, metadata=None, compression: str = "zstd"):
+    def __init__(self, path, *, config, metadata=None, compression: str = "lz4"):
         self._compression = CompressionType[compression.upper()]
         self._schemas: dict[str, Schema] = {}
         super().__init__(path, config=config, metadata=metadata)
