@@ -1,0 +1,84 @@
+"""``terrainmap info`` through click's CliRunner."""
+
+import json
+from pathlib import Path
+
+import click
+import pytest
+from click.testing import CliRunner
+from terrainmap.cli.info_cmd import info
+from terrainmap.cli.main import cli
+from terrainmap.cli.source_options import SourceOptions, source_options
+
+DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+
+
+def need(path: Path) -> Path:
+    if not path.exists():
+        pytest.skip(f"{path} not available")
+    return path
+
+
+def test_info_on_a_rosbag2_prints_topics_calibration_and_extrinsics():
+    result = CliRunner().invoke(cli, ["info", str(need(DATA / "kitti2015_000005_ros2_raw"))])
+    assert result.exit_code == 0, result.output
+    assert "format:" in result.output and "rosbag2" in result.output
+    assert "/stereo/left/image_rect_color   sensor_msgs/msg/Image" in result.output
+    assert "left topic:" in result.output and "baseline_m: 0.532725" in result.output
+    assert "will be estimated" in result.output
+
+
+def test_info_json_on_the_kitti_folder():
+    result = CliRunner().invoke(info, ["--json", str(need(DATA / "kitti2015_000005"))])
+    assert result.exit_code == 0, result.output
+    description = json.loads(result.output)
+    assert description["format"] == "kitti-stereo" and description["frames"] == 1
+    assert description["calibration"]["fx"] == pytest.approx(721.5377)
+
+
+def test_info_topic_and_calibration_options(tmp_path):
+    calib = tmp_path / "c.yaml"
+    calib.write_text("width: 1242\nheight: 375\nfx: 700\nfy: 700\ncx: 600\ncy: 170\nbaseline_m: 0.5\n")
+    log = need(DATA / "kitti2015_000005_ros2_compressed")
+    args = ["--json", "--left-topic", "/stereo/right/image_rect_color/compressed",
+            "--right-topic", "/stereo/left/image_rect_color/compressed", "--calibration", str(calib), str(log)]
+    description = json.loads(CliRunner().invoke(info, args).output)
+    assert description["left_topic"] == "/stereo/right/image_rect_color/compressed"
+    assert description["calibration"]["baseline_m"] == 0.5
+
+
+@pytest.mark.parametrize("log", ["negative/rosbag2_talker", "does/not/exist"])
+def test_info_errors_are_one_line_messages(log, tmp_path):
+    from terrainmap.cli.main import main
+
+    path = DATA / log if log.startswith("negative") else tmp_path / log
+    if log.startswith("negative"):
+        need(path)
+    with pytest.raises(SystemExit) as exit_info:
+        main(["info", str(path)])
+    assert exit_info.value.code == 2
+
+
+def test_info_error_output(capsys):
+    from terrainmap.cli.main import main
+
+    with pytest.raises(SystemExit):
+        main(["info", str(need(DATA / "negative" / "grid_map_ros1.bag"))])
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("Error: ") and "no stereo image topics found" in err and "\n" not in err
+
+
+def test_source_options_collect_into_open_and_frames_kwargs():
+    seen = {}
+
+    @click.command()
+    @source_options
+    def cmd(source_opts: SourceOptions):
+        seen["open"], seen["frames"] = source_opts.open_kwargs(), source_opts.frames_kwargs()
+
+    result = CliRunner().invoke(cmd, ["--start", "2.5", "--every", "3", "--max-frames", "7", "--pair-tolerance-ms", "4",
+                                      "--left-topic", "/a/left"])
+    assert result.exit_code == 0, result.output
+    assert seen["open"] == {"left_topic": "/a/left", "right_topic": None, "calibration": None, "pair_tolerance_ns": 4_000_000}
+    assert seen["frames"] == {"start_s": 2.5, "end_s": None, "every": 3, "max_frames": 7}
+    assert CliRunner().invoke(cmd, ["--every", "0"]).exit_code == 2

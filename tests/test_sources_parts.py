@@ -1,0 +1,91 @@
+"""The small parts under the log sources: topic guessing, pairing, the transform tree, raw decoding."""
+
+import numpy as np
+import pytest
+
+from terrainmap.errors import InputError
+from terrainmap.sources.images import decode_raw
+from terrainmap.sources.pairing import StereoPairer
+from terrainmap.sources.tf import TransformTree, quaternion_to_matrix
+from terrainmap.sources.topics import calibration_topic, side_tokens, stereo_topics
+
+IMAGE = "sensor_msgs/msg/Image"
+COMPRESSED = "sensor_msgs/msg/CompressedImage"
+
+
+@pytest.mark.parametrize(
+    "left, right",
+    [
+        ("/stereo/left/image_rect_color", "/stereo/right/image_rect_color"),
+        ("/zed/zed_node/left/image_rect_color", "/zed/zed_node/right/image_rect_color"),
+        ("/cam0/image_raw", "/cam1/image_raw"),
+        ("/camera/infra1/image_rect_raw", "/camera/infra2/image_rect_raw"),
+        ("/kitti/image_2", "/kitti/image_3"),
+        ("/stereo_camera/left_image", "/stereo_camera/right_image"),
+        ("/multisense/l/image", "/multisense/r/image"),
+    ],
+)
+def test_stereo_topics_are_found_by_name(left, right):
+    types = {left: IMAGE, right: IMAGE, "/rosout": "rcl_interfaces/msg/Log"}
+    assert stereo_topics(types, None, None, "log") == (left, right)
+
+
+def test_rectified_uncompressed_pair_is_preferred():
+    types = {
+        "/s/left/image_raw": IMAGE, "/s/right/image_raw": IMAGE,
+        "/s/left/image_rect/compressed": COMPRESSED, "/s/right/image_rect/compressed": COMPRESSED,
+        "/s/left/image_rect": IMAGE, "/s/right/image_rect": IMAGE,
+    }
+    assert stereo_topics(types, None, None, "log") == ("/s/left/image_rect", "/s/right/image_rect")
+    assert stereo_topics(types, "/s/left/image_raw", None, "log") == ("/s/left/image_raw", "/s/right/image_raw")
+
+
+def test_unrelated_topics_do_not_pair():
+    assert side_tokens("/front/image", "/rear/image") is None
+    assert side_tokens("/cam0/image", "/cam0/depth") is None
+    with pytest.raises(InputError, match="log: no stereo image topics found.*/front/image"):
+        stereo_topics({"/front/image": IMAGE, "/rear/image": IMAGE}, None, None, "log")
+
+
+def test_calibration_topic_by_namespace():
+    infos = ["/stereo/left/camera_info", "/stereo/right/camera_info", "/other/camera_info"]
+    assert calibration_topic("/stereo/left/image_rect_color/compressed", infos) == "/stereo/left/camera_info"
+    assert calibration_topic("/stereo/right/image_rect_color", infos) == "/stereo/right/camera_info"
+    assert calibration_topic("/elsewhere/image", infos) is None
+
+
+def test_pairer_matches_within_tolerance_and_stays_bounded():
+    pairer = StereoPairer(tolerance_ns=5, max_buffer=4)
+    assert pairer.push(0, 100, "L1") is None
+    assert pairer.push(1, 103, "R1") == (100, "L1", "R1")
+    assert pairer.push(1, 203, "R2") is None  # right first this time
+    assert pairer.push(0, 200, "L2") == (200, "L2", "R2")
+    for i in range(100):  # a left camera with no right partner
+        pairer.push(0, 1000 + 100 * i, i)
+    assert all(len(buffer) <= 4 for buffer in pairer._waiting) and pairer.dropped >= 96
+    assert pairer.push(1, 1000 + 100 * 99 + 2, "R") == (1000 + 100 * 99, 99, "R")
+
+
+def test_transform_tree_composes_up_to_the_vehicle_frame():
+    tree = TransformTree()
+    tree.add("odom", "base_link", [10, 0, 0], [0, 0, 0, 1])
+    tree.add("base_link", "mast", [0.5, 0, 1.0], [0, 0, np.sin(np.pi / 4), np.cos(np.pi / 4)])  # yaw 90°
+    tree.add("/mast", "/cam_optical", [0.2, 0, 0], [0, 0, 0, 1])
+    ext = tree.extrinsics("cam_optical")
+    assert ext.vehicle_frame_id == "base_link" and ext.source == "tf"
+    np.testing.assert_allclose(ext.translation, [0.5, 0.2, 1.0], atol=1e-12)
+    np.testing.assert_allclose(ext.rotation, quaternion_to_matrix([0, 0, np.sin(np.pi / 4), np.cos(np.pi / 4)]))
+    assert tree.extrinsics("unknown_frame") is None
+    rootless = TransformTree()
+    rootless.add("world", "cam", [1, 2, 3], [0, 0, 0, 1])
+    assert rootless.extrinsics("cam").vehicle_frame_id == "world"
+
+
+def test_decode_raw_handles_row_padding_and_big_endian():
+    image = np.arange(12, dtype=np.uint16).reshape(3, 4) * 1000
+    rows = np.zeros((3, 10), np.uint8)
+    rows[:, :8] = image.astype(">u2").view(np.uint8).reshape(3, 8)
+    out = decode_raw(rows.tobytes(), width=4, height=3, step=10, encoding="mono16", name="/t", big_endian=True)
+    np.testing.assert_array_equal(out, image)
+    with pytest.raises(InputError, match="/t: image of 4×3 rgb8"):
+        decode_raw(b"\x00" * 10, width=4, height=3, step=12, encoding="rgb8", name="/t")
