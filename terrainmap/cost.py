@@ -32,10 +32,7 @@ from scipy import ndimage
 
 from .config import CostConfig, GridConfig
 from .errors import InputError
-from .grid import cell_centers
 from .types import Obstacle
-
-_CHUNK = 64  # obstacles rasterised at once (bounds the temporary (k, m0, m1) arrays)
 
 
 def smoothstep(t: np.ndarray) -> np.ndarray:
@@ -98,22 +95,37 @@ def occupancy(obstacles: list[Obstacle], grid_config: GridConfig, clearance_m: f
 
     A cell is reached when the distance from its centre to the obstacle's oriented footprint
     rectangle (``center_m[:2]``, ``size_m[:2]``, ``yaw_rad``) is at most
-    ``clearance_m + cell_size_m / 2``.
+    ``clearance_m + cell_size_m / 2``. Only the cells in each obstacle's bounding window are
+    tested (all obstacles at once), so the cost grows with the obstacles' area, not their number
+    times the grid size.
     """
-    xs, ys = cell_centers(grid_config)
-    occupied = np.zeros(grid_config.shape, bool)
-    boxes = np.array(
-        [[*o.center_m[:2], *o.size_m[:2], o.yaw_rad] for o in obstacles if o.confirmed], float
-    ).reshape(-1, 5)
-    reach = clearance_m + grid_config.cell_size_m / 2
-    for start in range(0, len(boxes), _CHUNK):
-        cx, cy, length, width, yaw = (c[:, None, None] for c in boxes[start : start + _CHUNK].T)
-        dx, dy = xs[None, :, None] - cx, ys[None, None, :] - cy
-        cos, sin = np.cos(yaw), np.sin(yaw)
-        u = np.maximum(np.abs(dx * cos + dy * sin) - length / 2, 0.0)
-        v = np.maximum(np.abs(-dx * sin + dy * cos) - width / 2, 0.0)
-        occupied |= (u * u + v * v <= reach * reach).any(axis=0)
-    return occupied
+    m0, m1 = grid_config.shape
+    c = grid_config.cell_size_m
+    occupied = np.zeros(m0 * m1, bool)
+    boxes = np.array([[*o.center_m[:2], *o.size_m[:2], o.yaw_rad] for o in obstacles if o.confirmed], float)
+    if not len(boxes):
+        return occupied.reshape(m0, m1)
+    cx, cy, length, width, yaw = boxes.T
+    reach = clearance_m + c / 2
+    radius = np.hypot(length, width) / 2 + reach
+    # Window of cell indices whose centres lie within ``radius`` of the centre along each axis.
+    fx, fy = (cx - grid_config.x_min_m) / c - 0.5, (cy - grid_config.y_min_m) / c - 0.5
+    ix0 = np.clip(np.ceil(fx - radius / c), 0, m0).astype(np.intp)
+    ix1 = np.clip(np.floor(fx + radius / c) + 1, 0, m0).astype(np.intp)
+    iy0 = np.clip(np.ceil(fy - radius / c), 0, m1).astype(np.intp)
+    iy1 = np.clip(np.floor(fy + radius / c) + 1, 0, m1).astype(np.intp)
+    wx, wy = np.maximum(ix1 - ix0, 0), np.maximum(iy1 - iy0, 0)
+    count = wx * wy
+    k = np.repeat(np.arange(len(boxes)), count)  # obstacle of each (obstacle, cell) pair
+    j = np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count)
+    ix, iy = ix0[k] + j // wy[k], iy0[k] + j % wy[k]
+    dx = grid_config.x_min_m + (ix + 0.5) * c - cx[k]
+    dy = grid_config.y_min_m + (iy + 0.5) * c - cy[k]
+    cos, sin = np.cos(yaw[k]), np.sin(yaw[k])
+    u = np.maximum(np.abs(dx * cos + dy * sin) - length[k] / 2, 0.0)
+    v = np.maximum(np.abs(-dx * sin + dy * cos) - width[k] / 2, 0.0)
+    occupied[(ix * m1 + iy)[u * u + v * v <= reach * reach]] = True
+    return occupied.reshape(m0, m1)
 
 
 def step_height(samples: np.ndarray, elevation: np.ndarray, observed: np.ndarray) -> np.ndarray:

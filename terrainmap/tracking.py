@@ -27,11 +27,11 @@ relative to the vehicle without a pose, over ground with one, in vehicle axes.
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
+from scipy.spatial import cKDTree
 
 from .config import GridConfig, TrackingConfig
 from .errors import InputError
@@ -144,16 +144,33 @@ class ObstacleTracker:
         self._P = F @ self._P @ F.T + Q
 
     def _associate(self, centers_xy: np.ndarray, kinds: list[str]) -> tuple[np.ndarray, np.ndarray]:
-        """Hungarian matching within the gate: (track rows, detection columns)."""
-        if not len(self._ids) or not len(centers_xy):
-            return np.zeros(0, np.intp), np.zeros(0, np.intp)
-        dist = np.linalg.norm(self._x[:, None, :2] - centers_xy[None, :, :], axis=2)
+        """Optimal matching within the gate: (track rows, detection columns).
+
+        Candidate pairs come from a k-d tree; a pair that is the only candidate of both its
+        track and its detection is matched directly, the rest by the Hungarian algorithm.
+        """
+        n, m = len(self._ids), len(centers_xy)
+        none = np.zeros(0, np.intp)
+        if not n or not m:
+            return none, none
+        pairs = cKDTree(self._x[:, :2]).sparse_distance_matrix(
+            cKDTree(centers_xy), self.config.gate_m, output_type="ndarray"
+        )
         track_kinds = np.array([s[0].kind for s in self._shape])
-        allowed = (dist <= self.config.gate_m) & (track_kinds[:, None] == np.array(kinds)[None, :])
-        big = self.config.gate_m * 10 + 1.0
-        rows, cols = linear_sum_assignment(np.where(allowed, dist, big))
-        ok = allowed[rows, cols]
-        return rows[ok], cols[ok]
+        pairs = pairs[track_kinds[pairs["i"]] == np.asarray(kinds)[pairs["j"]]]
+        i, j, dist = pairs["i"].astype(np.intp), pairs["j"].astype(np.intp), pairs["v"]
+        single = (np.bincount(i, minlength=n)[i] == 1) & (np.bincount(j, minlength=m)[j] == 1)
+        rest = ~single
+        if not rest.any():
+            return i[single], j[single]
+        rows, ri = np.unique(i[rest], return_inverse=True)
+        cols, ci = np.unique(j[rest], return_inverse=True)
+        cost = np.full((len(rows), len(cols)), np.inf)
+        cost[ri, ci] = dist[rest]
+        allowed = np.isfinite(cost)
+        r, c = linear_sum_assignment(np.where(allowed, cost, 10 * self.config.gate_m + 1))
+        ok = allowed[r, c]
+        return np.concatenate([i[single], rows[r[ok]]]), np.concatenate([j[single], cols[c[ok]]])
 
     def _correct(self, rows: np.ndarray, z: np.ndarray) -> None:
         """Batched Kalman update of tracks ``rows`` with measured centres ``z`` (k, 2)."""
@@ -205,20 +222,26 @@ class ObstacleTracker:
     def _report(self, rot: np.ndarray, trans: np.ndarray, yaw_v: float) -> list[Obstacle]:
         confirmed = self._hits >= self.config.confirm_hits
         shown = np.flatnonzero((self._misses == 0) | confirmed)
+        z_t = np.array([self._shape[i][1] for i in shown]).reshape(-1)
+        centers = (np.column_stack([self._x[shown, :2], z_t]) - trans) @ rot  # rotᵀ·(p − t) per row
+        velocities = np.column_stack([self._x[shown, 2:], np.zeros(len(shown))]) @ rot
+        velocities[:, 2] = 0.0
+        yaws = _wrap_half(np.array([self._shape[i][2] for i in shown]) - yaw_v).tolist()
         out = []
-        for i in shown:
-            last, z_t, yaw_t = self._shape[i]
-            center = rot.T @ (np.array([self._x[i, 0], self._x[i, 1], z_t]) - trans)
-            velocity = rot.T @ np.array([self._x[i, 2], self._x[i, 3], 0.0])
-            velocity[2] = 0.0
+        for k, i in enumerate(shown.tolist()):
+            last = self._shape[i][0]
             out.append(
-                dataclasses.replace(
-                    last,
-                    center_m=center,
-                    yaw_rad=float(_wrap_half(yaw_t - yaw_v)),
+                Obstacle(
+                    center_m=centers[k],
+                    size_m=last.size_m,
+                    yaw_rad=yaws[k],
+                    height_m=last.height_m,
+                    point_count=last.point_count,
+                    range_m=last.range_m,
+                    kind=last.kind,
                     track_id=int(self._ids[i]),
                     confirmed=bool(confirmed[i]),
-                    velocity_mps=velocity,
+                    velocity_mps=velocities[k],
                 )
             )
         return out
@@ -234,6 +257,6 @@ def _pose(vehicle_pose: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
     return T[:3, :3], T[:3, 3]
 
 
-def _wrap_half(angle: float) -> float:
+def _wrap_half(angle: np.ndarray) -> np.ndarray:
     """Footprint yaw folded into (−π/2, π/2] (a rectangle is symmetric under a half turn)."""
-    return float(np.pi / 2 - np.mod(np.pi / 2 - angle, np.pi))
+    return np.pi / 2 - np.mod(np.pi / 2 - angle, np.pi)

@@ -101,12 +101,32 @@ def test_occupied_unknown_cell_is_one_and_unknown_elsewhere_is_nan():
     assert cost[0, 0] == 1 and np.isnan(cost).sum() == cost.size - 1
 
 
-def test_many_obstacles_are_rasterised_in_chunks():
+def brute_force_occupancy(obstacles, grid, clearance_m):
+    """Reference: every cell centre against every confirmed footprint."""
+    xs, ys = cell_centers(grid)
+    x, y = np.meshgrid(xs, ys, indexing="ij")
+    occupied = np.zeros(grid.shape, bool)
+    reach = clearance_m + grid.cell_size_m / 2
+    for o in (o for o in obstacles if o.confirmed):
+        dx, dy = x - o.center_m[0], y - o.center_m[1]
+        c, s = np.cos(o.yaw_rad), np.sin(o.yaw_rad)
+        u = np.maximum(np.abs(dx * c + dy * s) - o.size_m[0] / 2, 0)
+        v = np.maximum(np.abs(-dx * s + dy * c) - o.size_m[1] / 2, 0)
+        occupied |= np.hypot(u, v) <= reach
+    return occupied
+
+
+@pytest.mark.parametrize("clearance", [0.0, 0.5, 1.3])
+def test_windowed_occupancy_matches_brute_force(clearance):
     rng = np.random.default_rng(0)
-    many = [obstacle(*xy, 0.3, 0.3, yaw) for *xy, yaw in rng.uniform([2, -11, 0], [36, 11, 3], (200, 3))]
-    occupied = occupancy(many, GridConfig(), clearance_m=0.0)
-    one_by_one = np.any([occupancy([o], GridConfig(), clearance_m=0.0) for o in many], axis=0)
-    np.testing.assert_array_equal(occupied, one_by_one)
+    params = rng.uniform([0, -13, 0, 0, -3], [38, 13, 4, 2, 3], (200, 5))  # some beyond the area
+    many = [
+        obstacle(x, y, length, width, yaw, confirmed=bool(i % 5))
+        for i, (x, y, length, width, yaw) in enumerate(params)
+    ]
+    expected = brute_force_occupancy(many, GridConfig(), clearance)
+    assert expected.any() and not expected.all()
+    np.testing.assert_array_equal(occupancy(many, GridConfig(), clearance), expected)
 
 
 def test_step_height_finds_a_kerb_and_ignores_slopes():

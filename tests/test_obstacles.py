@@ -177,7 +177,9 @@ def test_boxes_found_on_the_real_terrain_estimate():
 
     points = cloud(150_000, seed=3)
     estimate = estimate_terrain(quantize(points, GRID), TerrainConfig())
-    labels = label_points(points, estimate.surface, GRID, SegmentationConfig())
+    labels = label_points(
+        points, estimate.elevation, estimate.dz_dx, estimate.dz_dy, GRID, SegmentationConfig()
+    )
     found = [
         o
         for o in extract_obstacles(points, labels, GRID, estimate.surface, ObstacleConfig())
