@@ -152,6 +152,8 @@ class TensorFit:
 
     def __init__(self, xs: np.ndarray, ys: np.ndarray, knots_x: np.ndarray, knots_y: np.ndarray, degree: int):
         self.knots_x, self.knots_y, self.degree = knots_x, knots_y, degree
+        self.xs, self.ys = xs, ys
+        self._dB: tuple[np.ndarray, np.ndarray] | None = None  # derivative bases, built on first use
         self.Bx = basis_matrix(knots_x, degree, xs)  # (m0, n0)
         self.By = basis_matrix(knots_y, degree, ys)  # (m1, n1)
         n0, n1 = self.Bx.shape[1], self.By.shape[1]
@@ -191,6 +193,19 @@ class TensorFit:
     def evaluate(self, Q: np.ndarray, R: np.ndarray) -> np.ndarray:
         """Surface heights on the fit lattice, (m0, m1)."""
         return (self.Bx @ (R * Q) @ self.By.T) / (self.Bx @ R @ self.By.T)
+
+    def evaluate_with_gradient(self, Q: np.ndarray, R: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(S, ∂S/∂x, ∂S/∂y)`` on the fit lattice, each (m0, m1), by the quotient rule."""
+        if self._dB is None:
+            self._dB = (basis_matrix(self.knots_x, self.degree, self.xs, derivative=True)[1],
+                        basis_matrix(self.knots_y, self.degree, self.ys, derivative=True)[1])
+        dBx, dBy = self._dB
+        RQ = R * Q
+        num_y, den_y = RQ @ self.By.T, R @ self.By.T  # (n0, m1)
+        num, den = self.Bx @ num_y, self.Bx @ den_y
+        gx = ((dBx @ num_y) * den - num * (dBx @ den_y)) / den**2
+        gy = ((self.Bx @ RQ @ dBy.T) * den - num * (self.Bx @ R @ dBy.T)) / den**2
+        return num / den, gx, gy
 
     def remap(self, W: np.ndarray) -> np.ndarray:
         """Down-sample lattice values W (m0×m1) to the control net: the basis-weighted mean of W

@@ -164,15 +164,11 @@ class SegmentationConfig:
     """A point deeper than this below the surface is labelled below (hole, ditch, noise)."""
     threshold_per_m: float = 0.005
     """Both thresholds grow by this many metres per metre of range (stereo depth noise)."""
-    lattice_m: float = 0.1
-    """Spacing of the lattice the surface is evaluated on for per-point labels (bilinear
-    interpolation between exact spline values; error below 1 mm for terrain curvature < 0.5/m)."""
 
     def validate(self) -> None:
         _check(self.obstacle_height_m > 0, "segmentation.obstacle_height_m", "must be > 0")
         _check(self.below_depth_m > 0, "segmentation.below_depth_m", "must be > 0")
         _check(self.threshold_per_m >= 0, "segmentation.threshold_per_m", "must be >= 0")
-        _check(0 < self.lattice_m <= 1, "segmentation.lattice_m", "must be in (0, 1]")
 
 
 @dataclass

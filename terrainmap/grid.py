@@ -25,8 +25,8 @@ class HeightGrid:
     """The sampled grid ``P`` of the paper, all arrays ``(m0, m1)``, indexed ``[ix, iy]``.
 
     ``z`` (float64, m): eq. 1 for observed cells, neighbour mean for filled cells, 0 where invalid.
-    ``z_top`` (float64, m): ``min(max z, mean z + σ)``, the symmetric counterpart of eq. 1, used
-    to label cells that hold something standing up; equals ``z`` where not observed.
+    ``z_top`` (float64, m): ``mean z + σ``, the upper counterpart of eq. 1, used to label cells
+    that hold something standing up; equals ``z`` where not observed.
     ``count`` (int64): points per cell. ``observed = count > 0``; ``valid`` = observed or filled.
     """
 
@@ -63,16 +63,17 @@ def cell_index(points: np.ndarray, config: GridConfig) -> np.ndarray:
     """Flat cell index ``ix·m1 + iy`` of each point (N,), or ``m0·m1`` for points outside the
     area, outside ``[z_min_m, z_max_m]`` or not finite. ``points`` is N×3 (vehicle frame, m)."""
     m0, m1 = config.shape
-    inv = 1.0 / config.cell_size_m
+    inv = np.float32(1.0 / config.cell_size_m) if points.dtype == np.float32 else 1.0 / config.cell_size_m
     with np.errstate(invalid="ignore"):
-        fx = (points[:, 0] - config.x_min_m) * inv
-        fy = (points[:, 1] - config.y_min_m) * inv
+        # floor, not truncation: (-0.5).astype(int) would be 0, inside the grid.
+        ix = np.floor((points[:, 0] - points.dtype.type(config.x_min_m)) * inv).astype(np.int32)
+        iy = np.floor((points[:, 1] - points.dtype.type(config.y_min_m)) * inv).astype(np.int32)
         z = points[:, 2]
-        inside = (fx >= 0) & (fx < m0) & (fy >= 0) & (fy < m1) & (z >= config.z_min_m) & (z <= config.z_max_m)
-    # NaN compares false above, so non-finite points are outside; cast only where inside.
-    idx = np.full(len(points), m0 * m1, dtype=np.intp)
-    idx[inside] = fx[inside].astype(np.intp) * m1 + fy[inside].astype(np.intp)
-    return idx
+        # NaN casts to a huge negative integer and compares false below: non-finite points fall out.
+        inside = (ix >= 0) & (ix < m0) & (iy >= 0) & (iy < m1) & (z >= config.z_min_m) & (z <= config.z_max_m)
+    ix *= m1
+    ix += iy
+    return np.where(inside, ix, np.int32(m0 * m1))
 
 
 def quantize(points_vehicle: np.ndarray, config: GridConfig, *, index: np.ndarray | None = None) -> HeightGrid:
@@ -100,8 +101,7 @@ def quantize(points_vehicle: np.ndarray, config: GridConfig, *, index: np.ndarra
     m0, m1 = config.shape
     ncell = m0 * m1
     idx = cell_index(points_vehicle, config) if index is None else index
-    z = points_vehicle[:, 2].astype(np.float64)
-    z = np.where(idx < ncell, z, 0.0)  # keeps NaN out of the sums of the trash bin
+    z = points_vehicle[:, 2].astype(np.float64)  # non-finite z only ever lands in the trash bin
 
     count = np.bincount(idx, minlength=ncell + 1)[:ncell]
     if not count.any():
@@ -110,15 +110,13 @@ def quantize(points_vehicle: np.ndarray, config: GridConfig, *, index: np.ndarra
     s2 = np.bincount(idx, weights=z * z, minlength=ncell + 1)[:ncell]
     zmin = np.full(ncell + 1, np.inf)
     np.minimum.at(zmin, idx, z)
-    zmax = np.full(ncell + 1, -np.inf)
-    np.maximum.at(zmax, idx, z)
 
     observed = count > 0
     n = np.maximum(count, 1)
     mean = s1 / n
     sigma = np.sqrt(np.maximum(s2 / n - mean * mean, 0.0))
     zc = np.where(observed, np.maximum(zmin[:ncell], mean - sigma), 0.0)
-    ztop = np.where(observed, np.minimum(zmax[:ncell], mean + sigma), 0.0)
+    ztop = np.where(observed, mean + sigma, 0.0)
     return _fill(zc.reshape(m0, m1), ztop.reshape(m0, m1), count.reshape(m0, m1), config)
 
 

@@ -5,20 +5,20 @@ that and BELOW under it, with both thresholds growing with range r = ‖(x, y)�
 ``threshold_per_m · r`` (stereo noise grows with distance). Points outside the grid area are
 UNKNOWN.
 
-For speed, per-point surface heights come from exact spline values on a lattice of
-``lattice_m`` spacing, interpolated bilinearly (``cv2.remap``): the interpolation error is at most
-``lattice_m² / 8 · max|∂²S|`` (below 1 mm at 0.1 m for curvature < 0.5 /m), far below any
-threshold; a test checks it against exact evaluation.
+For speed, S under a point comes from the exact spline value and analytic gradient at the
+centre of the point's cell (first-order Taylor: a few table lookups per point, no spline
+evaluation): the error is at most ``½ · max|∂²S| · d²`` with d ≤ cell/√2 the distance to the
+centre. On the synthetic benchmark cloud the median error is 0.3 mm and 99 % of points are within
+4 mm of exact evaluation (worst ~5 cm in the area's corner cells, where the clamped spline bends
+most), far below the labelling thresholds; a test checks this.
 """
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
 
-from .bspline import RationalSurface
 from .config import GridConfig, SegmentationConfig
-from .grid import HeightGrid, cell_centers
+from .grid import HeightGrid, cell_centers, cell_index
 from .types import Label
 
 
@@ -27,62 +27,58 @@ def _thresholds(x, y, config: SegmentationConfig) -> tuple[np.ndarray, np.ndarra
     return config.obstacle_height_m + grow, config.below_depth_m + grow
 
 
-def surface_at_points(surface: RationalSurface, grid: GridConfig, points: np.ndarray, lattice_m: float) -> np.ndarray:
-    """Surface height under each point (N,), float32, via the interpolated lattice.
+def cell_planes(elevation: np.ndarray, dz_dx: np.ndarray, dz_dy: np.ndarray, grid: GridConfig) -> np.ndarray:
+    """Per-cell tangent planes ``S ≈ c + gx·x + gy·y``: a (3, m0·m1 + 1) float32 table of
+    (c, gx, gy), flat cell index as in :func:`terrainmap.grid.cell_index`; the extra last column
+    (points outside the area) is all zero."""
+    xs, ys = cell_centers(grid)
+    c = elevation - dz_dx * xs[:, None] - dz_dy * ys[None, :]
+    table = np.zeros((3, elevation.size + 1), np.float32)
+    table[:, :-1] = np.stack([c, dz_dx, dz_dy]).reshape(3, -1)
+    return table
 
-    Points outside the area get the height at the nearest area edge.
-    """
-    nx = int(np.ceil(grid.length_m / lattice_m)) + 1
-    ny = int(np.ceil(grid.width_m / lattice_m)) + 1
-    xs = grid.x_min_m + np.arange(nx) * lattice_m
-    ys = grid.y_min_m + np.arange(ny) * lattice_m
-    # cv2 images are indexed [row, col] = [y, x]: lattice rows along y, columns along x.
-    lattice = np.ascontiguousarray(surface.on_grid(xs, ys).T, dtype=np.float32)
-    n = len(points)
-    if n == 0:
-        return np.zeros(0, np.float32)
-    inv = np.float32(1.0 / lattice_m)
-    u = np.clip((points[:, 0] - np.float32(grid.x_min_m)) * inv, 0, nx - 1).astype(np.float32)
-    v = np.clip((points[:, 1] - np.float32(grid.y_min_m)) * inv, 0, ny - 1).astype(np.float32)
-    u[~np.isfinite(u)] = 0
-    v[~np.isfinite(v)] = 0
-    # cv2.remap maps must be 2-D with fewer than 32767 columns: fold the points into rows.
-    cols = 4096
-    pad = (-n) % cols
-    mu = np.pad(u, (0, pad)).reshape(-1, cols)
-    mv = np.pad(v, (0, pad)).reshape(-1, cols)
-    out = cv2.remap(lattice, mu, mv, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    return out.ravel()[:n]
+
+def surface_under_points(points: np.ndarray, planes: np.ndarray, index: np.ndarray) -> np.ndarray:
+    """Surface height under each point from :func:`cell_planes`: (N,) float32."""
+    c, gx, gy = (planes[k].take(index) for k in range(3))
+    return c + gx * points[:, 0] + gy * points[:, 1]
 
 
 def label_points(
     points_vehicle: np.ndarray,
-    surface: RationalSurface,
+    elevation: np.ndarray,
+    dz_dx: np.ndarray,
+    dz_dy: np.ndarray,
     grid: GridConfig,
     config: SegmentationConfig,
     *,
-    inside: np.ndarray | None = None,
+    index: np.ndarray | None = None,
 ) -> np.ndarray:
-    """Label each point TERRAIN / OBSTACLE / BELOW / UNKNOWN (N,) uint8 (:class:`Label`).
+    """Label each point TERRAIN / OBSTACLE / BELOW / UNKNOWN: (N,) uint8 (:class:`Label`).
 
-    ``points_vehicle`` is (N, 3), metres, vehicle frame. ``inside`` (N,) bool marks the points in
-    the grid area (computed from the grid geometry when not given).
+    Parameters
+    ----------
+    points_vehicle : (N, 3) float array, metres, vehicle frame.
+    elevation, dz_dx, dz_dy : (m0, m1) arrays
+        Surface height (m) and analytic gradient at the cell centres
+        (:class:`~terrainmap.terrain.TerrainEstimate` has them).
+    index : (N,) int array, optional
+        :func:`~terrainmap.grid.cell_index` of the points, reused from the grid stage.
     """
     pts = np.asarray(points_vehicle, dtype=np.float32)
-    if inside is None:
-        with np.errstate(invalid="ignore"):
-            inside = (
-                (pts[:, 0] >= grid.x_min_m)
-                & (pts[:, 0] < grid.x_min_m + grid.length_m)
-                & (pts[:, 1] >= grid.y_min_m)
-                & (pts[:, 1] < grid.y_min_m + grid.width_m)
-            )
-    dz = pts[:, 2] - surface_at_points(surface, grid, pts, config.lattice_m)
-    above, below = _thresholds(pts[:, 0], pts[:, 1], config)
-    labels = np.full(len(pts), Label.TERRAIN, dtype=np.uint8)
-    labels[dz > above] = Label.OBSTACLE
-    labels[dz < -below] = Label.BELOW
-    labels[~inside | ~np.isfinite(dz)] = Label.UNKNOWN
+    if index is None:
+        index = cell_index(pts, grid)
+    xs, ys = cell_centers(grid)
+    above, below = _thresholds(xs[:, None], ys[None, :], config)
+    c, gx, gy = cell_planes(elevation, dz_dx, dz_dy, grid)
+    # Thresholds folded into the planes: z − gx·x − gy·y is compared with c + above / c − below.
+    hi = np.append(above.astype(np.float32).ravel(), np.float32(0)) + c
+    lo = np.append(-below.astype(np.float32).ravel(), np.float32(0)) + c
+    s = pts[:, 2] - gx.take(index) * pts[:, 0] - gy.take(index) * pts[:, 1]
+    with np.errstate(invalid="ignore"):
+        labels = (s > hi.take(index)).view(np.uint8) + np.uint8(Label.TERRAIN)  # TERRAIN 1, OBSTACLE 2
+        labels += (s < lo.take(index)).view(np.uint8) * np.uint8(Label.BELOW - Label.TERRAIN)  # BELOW 3
+    labels *= (index < elevation.size).view(np.uint8)  # UNKNOWN 0 outside the area (and non-finite points)
     return labels
 
 

@@ -26,13 +26,18 @@ def slope_at(surface: RationalSurface, x, y) -> tuple[np.ndarray, np.ndarray, np
     return slope_angle(gx, gy), gx, gy
 
 
-def surface_layers(surface: RationalSurface, grid: GridConfig) -> dict[str, np.ndarray]:
-    """Elevation (m), gradient and slope (rad) at the cell centres: float32 arrays (m0, m1)."""
-    xs, ys = cell_centers(grid)
-    gx, gy = surface.gradient_on_grid(xs, ys)
+def layers(elevation: np.ndarray, gx: np.ndarray, gy: np.ndarray) -> dict[str, np.ndarray]:
+    """Grid layers from heights and gradient: float32 ``elevation`` (m), ``slope`` (rad),
+    ``dz_dx``, ``dz_dy``, all shaped like the inputs."""
     return {
-        "elevation": surface.on_grid(xs, ys).astype(np.float32),
+        "elevation": elevation.astype(np.float32),
         "slope": slope_angle(gx, gy).astype(np.float32),
         "dz_dx": gx.astype(np.float32),
         "dz_dy": gy.astype(np.float32),
     }
+
+
+def surface_layers(surface: RationalSurface, grid: GridConfig) -> dict[str, np.ndarray]:
+    """:func:`layers` of ``surface`` at the cell centres of ``grid``, arrays (m0, m1)."""
+    xs, ys = cell_centers(grid)
+    return layers(surface.on_grid(xs, ys), *surface.gradient_on_grid(xs, ys))

@@ -58,13 +58,17 @@ from .grid import HeightGrid, cell_centers
 class TerrainEstimate:
     """Result of :func:`estimate_terrain`.
 
-    ``surface``: the terrain S. ``samples``: the equalized sample heights P after the last
+    ``surface``: the terrain S. ``elevation``, ``dz_dx``, ``dz_dy``: S and its analytic gradient
+    at the cell centres, (m0, m1). ``samples``: the equalized sample heights P after the last
     iteration, (m0, m1) metres (``grid.z`` holds them before). ``weights``: the last sample
     weights W of eq. 3, (m0, m1). ``iterations``: fits before the final one. ``mean_error_m``:
     ē of the last iteration. ``converged``: stopped early because no sample moved more than ε.
     """
 
     surface: RationalSurface
+    elevation: np.ndarray
+    dz_dx: np.ndarray
+    dz_dy: np.ndarray
     samples: np.ndarray
     weights: np.ndarray
     iterations: int
@@ -180,7 +184,8 @@ def estimate_terrain(grid: HeightGrid, config: TerrainConfig) -> TerrainEstimate
     Q = fit.fit(P, base * W, R, config.smoothness)
     if not np.all(np.isfinite(Q)):
         raise FrameError("fit_failed", "the terrain fit produced non-finite control points")
-    return TerrainEstimate(fit.surface(Q, R), P, W, iteration, error, converged)
+    elevation, gx, gy = fit.evaluate_with_gradient(Q, R)
+    return TerrainEstimate(fit.surface(Q, R), elevation, gx, gy, P, W, iteration, error, converged)
 
 
 def _control_weights(fit: TensorFit, weights: np.ndarray, floor: float) -> np.ndarray:

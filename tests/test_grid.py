@@ -74,3 +74,4 @@ def test_sample_stays_within_the_cell_range(points):
         ix, iy = divmod(int(cell), 2)
         assert z.min() - 1e-9 <= g.z[ix, iy] <= z.max() + 1e-9
         assert g.z[ix, iy] <= g.z_top[ix, iy] + 1e-9
+        assert g.z_top[ix, iy] >= z.mean() - 1e-9

@@ -1,0 +1,29 @@
+"""``terrainmap bench``: per-stage timings (a benchmark, never a test)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import click
+
+from .options import config_options, load_cli_config
+
+
+@click.command()
+@click.option("--runs", type=click.IntRange(1, 10_000), default=30, show_default=True, help="Timed runs per stage.")
+@click.option("--json", "json_path", type=click.Path(dir_okay=False), help="Write {stage: {median_ms, ...}} here.")
+@config_options
+def bench(runs: int, json_path: str | None, config_path: str | None, overrides: tuple[str, ...]) -> None:
+    """Time each pipeline stage at the paper configuration on synthetic input."""
+    from terrainmap import bench as lib
+
+    config = load_cli_config(config_path, overrides)
+    env = lib.environment()
+    click.echo("machine: " + ", ".join(f"{k}={v}" for k, v in env.items()))
+    results = lib.run(config, runs=runs)
+    click.echo(f"{'stage':<14}{'median ms':>10}{'min ms':>10}{'max ms':>10}{'runs':>6}")
+    for name, r in results.items():
+        click.echo(f"{name:<14}{r['median_ms']:10.2f}{r['min_ms']:10.2f}{r['max_ms']:10.2f}{r['runs']:6d}")
+    if json_path:
+        Path(json_path).write_text(json.dumps(results, indent=2) + "\n")

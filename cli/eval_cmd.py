@@ -1,0 +1,85 @@
+"""``terrainmap eval``: evaluations that reproduce and extend the paper's."""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+import click
+
+from .options import config_options, load_cli_config
+
+
+def _floats(text: str) -> list[float]:
+    try:
+        values = [float(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise click.BadParameter(f"expected comma-separated numbers, got {text!r}") from None
+    if not values:
+        raise click.BadParameter("expected at least one number")
+    return values
+
+
+@click.group("eval")
+def eval_group() -> None:
+    """Evaluate terrain estimation (paper Sec. VI and beyond)."""
+
+
+@eval_group.command("artificial-obstacle")
+@click.option("--length", "length_m", type=float, default=22.0, show_default=True, help="Area length along x, m.")
+@click.option("--width", "width_m", type=float, default=22.0, show_default=True, help="Area width along y, m.")
+@click.option("--cell", "cell_m", type=float, default=0.5, show_default=True, help="Cell size, m.")
+@click.option("--degree", type=int, default=3, show_default=True, help="Spline degree.")
+@click.option("--nets", default="5,25", show_default=True, help="Control points per axis, comma-separated.")
+@click.option("--widths", default="0.8,2,4,6,8,10,12", show_default=True, help="Obstacle widths, m.")
+@click.option("--heights", default="0.5,1,1.5,2,2.5,3", show_default=True, help="Obstacle heights, m.")
+@click.option("--position", default="11.0,0.0", show_default=True, help="Obstacle centre x,y in the area, m.")
+@click.option("--json", "json_path", type=click.Path(dir_okay=False), help="Write results as JSON.")
+@click.option("--csv", "csv_path", type=click.Path(dir_okay=False), help="Write results as CSV.")
+@click.option("--plot", "plot_path", type=click.Path(dir_okay=False), help="Draw Fig. 6 to this PNG.")
+@config_options
+def artificial_obstacle(
+    length_m, width_m, cell_m, degree, nets, widths, heights, position, json_path, csv_path, plot_path, config_path, overrides
+):
+    """Max surface deviation caused by a w×w×h box, in % of h (paper Fig. 6).
+
+    A flat scene over an area starting at the vehicle (x from 0, y centred), sampled like the
+    grid, with and without the box; terrain settings other than the net come from --config/--set.
+    """
+    from terrainmap.config import GridConfig
+    from terrainmap.evaluation import artificial_obstacle as ao
+
+    config = load_cli_config(config_path, overrides)
+    grid = GridConfig(x_min_m=0.0, length_m=length_m, width_m=width_m, y_center_m=0.0, cell_size_m=cell_m)
+    grid.validate()
+    terrain = config.terrain
+    terrain.degree = degree
+    pos = _floats(position)
+    if len(pos) != 2:
+        raise click.BadParameter("expected x,y", param_hint="--position")
+    net_list = [int(n) for n in _floats(nets)]
+    terrain.start_control_points = min([terrain.start_control_points, *net_list])
+    scenarios = ao.grid_of_scenarios(net_list, _floats(widths), _floats(heights))
+    results = ao.run(scenarios, grid=grid, terrain=terrain, position_xy=(pos[0], pos[1]))
+    _print_table(results)
+    rows = [r.to_dict() for r in results]
+    if json_path:
+        Path(json_path).write_text(json.dumps(rows, indent=2) + "\n")
+    if csv_path:
+        with open(csv_path, "w", newline="") as fh:
+            writer = csv.DictWriter(fh, fieldnames=list(rows[0]))
+            writer.writeheader()
+            writer.writerows(rows)
+    if plot_path:
+        ao.plot(results, plot_path)
+
+
+def _print_table(results) -> None:
+    heights = sorted({r.height_m for r in results})
+    for net in sorted({r.control_points for r in results}):
+        click.echo(f"\nmax deviation [% of obstacle height], {net}×{net} control points")
+        click.echo("width m | " + " ".join(f"h={h:<5g}" for h in heights))
+        for w in sorted({r.width_m for r in results}):
+            cells = {r.height_m: r.max_deviation_pct for r in results if r.control_points == net and r.width_m == w}
+            click.echo(f"{w:7g} | " + " ".join(f"{cells[h]:7.1f}" for h in heights))

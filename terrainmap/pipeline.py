@@ -1,0 +1,92 @@
+"""The pure per-frame core: points → grid → terrain → layers → labels.
+
+:func:`map_points` runs the terrain part (paper steps 2–4 and the segmentation) on a point cloud
+already in the vehicle frame; :func:`process_frame` runs the whole pipeline on a stereo frame.
+Neither does I/O or printing; per-stage wall times are returned as data
+(``timings_ms``), so the runner can report them.
+"""
+
+from __future__ import annotations
+
+import time
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .config import Config
+from .grid import HeightGrid, cell_index, quantize
+from .segmentation import label_cells, label_points
+from .slope import layers as grid_layers
+from .terrain import TerrainEstimate, estimate_terrain
+
+
+class Stopwatch:
+    """Collects wall times of named stages, in milliseconds (``with watch("grid"): ...``)."""
+
+    def __init__(self) -> None:
+        self.ms: dict[str, float] = {}
+
+    @contextmanager
+    def __call__(self, stage: str):
+        start = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.ms[stage] = self.ms.get(stage, 0.0) + (time.perf_counter() - start) * 1e3
+
+
+@dataclass
+class TerrainMap:
+    """Output of :func:`map_points`.
+
+    ``layers``: float32 ``elevation`` (m), ``slope`` (rad), ``dz_dx``, ``dz_dy``; uint8 ``label``;
+    bool ``valid`` — all (m0, m1), indexed [ix, iy]. ``point_labels``: (N,) uint8 Label.
+    """
+
+    grid: HeightGrid
+    terrain: TerrainEstimate
+    layers: dict[str, np.ndarray]
+    point_labels: np.ndarray
+    timings_ms: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def stats(self) -> dict[str, float]:
+        return {
+            "iterations": float(self.terrain.iterations),
+            "mean_error_m": self.terrain.mean_error_m,
+            "observed_cells": float(self.grid.observed.sum()),
+            "valid_cells": float(self.grid.valid.sum()),
+        }
+
+
+def map_points(points_vehicle: np.ndarray, config: Config, watch: Stopwatch | None = None) -> TerrainMap:
+    """Terrain map of one point cloud.
+
+    Parameters
+    ----------
+    points_vehicle : (N, 3) float array
+        Points in the vehicle frame, metres; non-finite points and points outside the area are
+        ignored (labelled UNKNOWN).
+    config : Config
+        Uses the ``grid``, ``terrain`` and ``segmentation`` sections.
+
+    Raises
+    ------
+    FrameError
+        No terrain can be found (no points in the area, too few cells, fit failure).
+    """
+    watch = watch or Stopwatch()
+    with watch("grid"):
+        idx = cell_index(points_vehicle, config.grid)
+        grid = quantize(points_vehicle, config.grid, index=idx)
+    with watch("surface"):
+        terrain = estimate_terrain(grid, config.terrain)
+        layers = grid_layers(terrain.elevation, terrain.dz_dx, terrain.dz_dy)
+        layers["label"] = label_cells(grid, layers["elevation"], config.segmentation)
+        layers["valid"] = grid.valid
+    with watch("labels"):
+        labels = label_points(
+            points_vehicle, terrain.elevation, terrain.dz_dx, terrain.dz_dy, config.grid, config.segmentation, index=idx
+        )
+    return TerrainMap(grid, terrain, layers, labels, watch.ms)

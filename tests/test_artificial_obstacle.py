@@ -1,0 +1,47 @@
+import math
+
+import numpy as np
+import pytest
+
+from terrainmap.evaluation import artificial_obstacle as ao
+
+HEIGHTS = ao.PAPER_HEIGHTS_M
+
+
+@pytest.fixture(scope="module")
+def results():
+    return ao.run(ao.grid_of_scenarios(ao.PAPER_NETS, (0.8, 2.0, 4.0, 8.0, 12.0), HEIGHTS))
+
+
+def _worst(results, net, width):
+    return max(r.max_deviation_pct for r in results if r.control_points == net and r.width_m == width)
+
+
+def test_thin_obstacle_barely_moves_the_25x25_surface(results):
+    for r in results:
+        if r.control_points == 25 and r.width_m == 0.8:
+            assert r.max_deviation_pct < 5.0, r
+
+
+def test_deviation_grows_with_width(results):
+    for net in ao.PAPER_NETS:
+        worst = [_worst(results, net, w) for w in (0.8, 2.0, 4.0, 8.0, 12.0)]
+        assert all(b >= a - 1.0 for a, b in zip(worst, worst[1:])), worst  # 1-point slack for grid effects
+        assert worst[-1] > 50 > worst[0]
+
+
+def test_never_nan_and_no_overshoot_beyond_150_percent(results):
+    for r in results:
+        assert math.isfinite(r.max_deviation_pct) and 0 <= r.max_deviation_pct <= 150, r
+
+
+def test_few_control_points_make_a_more_rigid_surface(results):
+    assert _worst(results, 5, 8.0) < _worst(results, 25, 8.0)
+
+
+def test_box_is_added_where_asked():
+    base = ao.flat_base(ao.PAPER_GRID)
+    with_box = ao.add_box(base, (11.0, 0.0), 2.0, 1.5)
+    raised = with_box[:, 2] > 0
+    assert np.all(np.abs(with_box[raised, 0] - 11.0) <= 1.0) and np.all(np.abs(with_box[raised, 1]) <= 1.0)
+    assert raised.sum() == 16 * 16  # 2 m at 4 samples per 0.5 m cell

@@ -1,0 +1,53 @@
+import json
+import tomllib
+
+from click.testing import CliRunner
+from terrainmap.cli.main import cli, main
+
+
+def test_config_prints_effective_toml():
+    result = CliRunner().invoke(cli, ["config", "--set", "terrain.control_points_x=12"])
+    assert result.exit_code == 0, result.output
+    data = tomllib.loads(result.output)
+    assert data["terrain"]["control_points_x"] == 12 and data["grid"]["cell_size_m"] == 0.5
+
+
+def test_bad_override_is_a_one_line_error(capsys):
+    try:
+        main(["config", "--set", "terrain.degree=0"])
+    except SystemExit as exc:
+        assert exc.code == 2
+    err = capsys.readouterr().err
+    assert err.strip() == "Error: terrain.degree: must be 1..5, got 0"
+
+
+def test_eval_artificial_obstacle_writes_json_csv_and_plot(tmp_path):
+    args = ["eval", "artificial-obstacle", "--nets", "5,25", "--widths", "0.8,8", "--heights", "1,3"]
+    out = [
+        "--json", str(tmp_path / "r.json"), "--csv", str(tmp_path / "r.csv"), "--plot", str(tmp_path / "r.png")
+    ]
+    result = CliRunner().invoke(cli, args + out)
+    assert result.exit_code == 0, result.output
+    assert "25×25 control points" in result.output
+    rows = json.loads((tmp_path / "r.json").read_text())
+    assert len(rows) == 8
+    assert set(rows[0]) == {"control_points", "width_m", "height_m", "max_deviation_pct"}
+    thin = [r for r in rows if r["control_points"] == 25 and r["width_m"] == 0.8]
+    assert all(r["max_deviation_pct"] < 5 for r in thin)
+    assert (tmp_path / "r.csv").read_text().startswith("control_points,width_m,height_m,max_deviation_pct")
+    assert (tmp_path / "r.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_eval_rejects_bad_lists():
+    result = CliRunner().invoke(cli, ["eval", "artificial-obstacle", "--widths", "a,b"])
+    assert result.exit_code != 0 and "comma-separated numbers" in result.output
+
+
+def test_bench_reports_every_stage(tmp_path):
+    result = CliRunner().invoke(cli, ["bench", "--runs", "2", "--json", str(tmp_path / "b.json")])
+    assert result.exit_code == 0, result.output
+    assert "machine:" in result.output
+    stages = json.loads((tmp_path / "b.json").read_text())
+    for name in ("grid", "surface", "labels", "obstacles"):
+        assert set(stages[name]) == {"median_ms", "min_ms", "max_ms", "runs"}
+        assert 0 < stages[name]["min_ms"] <= stages[name]["median_ms"] <= stages[name]["max_ms"]

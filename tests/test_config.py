@@ -1,0 +1,50 @@
+import pytest
+
+from terrainmap.config import Config, load_config
+from terrainmap.errors import ConfigError
+
+
+def test_defaults_are_the_papers():
+    c = Config()
+    assert (c.terrain.degree, c.terrain.control_points_x, c.terrain.control_points_y) == (3, 25, 25)
+    assert c.grid.cell_size_m == 0.5 and (c.grid.length_m, c.grid.width_m) == (34.0, 22.0)
+    assert c.grid.shape == (68, 44)
+    c.validate()
+
+
+def test_toml_round_trip_and_overrides(tmp_path):
+    path = tmp_path / "c.toml"
+    c = Config()
+    c.terrain.control_points_x = 15
+    c.stereo.mode = "hh"
+    path.write_text(c.to_toml())
+    loaded = load_config(path, overrides=["grid.cell_size_m=0.25", "grid.fill_empty=false"])
+    assert loaded.terrain.control_points_x == 15 and loaded.stereo.mode == "hh"
+    assert loaded.grid.cell_size_m == 0.25 and loaded.grid.fill_empty is False
+    assert load_config(path).to_dict() == c.to_dict()
+
+
+@pytest.mark.parametrize(
+    "override, message",
+    [
+        ("terrain.degree=x", "terrain.degree: cannot use 'x'"),
+        ("terrain.nope=1", "unknown field terrain.nope"),
+        ("nope.x=1", "unknown section"),
+        ("degree=3", "expected section.field=value"),
+        ("grid.length_m=33.3", "whole number of cells"),
+        ("terrain.start_control_points=2", r"at least degree \+ 1"),
+        ("grid.cell_size_m=nan", "cannot use 'nan'"),
+    ],
+)
+def test_bad_values_name_the_field(override, message):
+    with pytest.raises(ConfigError, match=message):
+        load_config(overrides=[override])
+
+
+def test_bad_files(tmp_path):
+    with pytest.raises(ConfigError, match="does not exist"):
+        load_config(tmp_path / "missing.toml")
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[grid\n")
+    with pytest.raises(ConfigError, match="not valid TOML"):
+        load_config(bad)
