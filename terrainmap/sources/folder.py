@@ -78,7 +78,7 @@ class FolderSource(Source):
     format = "folder"
     calibration_hint = "a calibration file"
 
-    def __init__(self, path: str | Path, *, calibration: str | Path | None = None, **_log_options):
+    def __init__(self, path: str | Path, *, calibration: str | Path | None = None):
         super().__init__(path)
         self._override = calib_io.load_calibration_file(calibration) if calibration else None
         self.pairs = self._find_pairs()

@@ -172,7 +172,7 @@ class LogSource(Source):
         return {
             "format": self.format,
             "path": str(self.path),
-            "files": [str(f.path) for f in getattr(self.reader, "files", [self.reader])],
+            "files": [str(p) for p in self.reader.paths],
             "topics": [{"topic": t, "type": k, "count": counts.get(t)} for t, k in sorted(self.reader.types.items())],
             "left_topic": self.left_topic,
             "right_topic": self.right_topic,

@@ -63,17 +63,17 @@ def _field(msg, name: str) -> np.ndarray:
 
 def camera_info(msg, topic: str) -> dict:
     """K (3×3), D, R (3×3), P (3×4), width, height of a CameraInfo / CameraCalibration."""
-    try:
-        info = {
-            "K": _field(msg, "K").reshape(3, 3),
-            "D": _field(msg, "D").ravel(),
-            "R": _field(msg, "R").reshape(3, 3) if _field(msg, "R").size == 9 else np.eye(3),
-            "P": _field(msg, "P").reshape(3, 4) if _field(msg, "P").size == 12 else None,
-            "width": int(msg.width),
-            "height": int(msg.height),
-        }
-    except ValueError:
-        raise CalibrationError(f"{topic}: camera calibration without a 3×3 K matrix") from None
+    K, D, R, P = (_field(msg, name) for name in ("K", "D", "R", "P"))
+    if K.size != 9:
+        raise CalibrationError(f"{topic}: camera calibration without a 3×3 K matrix")
+    info = {
+        "K": K.reshape(3, 3),
+        "D": D.ravel(),
+        "R": R.reshape(3, 3) if R.size == 9 else np.eye(3),
+        "P": P.reshape(3, 4) if P.size == 12 else None,
+        "width": int(msg.width),
+        "height": int(msg.height),
+    }
     if info["P"] is None or not info["P"][0, 0]:
         raise CalibrationError(f"{topic}: camera calibration without a projection matrix P")
     return info

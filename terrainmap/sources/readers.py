@@ -1,7 +1,8 @@
 """Message readers under :class:`~terrainmap.sources.log.LogSource`: MCAP files (a single file or
 a rosbag2 directory of them) and ROS 1 bags (through ``rosbags``).
 
-A reader knows its topics (``types``: topic → message type, ``counts``: topic → messages or None)
+A reader knows its files (``paths``), its topics (``types``: topic → message type, ``counts``:
+topic → number of messages) and ``damage`` (why reading stopped early, or None),
 and streams decoded messages of chosen topics in log-time order, one file at a time. Read errors
 (truncated or corrupt files) become :class:`InputError` naming the file, raised after the messages
 that could be read.
@@ -140,6 +141,7 @@ class McapLog:
         self.types: dict[str, str] = {}
         self.counts: dict[str, int | None] = {}
         self.damage = next((f.damage for f in self.files if f.damage), None)
+        self.paths = [f.path for f in self.files]
         for f in self.files:
             self.types.update(f.types)
             for topic, n in f.counts.items():
@@ -160,6 +162,7 @@ class Ros1Bag:
         from rosbags.typesys import Stores, get_typestore
 
         self.path = path
+        self.paths = [path]
         self._typestore = get_typestore(Stores.ROS1_NOETIC)
         with self._open() as bag:
             self.types = {c.topic: normalize_type(c.msgtype) for c in bag.connections}
