@@ -108,7 +108,7 @@ def _rectification(calibration: StereoCalibration) -> tuple[tuple, tuple, Rectif
         for d in (calibration.dist_left, calibration.dist_right)
     )
     R = np.asarray(calibration.R, np.float64).reshape(3, 3)
-    T = np.asarray(calibration.T, np.float64).reshape(3)
+    T = np.asarray(calibration.T, np.float64).reshape(3, 1)  # OpenCV 5 rejects a flat (3,) T
     try:
         R1, R2, P1, P2, *_ = cv2.stereoRectify(
             K1, D1, K2, D2, size, R, T, flags=cv2.CALIB_ZERO_DISPARITY, alpha=0

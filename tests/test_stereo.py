@@ -1,0 +1,210 @@
+"""Stereo front end: SGBM disparity, rectification and reprojection on real and synthetic pairs."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from terrainmap.config import StereoConfig
+from terrainmap.errors import CalibrationError, InputError
+from terrainmap.extrinsics import extrinsics_from_pose
+from terrainmap.stereo import StereoMatcher, to_vehicle
+from terrainmap.types import StereoCalibration
+
+KITTI = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "kitti2015_000005"
+
+
+@pytest.fixture(scope="module")
+def kitti():
+    """(left RGB, right RGB, GT disparity with NaN = unknown, calibration) of KITTI 000005_10."""
+    if not KITTI.is_dir():
+        pytest.skip("shared KITTI data not available")
+    left, right = (
+        cv2.imread(str(KITTI / d / "000005_10.png"))[:, :, ::-1].copy() for d in ("image_2", "image_3")
+    )
+    raw = cv2.imread(str(KITTI / "disp_occ_0" / "000005_10.png"), cv2.IMREAD_UNCHANGED)
+    gt = np.where(raw > 0, raw / 256.0, np.nan).astype(np.float32)
+    P = {}
+    for line in (KITTI / "calib_cam_to_cam" / "000005.txt").read_text().splitlines():
+        key, _, values = line.partition(":")
+        P[key] = np.array(values.split(), float).reshape(3, 4)
+    P2, P3 = P["P_rect_02"], P["P_rect_03"]
+    calib = StereoCalibration(
+        width=left.shape[1], height=left.shape[0], fx=P2[0, 0], fy=P2[1, 1], cx=P2[0, 2], cy=P2[1, 2],
+        baseline_m=(P2[0, 3] - P3[0, 3]) / P2[0, 0], source="kitti 000005",
+    )  # fmt: skip
+    return left, right, gt, calib
+
+
+@pytest.fixture(scope="module")
+def kitti_result(kitti):
+    left, right, gt, calib = kitti
+    matcher = StereoMatcher(calib)
+    return matcher, matcher.compute(left, right)
+
+
+def test_kitti_disparity_matches_ground_truth(kitti, kitti_result):
+    _, _, gt, _ = kitti
+    _, result = kitti_result
+    assert result.disparity.dtype == np.float32 and result.disparity.shape == gt.shape
+    both = np.isfinite(gt) & np.isfinite(result.disparity)
+    error = np.abs(result.disparity[both] - gt[both])
+    assert both.sum() > 0.7 * np.isfinite(gt).sum()  # SGBM covers most of the GT pixels
+    assert np.median(error) < 1.0
+    assert np.mean(error > 3.0) < 0.15
+
+
+def test_kitti_points_agree_with_ground_truth_points(kitti, kitti_result):
+    _, _, gt, _ = kitti
+    matcher, result = kitti_result
+    points_sgbm, pixels_sgbm = matcher.reproject(result.disparity)
+    points_gt, pixels_gt = matcher.reproject(gt)
+    H, W = gt.shape
+    gt_index = np.full(H * W, -1)
+    gt_index[pixels_gt[:, 1] * W + pixels_gt[:, 0]] = np.arange(len(pixels_gt))
+    match = gt_index[pixels_sgbm[:, 1] * W + pixels_sgbm[:, 0]]
+    common = match >= 0
+    assert common.sum() > 50000
+    distance = np.linalg.norm(points_sgbm[common] - points_gt[match[common]], axis=1)
+    relative = distance / points_gt[match[common], 2]
+    assert np.median(relative) < 0.02  # depth error grows with range: compare relative to depth
+
+
+def test_reprojection_formula_and_pixels(kitti, kitti_result):
+    _, _, gt, calib = kitti
+    matcher, _ = kitti_result
+    points, pixels = matcher.reproject(gt)
+    assert points.dtype == np.float32 and points.shape[1] == 3
+    assert pixels.dtype == np.int32 and pixels.shape == (len(points), 2)
+    d = gt[pixels[:, 1], pixels[:, 0]]
+    z = calib.fx * calib.baseline_m / d
+    np.testing.assert_allclose(points[:, 2], z, rtol=1e-5)
+    np.testing.assert_allclose(points[:, 0], (pixels[:, 0] - calib.cx) * z / calib.fx, rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(points[:, 1], (pixels[:, 1] - calib.cy) * z / calib.fy, rtol=1e-4, atol=1e-5)
+    config = matcher.config
+    assert points[:, 2].min() >= config.min_range_m * (1 - 1e-5)
+    assert points[:, 2].max() <= config.max_range_m * (1 + 1e-5)
+    in_range = np.isfinite(gt) & (
+        calib.fx * calib.baseline_m / np.where(np.isfinite(gt), gt, 1) <= config.max_range_m
+    )
+    assert abs(len(points) - in_range.sum()) <= 0.001 * len(points)
+
+
+def _textured(height: int, width: int, seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    noise = rng.integers(0, 256, (height // 2, width // 2), dtype=np.uint8)
+    return cv2.GaussianBlur(cv2.resize(noise, (width, height), interpolation=cv2.INTER_NEAREST), (3, 3), 0)
+
+
+@pytest.mark.parametrize("doffs", [0.0, 8.0])
+def test_fronto_parallel_plane_depth(doffs):
+    H, W, shift = 240, 320, 20
+    texture = _textured(H, W + shift)
+    left, right = (
+        texture[:, :-shift],
+        texture[:, shift:],
+    )  # a point at u in the left is at u - shift in the right
+    calib = StereoCalibration(W, H, fx=400.0, fy=400.0, cx=160.0, cy=120.0, baseline_m=0.3, doffs=doffs)
+    matcher = StereoMatcher(calib, StereoConfig(num_disparities=48))
+    result = matcher.compute(left, right)
+    assert np.nanmedian(result.disparity) == pytest.approx(shift, abs=0.1)
+    points, _ = matcher.reproject(result.disparity)
+    assert np.median(points[:, 2]) == pytest.approx(400.0 * 0.3 / (shift + doffs), rel=0.01)
+
+
+def test_cx_right_offset_is_applied():
+    calib = StereoCalibration(64, 48, 100.0, 100.0, 32.0, 24.0, 0.5, cx_right=28.0, doffs=1.0)
+    matcher = StereoMatcher(calib)
+    assert matcher.pinhole.doffs == pytest.approx(1.0 + 28.0 - 32.0)
+    points, _ = matcher.reproject(np.full((48, 64), 13.0, np.float32))
+    np.testing.assert_allclose(points[:, 2], 100.0 * 0.5 / 10.0, rtol=1e-6)
+
+
+def test_rectification_recovers_disparity():
+    """An unrectified pair rendered from a fronto-parallel plane with known R, T, K, D."""
+    H, W, f, B, depth = 240, 320, 300.0, 0.2, 4.0  # true disparity f·B/Z = 15 px
+    K = np.array([[f, 0, 160.0], [0, f, 120.0], [0, 0, 1]])
+    D = np.array([-0.05, 0.01, 0.0, 0.0, 0.0])
+    angle = np.radians(2.0)
+    R = cv2.Rodrigues(np.array([0.0, angle, angle / 2]))[0]  # right camera relative to left
+    T = np.array([-B, 0.0, 0.0])
+    texture = _textured(1200, 1600, seed=1)  # the plane Z = depth, 16 m × 12 m, 1 cm per texel
+
+    def render(rotation, translation):
+        u, v = np.meshgrid(np.arange(W, dtype=np.float32), np.arange(H, dtype=np.float32))
+        rays = cv2.undistortPoints(np.stack([u, v], -1).reshape(-1, 1, 2), K, D).reshape(-1, 2)
+        rays = np.column_stack([rays, np.ones(len(rays))]) @ rotation  # camera → left frame directions
+        centre = -rotation.T @ translation
+        s = (depth - centre[2]) / rays[:, 2]
+        hit = centre[:2] + rays[:, :2] * s[:, None]
+        map_x = (hit[:, 0] * 100 + 800).reshape(H, W).astype(np.float32)
+        map_y = (hit[:, 1] * 100 + 600).reshape(H, W).astype(np.float32)
+        return cv2.remap(texture, map_x, map_y, cv2.INTER_LINEAR)
+
+    left, right = render(np.eye(3), np.zeros(3)), render(R, T)
+    calib = StereoCalibration(
+        W, H, f, f, 160.0, 120.0, B, rectified=False, K_left=K, K_right=K, dist_left=D, dist_right=D, R=R, T=T
+    )
+    matcher = StereoMatcher(calib, StereoConfig(num_disparities=48))
+    assert matcher.pinhole.baseline_m == pytest.approx(B, rel=1e-6)
+    result = matcher.compute(left, right)
+    points, _ = matcher.reproject(result.disparity)
+    assert np.isfinite(result.disparity).mean() > 0.5
+    # the rectified left camera is rotated slightly: compare the plane's distance from the camera
+    centroid = np.median(points, axis=0)
+    normal = np.linalg.svd(points - centroid, full_matrices=False)[2][2]
+    assert abs(normal @ centroid) == pytest.approx(depth, rel=0.02)
+    assert np.median(np.abs((points - centroid) @ normal)) < 0.05  # 0.2 px of disparity at 4 m
+
+
+def test_to_vehicle_applies_rotation_and_translation():
+    extrinsics = extrinsics_from_pose(1.5, pitch_rad=0.1, roll_rad=-0.05)
+    points_cam = np.random.default_rng(0).normal(size=(100, 3)).astype(np.float32)
+    expected = points_cam @ extrinsics.rotation.T + extrinsics.translation
+    points_vehicle = to_vehicle(points_cam, extrinsics)
+    assert points_vehicle.dtype == np.float32 and points_vehicle.shape == (100, 3)
+    np.testing.assert_allclose(points_vehicle, expected, atol=1e-5)
+    assert to_vehicle(np.empty((0, 3), np.float32), extrinsics).shape == (0, 3)
+
+
+GOOD = StereoCalibration(64, 48, 100.0, 100.0, 32.0, 24.0, 0.5, source="calib.yaml")
+
+
+@pytest.mark.parametrize(
+    ("changes", "message"),
+    [
+        ({"baseline_m": 0.0}, "baseline_m must be a positive number"),
+        ({"baseline_m": -0.3}, "baseline_m must be a positive number"),
+        ({"fx": 0.0}, "fx must be a positive number"),
+        ({"fy": float("nan")}, "fy must be a positive number"),
+        ({"rectified": False}, "rectified is false, so K_left"),
+    ],
+)
+def test_bad_calibration_is_rejected(changes, message):
+    with pytest.raises(CalibrationError, match=message) as info:
+        StereoMatcher(dataclasses.replace(GOOD, **changes))
+    assert "calib.yaml" in str(info.value) and "\n" not in str(info.value)
+
+
+def test_bad_images_are_rejected():
+    matcher = StereoMatcher(GOOD)
+    image = np.zeros((48, 64), np.uint8)
+    with pytest.raises(CalibrationError, match="images are 80×48 but the calibration is for 64×48"):
+        matcher.compute(np.zeros((48, 80), np.uint8), np.zeros((48, 80), np.uint8))
+    with pytest.raises(CalibrationError, match="left image is 64×48 but right image is 64×40"):
+        matcher.compute(image, np.zeros((40, 64), np.uint8))
+    with pytest.raises(InputError, match="uint8"):
+        matcher.compute(image.astype(np.float32), image)
+    with pytest.raises(InputError, match="disparity is"):
+        matcher.reproject(np.zeros((10, 10), np.float32))
+
+
+def test_same_setup_recognises_equal_calibration():
+    matcher = StereoMatcher(GOOD)
+    assert matcher.same_setup(dataclasses.replace(GOOD), StereoConfig())
+    assert not matcher.same_setup(dataclasses.replace(GOOD, fx=101.0), StereoConfig())
+    assert not matcher.same_setup(GOOD, StereoConfig(num_disparities=64))
