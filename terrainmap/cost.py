@@ -142,7 +142,8 @@ def step_height(samples: np.ndarray, elevation: np.ndarray, observed: np.ndarray
     elevation : (m0, m1) float array
         Terrain surface at the cell centres, metres.
     observed : (m0, m1) bool array
-        Cells holding points of their own (``HeightGrid.observed``).
+        Cells whose sample describes the terrain: holding points of their own
+        (``HeightGrid.observed``), less those labelled OBSTACLE in the pipeline.
     """
     observed = np.asarray(observed, bool) & np.isfinite(samples) & np.isfinite(elevation)
     relief = np.where(observed, np.asarray(samples, float) - elevation, 0.0)

@@ -14,7 +14,7 @@ from .cost import step_height, traversability_cost
 from .grid import HeightGrid
 from .obstacles import extract_obstacles
 from .tracking import ObstacleTracker
-from .types import Obstacle
+from .types import Label, Obstacle
 
 
 def make_tracker(config: Config) -> ObstacleTracker:
@@ -26,9 +26,7 @@ def run_obstacle_stage(
     points_vehicle: np.ndarray,
     point_labels: np.ndarray,
     grid: HeightGrid,
-    surface,
-    elevation: np.ndarray,
-    slope: np.ndarray,
+    layers: dict[str, np.ndarray],
     stamp_ns: int,
     tracker: ObstacleTracker,
     config: Config,
@@ -43,10 +41,10 @@ def run_obstacle_stage(
         Points (vehicle frame, m) and their :class:`~terrainmap.types.Label`.
     grid : HeightGrid
         The frame's grid (samples before equalization, observed/valid masks).
-    surface : RationalSurface
-        Terrain surface (unused when ``elevation`` is given, which it always is here).
-    elevation, slope : (m0, m1) float arrays
-        Terrain height (m) and slope (rad) at the cell centres.
+    layers : dict of (m0, m1) arrays
+        ``elevation`` (m) and ``slope`` (rad) at the cell centres, ``label`` (cell labels).
+        Cells labelled OBSTACLE are left out of the step term: what stands up that high is for
+        the tracker to confirm, so a single-frame false positive leaves no trace in the cost.
     stamp_ns : int
         Frame stamp, nanoseconds.
     tracker : ObstacleTracker
@@ -62,10 +60,14 @@ def run_obstacle_stage(
     cost : (m0, m1) float32
         Traversability cost in [0, 1], NaN where unknown (:mod:`terrainmap.cost`).
     """
+    elevation = layers["elevation"]
     detections = extract_obstacles(
-        points_vehicle, point_labels, grid.config, surface, config.obstacles, elevation=elevation
+        points_vehicle, point_labels, grid.config, None, config.obstacles, elevation=elevation
     )
     obstacles = tracker.update(detections, stamp_ns, vehicle_pose)
-    step = step_height(grid.z, elevation, grid.observed)
-    cost = traversability_cost(elevation, slope, grid.valid, grid.config, obstacles, config.cost, step=step)
+    relief_cells = grid.observed & (layers["label"] != Label.OBSTACLE)
+    step = step_height(grid.z, elevation, relief_cells)
+    cost = traversability_cost(
+        elevation, layers["slope"], grid.valid, grid.config, obstacles, config.cost, step=step
+    )
     return obstacles, cost

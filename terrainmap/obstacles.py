@@ -56,9 +56,9 @@ def extract_obstacles(
         :class:`Label` of each point.
     grid_config : GridConfig
         The grid the points are clustered on.
-    surface : RationalSurface
-        Terrain surface; only ``surface.on_grid(xs, ys)`` is used (and not at all when
-        ``elevation`` is given).
+    surface : RationalSurface or None
+        Terrain surface; only ``surface.on_grid(xs, ys)`` is used, and not at all (it may be
+        None) when ``elevation`` is given.
     config : ObstacleConfig
         Minimum size, height and point count of an obstacle.
     elevation : (m0, m1) float array, optional

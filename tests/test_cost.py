@@ -14,6 +14,7 @@ from terrainmap.cost import occupancy, smoothstep, step_height, traversability_c
 from terrainmap.errors import InputError
 from terrainmap.grid import cell_centers, quantize
 from terrainmap.obstacle_stage import make_tracker, run_obstacle_stage
+from terrainmap.segmentation import label_cells
 from terrainmap.types import Obstacle
 
 SMALL = GridConfig(x_min_m=0.0, length_m=3.0, width_m=2.0, cell_size_m=0.5)  # 6×4 cells, y ∈ [−1, 1]
@@ -189,24 +190,30 @@ def test_cost_is_monotone_in_slope(base, extra):
     assert np.all(high >= low)
 
 
-def test_stage_on_a_scene_marks_the_confirmed_box_and_its_clearance():
-    """The whole step over three frames: a box becomes an occupied, clearance-grown patch."""
+def test_stage_on_a_scene_marks_the_box_once_confirmed_and_never_before():
+    """The whole step over two frames: the box costs nothing extra until its track is confirmed,
+    then becomes an occupied, clearance-grown patch."""
     plane = Plane(gx=np.tan(np.deg2rad(5)))
-    points, labels = labelled(
-        plane, terrain_points(plane, spacing=0.2), box_points(plane, (12.0, 0.0), 1.0, 1.0, 1.0)
-    )
+    box = box_points(plane, (12.0, 0.0), 1.0, 1.0, 1.0)
+    points, labels = labelled(plane, terrain_points(plane, spacing=0.2), box)
     config = Config()
+    config.cost.clearance_m = 0.4  # reaches cell centres up to 0.65 m from the footprint
     grid = quantize(points, GRID)
     elevation = plane.on_grid(*cell_centers(GRID))
-    slope = np.full(GRID.shape, np.deg2rad(5))
+    layers = {
+        "elevation": elevation,
+        "slope": np.full(GRID.shape, np.deg2rad(5)),
+        "label": label_cells(grid, elevation, config.segmentation),
+    }
     tracker = make_tracker(config)
-    for k in range(2):
-        obstacles, cost = run_obstacle_stage(
-            points, labels, grid, plane, elevation, slope, k * 10**8, tracker, config
-        )
-    (box,) = obstacles
-    assert box.confirmed
+    slope_cost = smoothstep(5 / 25)
     ix, iy = int((12.0 - GRID.x_min_m) / 0.5), int((0.0 - GRID.y_min_m) / 0.5)
-    assert np.all(cost[ix - 1 : ix + 1, iy - 1 : iy + 1] == 1)  # the box's own 2×2 cells
-    free = cost[: ix - 4]  # well in front of the box
-    np.testing.assert_allclose(free[np.isfinite(free)], smoothstep(5 / 25), atol=1e-6)
+    (first,), cost = run_obstacle_stage(points, labels, grid, layers, 0, tracker, config)
+    assert not first.confirmed
+    np.testing.assert_allclose(cost, slope_cost, atol=0.02)  # tentative: no trace of the box
+    (box,), cost = run_obstacle_stage(points, labels, grid, layers, 10**8, tracker, config)
+    assert box.confirmed
+    occupied = cost == 1
+    # The box's own 2×2 cells and one ring of neighbours (centres 0.25–0.35 m from the footprint).
+    assert occupied[ix - 2 : ix + 2, iy - 2 : iy + 2].all() and occupied.sum() == 16
+    np.testing.assert_allclose(cost[~occupied], slope_cost, atol=0.02)
