@@ -66,6 +66,7 @@ class ObstacleTracker:
         self._ids = np.zeros(0, dtype=np.int64)
         self._hits = np.zeros(0, dtype=np.int64)
         self._misses = np.zeros(0, dtype=np.int64)
+        self._world: bool | None = None  # tracking in a world frame (poses given) or the vehicle's
         # per track: last detection, its centre z and its yaw in the tracking frame
         self._shape: list[tuple[Obstacle, float, float]] = []
         self._stamp_ns = None
@@ -86,7 +87,8 @@ class ObstacleTracker:
         stamp_ns : int
             Frame stamp, nanoseconds. A stamp older than the previous one resets the tracker.
         vehicle_pose : (4, 4) array, optional
-            ``world_from_vehicle`` (odometry / tf); tracks then live in that world frame.
+            ``world_from_vehicle`` (odometry / tf); tracks then live in that world frame. Give
+            one with every frame or with none: switching between the two resets the tracks.
 
         Returns
         -------
@@ -94,6 +96,10 @@ class ObstacleTracker:
             Copies carrying ``track_id``, ``confirmed`` and ``velocity_mps``, vehicle frame.
         """
         rot, trans = _pose(vehicle_pose)
+        if self._world is not None and self._world != (vehicle_pose is not None):
+            logger.warning("tracking: vehicle poses started or stopped; tracks reset")
+            self.reset()
+        self._world = vehicle_pose is not None
         dt = self._advance(int(stamp_ns))
         self._predict(dt)
         self._drop(self._outside(rot, trans))

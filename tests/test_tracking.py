@@ -175,6 +175,13 @@ def test_stamp_going_back_resets_the_tracks():
     assert not after.confirmed and after.track_id != out.track_id
 
 
+def test_switching_between_pose_and_no_pose_resets_the_tracks():
+    tracker = ObstacleTracker(TrackingConfig())
+    (a,) = tracker.update([detection(10, 0)], 0, pose(100.0))
+    (b,) = tracker.update([detection(10, 0)], DT_NS)
+    assert b.track_id != a.track_id and not b.confirmed
+
+
 def test_bad_pose_raises_input_error():
     with pytest.raises(InputError, match="vehicle_pose"):
         ObstacleTracker(TrackingConfig()).update([], 0, np.eye(3))
