@@ -1,0 +1,148 @@
+"""Camera extrinsics: pose helpers and the robust ground-plane fit (synthetic and KITTI 000005)."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from terrainmap.config import ExtrinsicsConfig
+from terrainmap.errors import CalibrationError, FrameError
+from terrainmap.extrinsics import (
+    describe_extrinsics,
+    estimate_extrinsics,
+    extrinsics_from_calibration,
+    extrinsics_from_pose,
+)
+from terrainmap.stereo import StereoMatcher, to_vehicle
+from terrainmap.types import StereoCalibration
+
+KITTI = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "kitti2015_000005"
+
+
+def _scene_cam(extrinsics, rng, ground=4000, clutter=1500):
+    """Ground points (z = 0, 2–14 m ahead) plus boxes and noise, in the camera optical frame."""
+    x = rng.uniform(2, 14, ground)
+    y = rng.uniform(-5, 5, ground)
+    points = [np.column_stack([x, y, rng.normal(0, 0.01, ground)])]
+    points.append(
+        np.column_stack(
+            [rng.uniform(5, 7, clutter), rng.uniform(1, 3, clutter), rng.uniform(0, 1.5, clutter)]
+        )
+    )
+    points.append(
+        np.column_stack([rng.uniform(2, 14, 300), rng.uniform(-5, 5, 300), rng.uniform(-1, 1, 300)])
+    )
+    vehicle = np.vstack(points)
+    R, t = extrinsics.rotation, extrinsics.translation
+    return ((vehicle - t) @ R).astype(np.float32)  # p_cam = Rᵀ (p_vehicle − t)
+
+
+def test_pose_round_trip_and_sign_conventions():
+    extrinsics = extrinsics_from_pose(
+        1.4, pitch_rad=math.radians(5), roll_rad=math.radians(-3), yaw_rad=math.radians(2)
+    )
+    described = describe_extrinsics(extrinsics)
+    assert described == pytest.approx({"height_m": 1.4, "pitch_deg": 5.0, "roll_deg": -3.0, "yaw_deg": 2.0})
+    pitched = extrinsics_from_pose(1.0, pitch_rad=math.radians(10))
+    optical_axis_vehicle = pitched.rotation @ np.array([0.0, 0.0, 1.0])
+    assert optical_axis_vehicle[2] < 0  # pitch > 0 looks down
+    rolled = extrinsics_from_pose(1.0, roll_rad=math.radians(10))
+    right_vehicle = rolled.rotation @ np.array([1.0, 0.0, 0.0])  # camera x = right
+    assert right_vehicle[2] < 0  # roll > 0 lowers the right side
+
+
+@pytest.mark.parametrize(
+    ("height", "pitch_deg", "roll_deg"), [(1.6, 0.5, -1.9), (2.5, 12.0, 4.0), (0.8, -3.0, 0.0)]
+)
+def test_estimate_recovers_synthetic_pose(height, pitch_deg, roll_deg):
+    truth = extrinsics_from_pose(height, math.radians(pitch_deg), math.radians(roll_deg))
+    points_cam = _scene_cam(truth, np.random.default_rng(1))
+    estimate = estimate_extrinsics(points_cam, ExtrinsicsConfig(), rng=0)
+    assert estimate.source == "estimated"
+    described = describe_extrinsics(estimate)
+    assert described["height_m"] == pytest.approx(height, abs=0.01)
+    assert described["pitch_deg"] == pytest.approx(pitch_deg, abs=0.2)
+    assert described["roll_deg"] == pytest.approx(roll_deg, abs=0.2)
+    assert described["yaw_deg"] == pytest.approx(0.0, abs=1e-9)
+    ground = to_vehicle(points_cam[:4000], estimate)
+    assert np.median(np.abs(ground[:, 2])) < 0.02  # the ground lands on z = 0
+    assert np.median(ground[:, 0]) > 0  # and ahead of the vehicle
+
+
+def test_estimate_is_deterministic_given_a_seed():
+    points_cam = _scene_cam(extrinsics_from_pose(1.5, 0.05, 0.02), np.random.default_rng(2))
+    a = estimate_extrinsics(points_cam, rng=7)
+    b = estimate_extrinsics(points_cam, rng=7)
+    np.testing.assert_array_equal(a.rotation, b.rotation)
+    np.testing.assert_array_equal(a.translation, b.translation)
+
+
+def test_too_few_points_fail_with_no_ground():
+    with pytest.raises(FrameError, match="only 10 points below the camera") as info:
+        estimate_extrinsics(np.tile([0.0, 1.0, 5.0], (10, 1)))
+    assert info.value.reason == "no_ground"
+
+
+def test_implausible_ground_fails():
+    rng = np.random.default_rng(3)
+    wall = np.column_stack(
+        [rng.uniform(-3, 3, 2000), rng.uniform(0.1, 3, 2000), np.full(2000, 6.0)]
+    )  # facing us
+    with pytest.raises(FrameError) as info:
+        estimate_extrinsics(wall.astype(np.float32))
+    assert info.value.reason == "no_ground" and "plausible" in str(info.value)
+
+
+def test_scattered_points_fail_with_too_few_inliers():
+    rng = np.random.default_rng(4)
+    cloud = np.column_stack([rng.uniform(-5, 5, 3000), rng.uniform(0.1, 5, 3000), rng.uniform(1, 14, 3000)])
+    with pytest.raises(FrameError, match="near points lie on the best plane") as info:
+        estimate_extrinsics(cloud.astype(np.float32))
+    assert info.value.reason == "no_ground"
+
+
+def test_extrinsics_from_calibration_checks_the_rotation():
+    pose = extrinsics_from_pose(1.2, 0.1)
+    extrinsics = extrinsics_from_calibration(pose.rotation, pose.translation)
+    assert extrinsics.source == "calibration"
+    np.testing.assert_allclose(extrinsics.rotation, pose.rotation)
+    with pytest.raises(CalibrationError, match="tf base_link: rotation is not a proper rotation"):
+        extrinsics_from_calibration(2 * np.eye(3), np.zeros(3), name="tf base_link")
+    with pytest.raises(CalibrationError, match="rotation must be 3×3"):
+        extrinsics_from_calibration(np.eye(2), np.zeros(3))
+
+
+@pytest.fixture(scope="module")
+def kitti_points():
+    """(GT-disparity points, SGBM points) of KITTI 000005 in the camera frame."""
+    if not KITTI.is_dir():
+        pytest.skip("shared KITTI data not available")
+    left, right = (
+        cv2.imread(str(KITTI / d / "000005_10.png"), cv2.IMREAD_GRAYSCALE) for d in ("image_2", "image_3")
+    )
+    raw = cv2.imread(str(KITTI / "disp_occ_0" / "000005_10.png"), cv2.IMREAD_UNCHANGED)
+    P = {}
+    for line in (KITTI / "calib_cam_to_cam" / "000005.txt").read_text().splitlines():
+        key, _, values = line.partition(":")
+        P[key] = np.array(values.split(), float).reshape(3, 4)
+    P2, P3 = P["P_rect_02"], P["P_rect_03"]
+    calib = StereoCalibration(
+        left.shape[1], left.shape[0], P2[0, 0], P2[1, 1], P2[0, 2], P2[1, 2], (P2[0, 3] - P3[0, 3]) / P2[0, 0]
+    )
+    matcher = StereoMatcher(calib)
+    points_gt, _ = matcher.reproject(np.where(raw > 0, raw / 256.0, np.nan).astype(np.float32))
+    points_sgbm, _ = matcher.reproject(matcher.compute(left, right).disparity)
+    return points_gt, points_sgbm
+
+
+@pytest.mark.parametrize("which", [0, 1], ids=["gt_disparity", "sgbm"])
+def test_kitti_camera_pose(kitti_points, which):
+    """README: 1.62 m, |pitch| ≈ 0.5°, |roll| ≈ 1.9°; in our convention pitch < 0, roll > 0."""
+    described = describe_extrinsics(estimate_extrinsics(kitti_points[which], rng=0))
+    assert described["height_m"] == pytest.approx(1.62, abs=0.04)
+    assert described["pitch_deg"] == pytest.approx(-0.5, abs=0.3)
+    assert described["roll_deg"] == pytest.approx(1.9, abs=0.4)
