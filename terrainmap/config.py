@@ -267,7 +267,7 @@ class ExtrinsicsConfig:
     """Fewer near points below the camera than this → the fit fails."""
     max_tilt_deg: float = 45.0
     """A ground normal more than this from the camera's up axis (−y optical) is implausible."""
-    sample_size: int = 5000
+    sample_size: int = 2000
     """Near points (random subset) that score the RANSAC hypotheses; all are used to refine."""
 
     def validate(self) -> None:
