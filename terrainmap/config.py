@@ -268,7 +268,7 @@ class ExtrinsicsConfig:
     max_tilt_deg: float = 45.0
     """A ground normal more than this from the camera's up axis (−y optical) is implausible."""
     sample_size: int = 2000
-    """Near points (random subset) that score the RANSAC hypotheses; all are used to refine."""
+    """Near points (random subset) that score the RANSAC hypotheses (the refinement uses up to 10k)."""
 
     def validate(self) -> None:
         _check(self.near_range_m > 0, "extrinsics.near_range_m", "must be > 0")
