@@ -15,10 +15,15 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .config import Config
+from .extrinsics import estimate_extrinsics
 from .grid import HeightGrid, cell_index, quantize
+from .obstacle_stage import make_tracker, run_obstacle_stage
 from .segmentation import label_cells, label_points
 from .slope import layers as grid_layers
+from .stereo import StereoMatcher, to_vehicle
 from .terrain import TerrainEstimate, estimate_terrain
+from .tracking import ObstacleTracker
+from .types import Extrinsics, FrameResult, StereoFrame
 
 
 class Stopwatch:
@@ -90,3 +95,70 @@ def map_points(points_vehicle: np.ndarray, config: Config, watch: Stopwatch | No
             points_vehicle, terrain.elevation, terrain.dz_dx, terrain.dz_dy, config.grid, config.segmentation, index=idx
         )
     return TerrainMap(grid, terrain, layers, labels, watch.ms)
+
+
+@dataclass
+class PipelineState:
+    """What one run carries from frame to frame (everything else is per frame).
+
+    ``matcher``: the stereo matcher, rebuilt only when the calibration or config changes.
+    ``extrinsics``: camera pose estimated from the data on the first frame where the ground fit
+    succeeds, then kept (the camera is rigidly mounted); unused when frames carry extrinsics.
+    ``tracker``: obstacle tracks.
+    """
+
+    config: Config
+    matcher: StereoMatcher | None = None
+    extrinsics: Extrinsics | None = None
+    tracker: ObstacleTracker | None = None
+
+    def __post_init__(self) -> None:
+        if self.tracker is None:
+            self.tracker = make_tracker(self.config)
+
+
+def process_frame(frame: StereoFrame, config: Config, state: PipelineState) -> FrameResult:
+    """The whole pipeline on one stereo pair: SGM disparity → 3D points (vehicle frame) → grid →
+    terrain surface → slope, labels → obstacles (tracked) and traversability cost.
+
+    Raises
+    ------
+    FrameError
+        This frame yields no terrain (no ground for the extrinsics, no points in the area, too few
+        cells, fit failure); the runner counts it and goes on.
+    CalibrationError, InputError
+        The frame cannot be used at all (bad calibration, image sizes); the run stops.
+    """
+    watch = Stopwatch()
+    with watch("stereo"):
+        if state.matcher is None or not state.matcher.same_setup(frame.calibration, config.stereo):
+            state.matcher = StereoMatcher(frame.calibration, config.stereo)
+        stereo = state.matcher.compute(frame.left, frame.right)
+    with watch("points"):
+        points_cam, pixels = state.matcher.reproject(stereo.disparity)
+        extrinsics = frame.extrinsics or state.extrinsics
+        if extrinsics is None:
+            extrinsics = state.extrinsics = estimate_extrinsics(points_cam, config.extrinsics)
+        points = to_vehicle(points_cam, extrinsics)
+    terrain = map_points(points, config, watch)
+    with watch("obstacles"):
+        obstacles, cost = run_obstacle_stage(
+            points, terrain.point_labels, terrain.grid, terrain.layers, frame.stamp_ns, state.tracker, config
+        )
+    layers = {**terrain.layers, "cost": cost}
+    return FrameResult(
+        index=frame.index,
+        stamp_ns=frame.stamp_ns,
+        extrinsics=extrinsics,
+        points_vehicle=points,
+        pixels=pixels,
+        point_labels=terrain.point_labels,
+        grid=terrain.grid,
+        terrain=terrain.terrain,
+        layers=layers,
+        disparity=stereo.disparity,
+        image=stereo.image,
+        obstacles=obstacles,
+        stats={**terrain.stats, "points": float(len(points)), "obstacles": float(len(obstacles))},
+        timings_ms=watch.ms,
+    )

@@ -1,0 +1,93 @@
+"""``terrainmap process``: the main job — a stereo log or folder in, terrain layers out."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import click
+
+from .options import config_options, load_cli_config
+from .source_options import source_options
+
+
+def default_output(log: Path) -> Path:
+    """``run.mcap`` → ``run.terrain.mcap`` beside it; a folder ``d/`` → ``d.terrain.mcap`` beside it."""
+    log = log.resolve()
+    stem = log.name if log.is_dir() else log.stem
+    return log.parent / f"{stem}.terrain.mcap"
+
+
+@click.command()
+@click.argument("log", type=click.Path(exists=True, path_type=Path))
+@click.option("-o", "--output", type=click.Path(dir_okay=False, path_type=Path), help="Output MCAP (default: <log>.terrain.mcap beside the input).")
+@click.option("--flavor", type=click.Choice(["foxglove", "ros2"]), default="foxglove", show_default=True,
+              help="Message family of the MCAP: Foxglove protobuf schemas or ROS 2 messages (GridMap, PointCloud2).")
+@click.option("--compression", type=click.Choice(["lz4", "zstd", "none"]), default="lz4", show_default=True,
+              help="MCAP chunk compression.")
+@click.option("--rrd", type=click.Path(dir_okay=False, path_type=Path), help="Also write a Rerun recording here.")
+@click.option("--overwrite", is_flag=True, help="Replace existing output files.")
+@source_options
+@config_options
+def process(log, output, flavor, compression, rrd, overwrite, source_opts, config_path, overrides):
+    """Run the terrain pipeline on every stereo pair of LOG (MCAP, rosbag2 folder or image folder)
+    and write elevation, slope, labels, obstacles and cost to an MCAP (and optionally Rerun)."""
+    from terrainmap import runner
+    from terrainmap.sinks import open_mcap_sink
+
+    config = load_cli_config(config_path, overrides)
+    output = output or default_output(log)
+    for path in (output, rrd):
+        if path is not None and path.exists() and not overwrite:
+            raise click.UsageError(f"{path} exists; pass --overwrite to replace it")
+    with source_opts.open(str(log)) as source:
+        frames = source.frames(**source_opts.frames_kwargs())
+        sinks = [open_mcap_sink(output, flavor, config=config, metadata={"source": str(log)}, compression=compression)]
+        if rrd is not None:
+            from terrainmap.sinks.rerun_sink import RerunSink
+
+            try:
+                sinks.append(RerunSink(rrd, config=config))
+            except BaseException:
+                sinks[0].close()
+                raise
+        show = _progress if sys.stderr.isatty() else None
+        try:
+            summary = runner.run(frames, config, sinks, on_frame=show)
+        finally:
+            if show:
+                click.echo(err=True)
+    _report(summary, [output] + ([rrd] if rrd else []))
+    if summary.frames_done == 0:
+        raise click.ClickException(f"no frame of {log} could be processed ({_reasons(summary)})")
+
+
+def _progress(summary, frame, result) -> None:
+    click.echo(
+        f"\rframe {frame.index}: {summary.frames_done} done, {summary.frames_failed} failed, "
+        f"{summary.fps:.1f} frames/s ",
+        err=True,
+        nl=False,
+    )
+
+
+def _reasons(summary) -> str:
+    return ", ".join(f"{reason} ×{n}" for reason, n in summary.failures.most_common()) or "no frames selected"
+
+
+def _report(summary, outputs) -> None:
+    from terrainmap.extrinsics import describe_extrinsics
+
+    failed = f", {summary.frames_failed} failed ({_reasons(summary)})" if summary.frames_failed else ""
+    click.echo(f"processed {summary.frames_done} frames{failed} in {summary.wall_s:.1f} s ({summary.fps:.1f} frames/s)")
+    medians = summary.median_ms()
+    if medians:
+        click.echo("median ms per frame: " + ", ".join(f"{k} {v:.1f}" for k, v in medians.items()))
+    if summary.extrinsics is not None:
+        pose = describe_extrinsics(summary.extrinsics)
+        click.echo(
+            f"camera pose ({summary.extrinsics.source}): height {pose['height_m']:.2f} m, "
+            f"pitch {pose['pitch_deg']:.1f}°, roll {pose['roll_deg']:.1f}°"
+        )
+    for path in outputs:
+        click.echo(f"wrote {path}")

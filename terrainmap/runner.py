@@ -1,0 +1,114 @@
+"""The runner: iterate a source, run the pure per-frame core, feed the sinks, keep statistics.
+
+Frames that yield no terrain (:class:`~terrainmap.errors.FrameError`) are counted by reason and
+skipped; any other error ends the run. Either way every sink is closed, so the outputs written
+so far are finalised and readable. Memory is bounded whatever the length of the log: the
+runner keeps only the current frame and a fixed-size sample of per-stage times.
+"""
+
+from __future__ import annotations
+
+import logging
+import random
+import statistics
+import time
+from collections import Counter
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+
+from .config import Config
+from .errors import FrameError
+from .pipeline import PipelineState, process_frame
+from .sinks.base import Sink
+from .types import Extrinsics, FrameResult, StereoFrame
+
+log = logging.getLogger(__name__)
+
+_RESERVOIR = 4096  # per-stage time samples kept for the medians
+
+
+@dataclass
+class RunSummary:
+    """What a run did: frames done and failed (by reason), wall time, per-stage medians."""
+
+    frames_done: int = 0
+    failures: Counter = field(default_factory=Counter)
+    wall_s: float = 0.0
+    extrinsics: Extrinsics | None = None
+    _times: dict[str, list[float]] = field(default_factory=dict)
+    _seen: int = 0
+    _rng: random.Random = field(default_factory=lambda: random.Random(0))
+
+    @property
+    def frames_failed(self) -> int:
+        return sum(self.failures.values())
+
+    @property
+    def fps(self) -> float:
+        return (self.frames_done + self.frames_failed) / self.wall_s if self.wall_s > 0 else 0.0
+
+    def add_timings(self, timings_ms: dict[str, float]) -> None:
+        """Reservoir-sample the frame's stage times (bounded memory for any log length)."""
+        self._seen += 1
+        slot = self._seen - 1 if self._seen <= _RESERVOIR else self._rng.randrange(self._seen)
+        if slot >= _RESERVOIR:
+            return
+        for stage, ms in {**timings_ms, "total": sum(timings_ms.values())}.items():
+            values = self._times.setdefault(stage, [])
+            if slot < len(values):
+                values[slot] = ms
+            else:
+                values.append(ms)
+
+    def median_ms(self) -> dict[str, float]:
+        return {stage: statistics.median(values) for stage, values in self._times.items() if values}
+
+
+def run(
+    frames: Iterable[StereoFrame],
+    config: Config,
+    sinks: list[Sink],
+    *,
+    on_frame: Callable[[RunSummary, StereoFrame, FrameResult | None], None] | None = None,
+) -> RunSummary:
+    """Process every frame of ``frames`` and write each result to every sink.
+
+    ``on_frame`` is called after each frame (the result is None for a failed frame) — the CLI
+    draws its progress line there. Sinks are closed when the run ends, however it ends.
+    """
+    summary = RunSummary()
+    state = PipelineState(config)
+    start = time.perf_counter()
+    try:
+        for frame in frames:
+            try:
+                result = process_frame(frame, config, state)
+            except FrameError as exc:
+                summary.failures[exc.reason] += 1
+                log.info("frame %d: %s", frame.index, exc)
+                result = None
+            else:
+                for sink in sinks:
+                    sink.write(frame, result)
+                summary.frames_done += 1
+                summary.extrinsics = result.extrinsics
+                summary.add_timings(result.timings_ms)
+            summary.wall_s = time.perf_counter() - start
+            if on_frame is not None:
+                on_frame(summary, frame, result)
+    finally:
+        summary.wall_s = time.perf_counter() - start
+        _close_all(sinks)
+    return summary
+
+
+def _close_all(sinks: list[Sink]) -> None:
+    """Close every sink even if one of them fails; re-raise the first failure."""
+    first: BaseException | None = None
+    for sink in sinks:
+        try:
+            sink.close()
+        except BaseException as exc:  # noqa: BLE001 - the others must still be finalised
+            first = first or exc
+    if first is not None:
+        raise first
