@@ -93,12 +93,11 @@ class TerrainConfig:
     25); the default 1.5 reaches 25 in 5 fits with the same accuracy (see the tests)."""
     weight_max: float = 100.0
     """Upper bound of the sample weight W of eq. 3 (W is infinite at Δz = 0 otherwise)."""
-    threshold_factor: float = 3.0
-    """th(ē) = threshold_factor · ē, ē the mean absolute fit error of valid samples (eq. 3); at 3
-    Gaussian noise stays inside th while gross outliers fall beyond it."""
+    threshold_factor: float = 2.0
+    """th(ē) = threshold_factor · ē, ē the mean absolute fit error of valid samples (eq. 3)."""
     threshold_min_m: float = 0.02
     """Lower bound of th, so a near-perfect fit does not make every sample an outlier."""
-    alpha_per_iteration: float = 2.0
+    alpha_per_iteration: float = 0.5
     """Weighting speed: α = max(1, alpha_per_iteration · iteration), iteration counted from 1."""
     control_weight_min: float = 0.2
     """Lower bound of the control-point weights R (normalised to mean 1) remapped from W."""

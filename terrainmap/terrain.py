@@ -167,11 +167,9 @@ def estimate_terrain(grid: HeightGrid, config: TerrainConfig) -> TerrainEstimate
         error = float(np.abs(dz[valid]).mean())
         th = max(config.threshold_factor * error, config.threshold_min_m)
         alpha = max(1.0, config.alpha_per_iteration * iteration)
-        W, f = sample_weights(dz, th, alpha, config.weight_max)
-        band = np.maximum(tolerance, th)
-        # Cumulative equalization (pseudo-code), except that samples whose original height lies
-        # within the band of the current surface are terrain and get their height back.
-        P_next = np.where(valid & (Z0 - S <= band), Z0, equalize(P, S, f, valid, band))
+        W, _ = sample_weights(dz, th, alpha, config.weight_max)
+        _, f = sample_weights(Z0 - S, th, alpha, config.weight_max)
+        P_next = equalize(Z0, S, f, valid, np.maximum(tolerance, th))
         moved = float(np.max(np.abs(P_next - P)[valid]))
         P = P_next
         if n == final or moved < config.epsilon_m:
