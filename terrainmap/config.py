@@ -49,6 +49,9 @@ class GridConfig:
     """Points below this height (vehicle frame) are ignored as gross stereo errors."""
     z_max_m: float = 10.0
     """Points above this height are ignored (sky, overhanging structures)."""
+    sigma_factor: float = 1.0
+    """k in eq. 1, ``Z = max(min z, mean z − k·σ)``; the paper uses 1. It leans each sample low by
+    about k times the point noise of its cell (attenuating points above the terrain)."""
     fill_empty: bool = True
     """Empty cells take the mean height of their observed 8-neighbours (paper Sec. IV)."""
 
@@ -64,6 +67,7 @@ class GridConfig:
                 f"must be a whole number of cells of {self.cell_size_m} m, got {getattr(self, name)}",
             )
         _check(self.z_min_m < self.z_max_m, "grid.z_min_m", "must be below grid.z_max_m")
+        _check(0 <= self.sigma_factor <= 5, "grid.sigma_factor", f"must be in [0, 5], got {self.sigma_factor}")
 
     @property
     def shape(self) -> tuple[int, int]:

@@ -5,7 +5,8 @@ Indexing, used everywhere in terrainmap: a grid array ``A`` has shape ``(m0, m1)
 frame, with ``x0 = grid.x_min_m``, ``y0 = grid.y_min_m`` and ``c`` the cell size: ix runs
 forward along x, iy to the left along y. Writers convert to each message's layout.
 
-Per cell, the sample height is eq. 1, ``Z = max(min z, mean z − σ)`` over the points in the cell.
+Per cell, the sample height is eq. 1, ``Z = max(min z, mean z − k·σ)`` over the points in the cell
+(k = ``sigma_factor``, 1 in the paper).
 Empty cells take the mean of their observed 8-neighbours; cells with none stay INVALID, Z = 0.
 """
 
@@ -115,7 +116,7 @@ def quantize(points_vehicle: np.ndarray, config: GridConfig, *, index: np.ndarra
     n = np.maximum(count, 1)
     mean = s1 / n
     sigma = np.sqrt(np.maximum(s2 / n - mean * mean, 0.0))
-    zc = np.where(observed, np.maximum(zmin[:ncell], mean - sigma), 0.0)
+    zc = np.where(observed, np.maximum(zmin[:ncell], mean - config.sigma_factor * sigma), 0.0)
     ztop = np.where(observed, mean + sigma, 0.0)
     return _fill(zc.reshape(m0, m1), ztop.reshape(m0, m1), count.reshape(m0, m1), config)
 
