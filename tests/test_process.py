@@ -1,0 +1,122 @@
+"""End-to-end: `terrainmap process` and the runner on the real KITTI frame and bad input."""
+
+import shutil
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+from mcap.reader import make_reader
+from mcap_protobuf.decoder import DecoderFactory
+
+from terrainmap import runner
+from terrainmap.cli.main import cli
+from terrainmap.config import Config
+from terrainmap.sinks import open_mcap_sink
+from terrainmap.sources import open_source
+
+
+def _grids(path):
+    """The foxglove.Grid messages of an output MCAP, decoded independently of the writer."""
+    with open(path, "rb") as fh:
+        reader = make_reader(fh, decoder_factories=[DecoderFactory()])
+        return [msg for _, ch, _, msg in reader.iter_decoded_messages() if ch.topic == "/terrainmap/grid"]
+
+
+def _elevation(grid):
+    offset = next(f.offset for f in grid.fields if f.name == "elevation")
+    return np.frombuffer(grid.data, np.uint8).reshape(-1, grid.cell_stride)[:, offset : offset + 4].copy().view("<f4")
+
+
+def test_process_kitti_folder_and_both_rosbag2_logs_give_the_same_layers(shared_data, tmp_path):
+    outputs = []
+    for name in ("kitti2015_000005", "kitti2015_000005_ros2_raw", "kitti2015_000005_ros2_compressed"):
+        out = tmp_path / f"{name}.mcap"
+        result = CliRunner().invoke(cli, ["process", str(shared_data / name), "-o", str(out)])
+        assert result.exit_code == 0, result.output
+        assert "processed 1 frames" in result.output and f"wrote {out}" in result.output
+        outputs.append(_grids(out))
+    assert all(len(grids) == 1 for grids in outputs)
+    reference = _elevation(outputs[0][0])
+    for grids in outputs[1:]:
+        np.testing.assert_allclose(_elevation(grids[0]), reference, atol=1e-5, equal_nan=True)
+
+
+def test_refuses_to_overwrite_and_reports_missing_paths(shared_data, tmp_path):
+    out = tmp_path / "o.mcap"
+    out.write_bytes(b"keep")
+    result = CliRunner().invoke(cli, ["process", str(shared_data / "kitti2015_000005"), "-o", str(out)])
+    assert result.exit_code != 0 and "--overwrite" in result.output
+    assert out.read_bytes() == b"keep"
+    result = CliRunner().invoke(cli, ["process", str(tmp_path / "nope"), "-o", str(tmp_path / "x.mcap")])
+    assert result.exit_code == 2 and "does not exist" in result.output
+
+
+@pytest.mark.parametrize("name", ["negative/rosbag2_talker", "negative/rosbag2_cdr_test", "negative/grid_map_ros1.bag"])
+def test_logs_without_stereo_end_with_one_clear_line(shared_data, tmp_path, capsys, name):
+    from terrainmap.cli.main import main
+
+    out = tmp_path / "o.mcap"
+    with pytest.raises(SystemExit) as exc:
+        main(["process", str(shared_data / name), "-o", str(out)])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith("Error: ") and "no stereo" in err[-1]
+    assert "Traceback" not in "\n".join(err)
+
+
+def test_frames_without_terrain_are_counted_and_the_run_goes_on(shared_data, tmp_path):
+    with open_source(shared_data / "kitti2015_000005") as source:
+        good = next(source.frames())
+    blank = type(good)(**{**good.__dict__, "index": 1, "left": np.zeros_like(good.left), "right": np.zeros_like(good.right)})
+    again = type(good)(**{**good.__dict__, "index": 2})
+    config = Config()
+    out = tmp_path / "o.mcap"
+    summary = runner.run([good, blank, again], config, [open_mcap_sink(out, config=config)])
+    assert summary.frames_done == 2 and summary.frames_failed == 1
+    assert set(summary.failures) <= {"no_points_in_area", "too_few_cells", "no_ground"}
+    assert len(_grids(out)) == 2
+
+
+def test_output_is_finalised_when_the_run_fails_part_way(shared_data, tmp_path):
+    with open_source(shared_data / "kitti2015_000005") as source:
+        good = next(source.frames())
+
+    def frames():
+        yield good
+        raise KeyboardInterrupt  # e.g. Ctrl-C, or a source that breaks mid-log
+
+    config = Config()
+    out = tmp_path / "o.mcap"
+    with pytest.raises(KeyboardInterrupt):
+        runner.run(frames(), config, [open_mcap_sink(out, config=config)])
+    assert len(_grids(out)) == 1  # summary and index written: the file reads back whole
+
+
+def test_truncated_log_keeps_what_was_written(shared_data, tmp_path, capsys):
+    from terrainmap.cli.main import main
+
+    log = tmp_path / "cut.mcap"
+    src = next((shared_data / "kitti2015_000005_ros2_raw").glob("*.mcap"))
+    log.write_bytes(src.read_bytes()[: src.stat().st_size // 2])
+    with pytest.raises(SystemExit) as exc:
+        main(["process", str(log), "-o", str(tmp_path / "o.mcap")])
+    assert exc.value.code in (1, 2)
+    assert capsys.readouterr().err.strip().splitlines()[-1].startswith("Error: ")
+    if (tmp_path / "o.mcap").exists():
+        _grids(tmp_path / "o.mcap")  # whatever was written reads back
+
+
+def test_unusable_calibration_is_reported(shared_data, tmp_path, capsys):
+    from terrainmap.cli.main import main
+
+    folder = tmp_path / "kitti"
+    shutil.copytree(shared_data / "kitti2015_000005", folder)
+    calib = next((folder / "calib_cam_to_cam").glob("*.txt"))
+    lines = calib.read_text().splitlines()
+    # Give the right camera the left camera's projection: zero baseline.
+    p2 = next(line for line in lines if line.startswith("P_rect_02")).split(":", 1)[1]
+    calib.write_text("\n".join(f"P_rect_03:{p2}" if line.startswith("P_rect_03") else line for line in lines))
+    with pytest.raises(SystemExit) as exc:
+        main(["process", str(folder), "-o", str(tmp_path / "o.mcap")])
+    assert exc.value.code == 2
+    assert "baseline" in capsys.readouterr().err
