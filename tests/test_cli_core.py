@@ -2,6 +2,7 @@ import json
 import tomllib
 
 from click.testing import CliRunner
+
 from terrainmap.cli.main import cli, main
 
 

@@ -6,6 +6,7 @@ from pathlib import Path
 import click
 import pytest
 from click.testing import CliRunner
+
 from terrainmap.cli.info_cmd import info
 from terrainmap.cli.main import cli
 from terrainmap.cli.source_options import SourceOptions, source_options
