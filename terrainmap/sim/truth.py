@@ -1,0 +1,191 @@
+"""Read the ground truth of a simulated log (MCAP or folder), frame by frame, in bounded memory.
+
+    from terrainmap.sim.truth import open_truth
+
+    with open_truth("drive.mcap") as truth:
+        z = truth.height(x_world, y_world)          # terrain without obstacles, odom frame
+        for frame in truth.frames():                # streamed, one frame in memory at a time
+            frame.stamp_ns, frame.depth, frame.label, frame.obstacles, frame.pose_world_base()
+
+World frame ``odom`` (z up). ``truth.extrinsics`` is the left camera optical frame in
+``base_link`` and ``truth.calibration`` the rectified pinhole model, so a depth pixel (u, v, Z)
+maps to ``p_cam = Z·((u−cx)/fx, (v−cy)/fy, 1)``, ``p_base = R·p_cam + t`` and
+``p_world = pose_world_base() @ [p_base, 1]``. Frames are yielded in stamp order. The layouts
+read are those written by :mod:`terrainmap.sim.mcap_log` and :mod:`terrainmap.sim.folder_log`.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+from ..sources.tf import quaternion_to_matrix
+from ..types import Extrinsics, StereoCalibration
+from .heightfield import Heightfield
+from .mcap_log import METADATA_NAME, TRUTH_TOPICS
+from .messages import heightfield_from_grid_map, image_array, obstacles_from_markers
+from .obstacles import ObstacleBox
+from .simulate import SimConfig
+
+FRAME_TOPICS = tuple(t for t in TRUTH_TOPICS if t != "/truth/terrain")
+
+
+@dataclass
+class TruthFrame:
+    """Ground truth of one frame (arrays as in :class:`terrainmap.sim.render.SimFrame`)."""
+
+    index: int
+    stamp_ns: int
+    rotation_world_base: np.ndarray
+    position_world_base: np.ndarray
+    obstacles: list[ObstacleBox]
+    depth: np.ndarray
+    label: np.ndarray
+    instance: np.ndarray
+
+    def pose_world_base(self) -> np.ndarray:
+        """4×4 pose of base_link in odom (``p_world = T @ p_base``)."""
+        pose = np.eye(4)
+        pose[:3, :3], pose[:3, 3] = self.rotation_world_base, self.position_world_base
+        return pose
+
+
+class Truth:
+    """Ground truth of one log; iterate :meth:`frames`. Use as a context manager."""
+
+    def __init__(self, path: Path, terrain: Heightfield, description: dict, frames_fn):
+        self.path = path
+        self.terrain = terrain
+        self.description = description
+        self.config = SimConfig(**description["config"])
+        rig = self.config.rig()
+        self.calibration: StereoCalibration = rig.calibration(source=str(path))
+        self.extrinsics: Extrinsics = rig.extrinsics()
+        self._velocities = {o["id"]: np.array([*o["velocity_mps"], 0.0]) for o in description["obstacles"]}
+        self._frames_fn = frames_fn
+
+    def height(self, x, y) -> np.ndarray:
+        """Terrain height (m, float32) at world (odom) points, obstacles excluded."""
+        return self.terrain.height(x, y)
+
+    def frames(self) -> Iterator[TruthFrame]:
+        return self._frames_fn(self)
+
+    def __enter__(self) -> Truth:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        return None
+
+
+def open_truth(path: str | Path) -> Truth:
+    """Open the truth of a log written by ``terrainmap simulate`` (an .mcap file or a folder).
+
+    Raises
+    ------
+    InputError
+        The path does not exist, is not a simulated log, or lacks truth topics/files (named).
+    """
+    path = Path(path)
+    if not path.exists():
+        raise InputError(f"{path}: does not exist")
+    if path.is_dir():
+        return _open_folder(path)
+    return _open_mcap(path)
+
+
+def _open_folder(path: Path) -> Truth:
+    truth_dir = path / "truth"
+    missing = [n for n in ("scene.json", "terrain.npz") if not (truth_dir / n).is_file()]
+    if missing:
+        raise InputError(f"{path}: no ground truth (missing truth/{', truth/'.join(missing)})")
+    with np.load(truth_dir / "terrain.npz") as data:
+        terrain = Heightfield(
+            data["elevation"], float(data["x_min_m"]), float(data["y_min_m"]), float(data["resolution_m"])
+        )
+    description = json.loads((truth_dir / "scene.json").read_text())
+
+    def frames(truth: Truth) -> Iterator[TruthFrame]:
+        for index, file in enumerate(sorted(truth_dir.glob("[0-9]*.npz"))):
+            with np.load(file) as d:
+                boxes = [
+                    ObstacleBox(int(i), str(k), str(s), c, z, float(y), float(h), v)
+                    for i, k, s, c, z, y, h, v in zip(
+                        d["obstacle_id"], d["obstacle_kind"], d["obstacle_shape"], d["obstacle_center_m"],
+                        d["obstacle_size_m"], d["obstacle_yaw_rad"], d["obstacle_height_m"],
+                        d["obstacle_velocity_mps"], strict=True,
+                    )
+                ]
+                yield TruthFrame(
+                    index, int(d["stamp_ns"]), d["rotation_world_base"], d["position_world_base"], boxes,
+                    d["depth"], d["label"], d["instance"],
+                )
+
+    return Truth(path, terrain, description, frames)
+
+
+def _mcap_reader(file):
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+
+    return make_reader(file, decoder_factories=[DecoderFactory()])
+
+
+def _open_mcap(path: Path) -> Truth:
+    try:
+        with open(path, "rb") as file:
+            reader = _mcap_reader(file)
+            summary = reader.get_summary()
+            topics = {c.topic for c in summary.channels.values()} if summary else set()
+            missing = [t for t in TRUTH_TOPICS if t not in topics]
+            if missing:
+                raise InputError(f"{path}: not a simulated log with ground truth (missing topics {', '.join(missing)})")
+            meta = next((m.metadata for m in reader.iter_metadata() if m.name == METADATA_NAME), None)
+            if meta is None or "scene" not in meta:
+                raise InputError(f"{path}: no '{METADATA_NAME}' metadata record (not written by terrainmap simulate)")
+            _, _, _, grid = next(reader.iter_decoded_messages(topics=["/truth/terrain"]))
+            terrain = heightfield_from_grid_map(grid, "/truth/terrain")
+    except InputError:
+        raise
+    except Exception as exc:  # mcap raises many kinds of errors on damaged or foreign files
+        raise InputError(f"{path}: cannot read as an MCAP log ({exc})") from exc
+    return Truth(path, terrain, json.loads(meta["scene"]), _mcap_frames)
+
+
+def _mcap_frames(truth: Truth) -> Iterator[TruthFrame]:
+    """Group the per-frame truth messages by log time (= stamp) and yield complete frames."""
+    parts: dict[str, object] = {}
+    stamp, index = None, 0
+    with open(truth.path, "rb") as file:
+        messages = _mcap_reader(file).iter_decoded_messages(topics=list(FRAME_TOPICS), log_time_order=True)
+        for _, channel, message, decoded in messages:
+            if stamp is not None and message.log_time != stamp:
+                yield _mcap_frame(truth, index, stamp, parts)
+                parts, index = {}, index + 1
+            stamp = message.log_time
+            parts[channel.topic] = decoded
+        if parts:
+            yield _mcap_frame(truth, index, stamp, parts)
+
+
+def _mcap_frame(truth: Truth, index: int, stamp_ns: int, parts: dict) -> TruthFrame:
+    missing = [t for t in FRAME_TOPICS if t not in parts]
+    if missing:
+        raise InputError(f"{truth.path}: frame at stamp {stamp_ns} lacks {', '.join(missing)}")
+    p = parts["/truth/pose"].pose
+    q = p.orientation
+    return TruthFrame(
+        index=index,
+        stamp_ns=int(stamp_ns),
+        rotation_world_base=quaternion_to_matrix((q.x, q.y, q.z, q.w)),
+        position_world_base=np.array([p.position.x, p.position.y, p.position.z]),
+        obstacles=obstacles_from_markers(parts["/truth/obstacles"], truth.terrain, truth._velocities),
+        depth=image_array(parts["/truth/left/depth"], "/truth/left/depth"),
+        label=image_array(parts["/truth/left/label"], "/truth/left/label"),
+        instance=image_array(parts["/truth/left/instance"], "/truth/left/instance"),
+    )
