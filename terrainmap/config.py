@@ -110,6 +110,9 @@ class TerrainConfig:
     keeps the one-sided equalization from dragging the surface below the terrain."""
     equalize_tolerance_per_m: float = 0.002
     """Growth of that tolerance with range from the vehicle origin, metres per metre."""
+    trust_below: bool = True
+    """Samples more than the equalization band below the surface keep the maximum weight: every
+    visible point lies on or above the terrain (see decision 5 in :mod:`terrainmap.terrain`)."""
     epsilon_m: float = 0.005
     """Stop early when no valid sample moved more than this in the last equalization."""
     smoothness: float = 1e-3

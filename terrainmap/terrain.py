@@ -32,11 +32,18 @@ property it keeps:
    would otherwise be shaved for good — on rolling terrain with plain noise this made the result
    3× worse than a single plain fit. ē and W come from the current P as in the pseudo-code, so
    lowered outliers stop inflating the threshold.
-5. **Stop.** The pseudo-code's loop condition is garbled; the text says the loop ends when the
+5. **Samples below the surface.** Eq. 3 weighs samples by |Δz| alone. But every visible point
+   lies on or above the terrain ("the terrain ... must always be made of the lowest visible 3D
+   points"), so a sample clearly below the surface (more than the band of 4.) is evidence that
+   the surface is too high, not an outlier: with ``trust_below`` it keeps the maximum weight.
+   Within the band, weights stay symmetric so the surface does not sink into the stereo noise.
+   On KITTI 000005 this takes the road bias from +15 cm to −1 cm and car points labelled
+   obstacle from 72 % to 80 %, where the surface would otherwise climb the occluded kerb strips.
+6. **Stop.** The pseudo-code's loop condition is garbled; the text says the loop ends when the
    final net is reached *or* no sample was equalized in the last step. We stop when the net is
    final or no valid sample moved more than ``epsilon_m``; then one last fit on the final net
    with the last W, R and P gives the surface.
-6. **Well-posedness.** Each fit adds a small second-difference penalty on Q (see
+7. **Well-posedness.** Each fit adds a small second-difference penalty on Q (see
    :class:`~terrainmap.bspline.TensorFit`), so knot spans without valid samples are bridged
    smoothly instead of making the normal equations singular.
 """
@@ -167,9 +174,12 @@ def estimate_terrain(grid: HeightGrid, config: TerrainConfig) -> TerrainEstimate
         error = float(np.abs(dz[valid]).mean())
         th = max(config.threshold_factor * error, config.threshold_min_m)
         alpha = max(1.0, config.alpha_per_iteration * iteration)
+        band = np.maximum(tolerance, th)
         W, _ = sample_weights(dz, th, alpha, config.weight_max)
+        if config.trust_below:
+            W = np.where(dz < -band, config.weight_max, W)
         _, f = sample_weights(Z0 - S, th, alpha, config.weight_max)
-        P_next = equalize(Z0, S, f, valid, np.maximum(tolerance, th))
+        P_next = equalize(Z0, S, f, valid, band)
         moved = float(np.max(np.abs(P_next - P)[valid]))
         P = P_next
         if n == final or moved < config.epsilon_m:
