@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 import click
@@ -45,8 +46,7 @@ def simulate(out: Path, fmt: str | None, overwrite: bool, **options) -> None:
     if fmt == "mcap" and out.is_dir():
         raise click.UsageError(f"{out} is a folder; an MCAP output must be a file")
     config = SimConfig(format=fmt, **options)
-    stderr = click.get_text_stream("stderr")
-    with click.progressbar(length=config.frames, label=f"simulate {config.scene}", file=stderr) as bar:
+    with click.progressbar(length=config.frames, label=f"simulate {config.scene}", file=sys.stderr) as bar:
         summary = run(out, config, progress=lambda _: bar.update(1))
     click.echo(
         f"wrote {summary['frames']} frames ({config.width}×{config.height}, scene {config.scene}, seed {config.seed}) "

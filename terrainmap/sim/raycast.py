@@ -6,7 +6,7 @@ rotated to the world frame, so the ray parameter ``t`` *is* the depth along the 
 
 Terrain (:func:`march_terrain`): march forward in steps that grow with ``t`` (3 %), or longer where
 the ray is so high above the ground that the steepest slope of the terrain cannot reach it
-(a Lipschitz bound, as in sphere tracing), until the ray drops below the surface, then pin the crossing with a few regula-falsi steps. Coarse to fine: every
+(a Lipschitz bound, as in sphere tracing), until the ray drops below the surface, then pin the crossing with a few Illinois regula-falsi steps. Coarse to fine: every
 8th pixel is marched from the camera; each full-resolution ray starts at 0.9 × the nearest hit of
 the 3×3 coarse rays around it, so most rays need two or three steps. A ray that starts below the
 surface (a near bump the coarse rays missed) is marched again from the camera. Rays leave as sky
@@ -34,7 +34,7 @@ COARSE = 8
 T_NEAR_M = 0.2
 STEP_REL = 0.03
 STEP_MIN_M = 0.02
-REFINE_STEPS = 4
+REFINE_STEPS = 5
 START_FRACTION = 0.9
 """Full-resolution rays start at this fraction of the nearest coarse hit around them."""
 
@@ -113,13 +113,20 @@ def march_terrain(
 
 
 def _refine(terrain, origin, d, lo, hi, f_lo, f_hi) -> np.ndarray:
-    """Regula falsi on brackets ``f(lo) > 0 >= f(hi)``; returns the crossing, (N,) float32."""
+    """Illinois regula falsi on brackets ``f(lo) > 0 >= f(hi)``; returns the crossing, (N,) float32.
+
+    (When the same end is kept twice, its value is halved, so both ends converge.)"""
+    last_below = np.zeros(lo.shape, bool)
+    last_above = np.zeros(lo.shape, bool)
     for _ in range(REFINE_STEPS):
         t = lo - f_lo * (hi - lo) / (f_hi - f_lo)
         f = _above(terrain, origin, d, t)
         below = f <= 0
+        f_lo = np.where(below & last_below, f_lo * np.float32(0.5), f_lo)
+        f_hi = np.where(~below & last_above, f_hi * np.float32(0.5), f_hi)
         hi, f_hi = np.where(below, t, hi), np.where(below, f, f_hi)
         lo, f_lo = np.where(below, lo, t), np.where(below, f_lo, f)
+        last_below, last_above = below, ~below
     return lo - f_lo * (hi - lo) / (f_hi - f_lo)
 
 

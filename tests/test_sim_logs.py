@@ -1,0 +1,178 @@
+"""Tests of the simulator's logs: MCAP topics and messages, folder layout, the truth reader, the CLI."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+from mcap.reader import make_reader
+from mcap_ros2.decoder import DecoderFactory
+from mcap_ros2.writer import Writer
+
+from terrainmap.cli.main import cli
+from terrainmap.errors import ConfigError, InputError
+from terrainmap.ros2defs import SCHEMAS
+from terrainmap.sim import SimConfig, open_truth, simulate
+from terrainmap.sources import open_source
+
+FRAMES = 3
+SMALL = dict(width=96, height=72, focal_px=80.0, frames=FRAMES, seed=5, scene="mounds")
+
+
+@pytest.fixture(scope="module")
+def mcap_log(tmp_path_factory):
+    path = tmp_path_factory.mktemp("sim") / "drive.mcap"
+    simulate(path, SimConfig(**SMALL))
+    return path
+
+
+@pytest.fixture(scope="module")
+def folder_log(tmp_path_factory):
+    path = tmp_path_factory.mktemp("sim") / "drive"
+    simulate(path, SimConfig(format="folder", **SMALL))
+    return path
+
+
+def _decoded(path):
+    with open(path, "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        return [(ch.topic, schema.name, msg.log_time, dec) for schema, ch, msg, dec in reader.iter_decoded_messages()]
+
+
+def test_mcap_has_the_topics_types_and_counts_of_a_robot_log(mcap_log):
+    messages = _decoded(mcap_log)
+    counts: dict[tuple[str, str], int] = {}
+    for topic, type_name, _, _ in messages:
+        counts[(topic, type_name)] = counts.get((topic, type_name), 0) + 1
+    expected = {
+        ("/stereo/left/image_rect", "sensor_msgs/msg/Image"): FRAMES,
+        ("/stereo/right/image_rect", "sensor_msgs/msg/Image"): FRAMES,
+        ("/stereo/left/camera_info", "sensor_msgs/msg/CameraInfo"): FRAMES,
+        ("/stereo/right/camera_info", "sensor_msgs/msg/CameraInfo"): FRAMES,
+        ("/tf", "tf2_msgs/msg/TFMessage"): FRAMES,
+        ("/tf_static", "tf2_msgs/msg/TFMessage"): 1,
+        ("/truth/terrain", "grid_map_msgs/msg/GridMap"): 1,
+        ("/truth/pose", "geometry_msgs/msg/PoseStamped"): FRAMES,
+        ("/truth/obstacles", "visualization_msgs/msg/MarkerArray"): FRAMES,
+        ("/truth/left/depth", "sensor_msgs/msg/Image"): FRAMES,
+        ("/truth/left/label", "sensor_msgs/msg/Image"): FRAMES,
+        ("/truth/left/instance", "sensor_msgs/msg/Image"): FRAMES,
+    }
+    assert counts == expected
+    by_topic = {topic: dec for topic, _, _, dec in messages}
+    right = by_topic["/stereo/right/camera_info"]
+    assert right.p[3] == pytest.approx(-right.p[0] * 0.3)
+    assert by_topic["/stereo/left/image_rect"].encoding == "mono8"
+    assert by_topic["/truth/left/depth"].encoding == "32FC1"
+    static = by_topic["/tf_static"].transforms
+    assert [(t.header.frame_id, t.child_frame_id) for t in static] == [
+        ("base_link", "left_camera_optical"), ("left_camera_optical", "right_camera_optical")]
+    assert by_topic["/tf"].transforms[0].header.frame_id == "odom"
+    # every message of a frame carries the frame's stamp
+    for topic, _, log_time, dec in messages:
+        header = getattr(dec, "header", None)
+        if header is not None:
+            assert header.stamp.sec * 10**9 + header.stamp.nanosec == log_time, topic
+
+
+def test_terrain_sources_read_the_simulated_logs_with_true_extrinsics(mcap_log, folder_log):
+    for path in (mcap_log, folder_log):
+        with open_source(path) as source:
+            frames = list(source.frames())
+        assert len(frames) == FRAMES
+        frame = frames[0]
+        assert frame.left.shape == (72, 96) and frame.calibration.baseline_m == pytest.approx(0.3)
+        truth = open_truth(path)
+        np.testing.assert_allclose(frame.extrinsics.rotation, truth.extrinsics.rotation, atol=1e-9)
+        np.testing.assert_allclose(frame.extrinsics.translation, [0, 0, 1.8], atol=1e-9)
+
+
+def test_mcap_and_folder_truth_agree_and_stream_in_stamp_order(mcap_log, folder_log):
+    a, b = open_truth(mcap_log), open_truth(folder_log)
+    np.testing.assert_array_equal(a.terrain.z, b.terrain.z)
+    assert (a.terrain.x_min_m, a.terrain.y_min_m) == pytest.approx((b.terrain.x_min_m, b.terrain.y_min_m))
+    frames_a, frames_b = list(a.frames()), list(b.frames())
+    assert [f.stamp_ns for f in frames_a] == [f.stamp_ns for f in frames_b]
+    assert np.all(np.diff([f.stamp_ns for f in frames_a]) == 100_000_000)
+    for fa, fb in zip(frames_a, frames_b, strict=True):
+        np.testing.assert_array_equal(fa.depth, fb.depth)
+        np.testing.assert_array_equal(fa.label, fb.label)
+        np.testing.assert_array_equal(fa.instance, fb.instance)
+        np.testing.assert_allclose(fa.pose_world_base(), fb.pose_world_base(), atol=1e-9)
+        for oa, ob in zip(fa.obstacles, fb.obstacles, strict=True):
+            assert (oa.id, oa.kind, oa.shape) == (ob.id, ob.kind, ob.shape)
+            np.testing.assert_allclose(oa.center_m, ob.center_m, atol=1e-9)
+            np.testing.assert_allclose(oa.size_m, ob.size_m, atol=1e-9)
+            assert oa.yaw_rad == pytest.approx(ob.yaw_rad, abs=1e-9)
+            assert oa.height_m == pytest.approx(ob.height_m, abs=1e-6)
+            np.testing.assert_allclose(oa.velocity_mps, ob.velocity_mps)
+    # the vehicle stands on the terrain the truth describes
+    for frame in frames_a:
+        x, y, z = frame.position_world_base
+        assert z == pytest.approx(float(a.height(x, y)), abs=0.05)
+
+
+def test_same_config_writes_the_same_log(tmp_path):
+    config = SimConfig(**{**SMALL, "frames": 2})
+    simulate(tmp_path / "a.mcap", config)
+    simulate(tmp_path / "b.mcap", config)
+    assert (tmp_path / "a.mcap").read_bytes() == (tmp_path / "b.mcap").read_bytes()
+
+
+def test_compressed_images_are_png_of_the_raw_ones(tmp_path, mcap_log):
+    path = tmp_path / "c.mcap"
+    simulate(path, SimConfig(compressed=True, **SMALL))
+    with open_source(path) as compressed, open_source(mcap_log) as raw:
+        for c, r in zip(compressed.frames(), raw.frames(), strict=True):
+            np.testing.assert_array_equal(c.left, r.left)
+            np.testing.assert_array_equal(c.right, r.right)
+    topics = {t for t, *_ in _decoded(path)}
+    assert "/stereo/left/image_rect/compressed" in topics and "/stereo/left/image_rect" not in topics
+
+
+def test_log_without_truth_is_an_input_error_naming_the_topics(tmp_path):
+    path = tmp_path / "plain.mcap"
+    with open(path, "wb") as f, Writer(f) as writer:
+        schema = writer.register_msgdef("sensor_msgs/msg/Image", SCHEMAS["sensor_msgs/msg/Image"])
+        image = {"header": {"stamp": {"sec": 1, "nanosec": 0}, "frame_id": "cam"}, "height": 1, "width": 1,
+                 "encoding": "mono8", "is_bigendian": 0, "step": 1, "data": b"\x00"}
+        writer.write_message("/camera/image", schema, image, log_time=1)
+    with pytest.raises(InputError, match="/truth/terrain.*/truth/left/depth"):
+        open_truth(path)
+    with pytest.raises(InputError, match="missing truth/scene.json"):
+        open_truth(tmp_path)
+    with pytest.raises(InputError, match="does not exist"):
+        open_truth(tmp_path / "nothing.mcap")
+    (tmp_path / "junk.mcap").write_bytes(b"not an mcap file at all")
+    with pytest.raises(InputError, match="junk.mcap"):
+        open_truth(tmp_path / "junk.mcap")
+
+
+def test_bad_options_raise_config_errors_naming_them():
+    with pytest.raises(ConfigError, match="--frames"):
+        SimConfig(frames=0).validate()
+    with pytest.raises(ConfigError, match="--scene"):
+        SimConfig(scene="moon").validate()
+    with pytest.raises(ConfigError, match="--baseline-m"):
+        SimConfig(baseline_m=-1).validate()
+
+
+def test_cli_simulate_writes_a_log_and_guards_existing_output(tmp_path):
+    out = tmp_path / "cli.mcap"
+    args = ["simulate", str(out), "--scene", "climb", "--frames", "2", "--width", "64", "--height", "48",
+            "--focal-px", "50", "--seed", "2"]
+    result = CliRunner().invoke(cli, args)
+    assert result.exit_code == 0, result.output
+    assert "wrote 2 frames" in result.output
+    truth = open_truth(out)
+    assert truth.config.scene == "climb" and truth.config.seed == 2
+    assert len(list(truth.frames())) == 2
+    again = CliRunner().invoke(cli, args)
+    assert again.exit_code != 0 and "--overwrite" in again.output
+    assert CliRunner().invoke(cli, [*args, "--overwrite"]).exit_code == 0
+    folder = CliRunner().invoke(cli, ["simulate", str(tmp_path / "run"), "--frames", "1", "--width", "32",
+                                      "--height", "24", "--focal-px", "25"])
+    assert folder.exit_code == 0, folder.output
+    assert (tmp_path / "run" / "calibration.yaml").is_file() and (tmp_path / "run" / "truth" / "000000.npz").is_file()
+    bad = CliRunner().invoke(cli, ["simulate", str(tmp_path / "x.mcap"), "--scene", "moon"])
+    assert bad.exit_code != 0 and "moon" in bad.output

@@ -1,0 +1,121 @@
+"""Tests of the simulator's rendering: determinism, geometry of the truth, stereo consistency, pose."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from terrainmap.sim.render import Renderer
+from terrainmap.sim.rig import CameraRig, vehicle_pose
+from terrainmap.sim.scenes import SCENES, build_scene
+
+SMALL = CameraRig(width=160, height=120, focal_px=125.0)
+
+
+def _renderer(scene="mounds", seed=3, **kwargs) -> Renderer:
+    return Renderer(build_scene(scene, seed, length_m=10.0), SMALL, seed=seed, **kwargs)
+
+
+def _world_points(frame, rig: CameraRig) -> np.ndarray:
+    """(H, W, 3) world points of the left depth image (NaN for sky)."""
+    fx, fy, cx, cy = rig.intrinsics
+    v, u = np.mgrid[0 : rig.height, 0 : rig.width]
+    z = np.where(np.isfinite(frame.depth), frame.depth, np.nan).astype(np.float64)
+    cam = np.stack([(u - cx) / fx * z, (v - cy) / fy * z, z], axis=-1)
+    base = cam @ rig.rotation_base_cam().T + rig.left_in_base()
+    return base @ frame.rotation_world_base.T + frame.position_world_base
+
+
+def test_same_seed_same_frame_other_seed_other_frame():
+    a, b = _renderer(seed=3).frame(4), _renderer(seed=3).frame(4)
+    for name in ("left", "right", "depth", "label", "instance"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+    c = _renderer(seed=4).frame(4)
+    assert not np.array_equal(a.left, c.left)
+    assert not np.array_equal(a.depth, c.depth)
+
+
+@pytest.mark.parametrize("scene", SCENES)
+def test_every_scene_shows_sky_terrain_and_obstacles(scene):
+    frame = _renderer(scene).frame(0)
+    labels = set(np.unique(frame.label))
+    assert labels == {1, 2} or labels == {0, 1, 2}
+    assert (frame.label == 1).mean() > 0.3
+    assert np.isinf(frame.depth[frame.label == 0]).all()
+    assert np.isfinite(frame.depth[frame.label > 0]).all()
+    visible = set(np.unique(frame.instance)) - {0}
+    assert len(visible) >= 2
+    assert visible <= {box.id for box in frame.obstacles}
+    assert (frame.instance[frame.label != 2] == 0).all()
+
+
+@pytest.mark.parametrize("scene", ["mounds", "canyon", "climb"])
+def test_truth_depth_lands_on_the_terrain_or_an_obstacle(scene):
+    renderer = _renderer(scene)
+    frame = renderer.frame(5)
+    points = _world_points(frame, SMALL)
+    terrain = points[frame.label == 1]
+    error = terrain[:, 2] - renderer.scene.terrain.height(terrain[:, 0], terrain[:, 1])
+    assert np.percentile(np.abs(error), 99.9) < 0.002
+    assert np.abs(error).max() < 0.01, np.abs(error).max()
+    for box in frame.obstacles:
+        mine = points[frame.instance == box.id]
+        if not len(mine):
+            continue
+        local = box.to_local(mine) / (box.size_m / 2)
+        # on the solid's surface: the box's largest normalised coordinate, or the ellipsoid's radius, is 1
+        surface = np.abs(local).max(axis=1) if box.shape == "box" else np.linalg.norm(local, axis=1)
+        assert np.allclose(surface, 1.0, atol=0.01), (box.kind, surface.min(), surface.max())
+
+
+def test_right_image_matches_the_left_through_the_true_disparity():
+    renderer = _renderer("mounds", noise_dn=0.0, vignetting=0.0)
+    frame = renderer.frame(2)
+    fx = SMALL.focal_px
+    v, u = np.nonzero((frame.label > 0) & np.isfinite(frame.depth))
+    disparity = fx * SMALL.baseline_m / frame.depth[v, u]
+    u_right = u - disparity
+    inside = (u_right >= 0) & (u_right <= SMALL.width - 2)
+    v, u, u_right = v[inside], u[inside], u_right[inside]
+    u0 = np.floor(u_right).astype(int)
+    w = u_right - u0
+    right = frame.right.astype(float)
+    sampled = (1 - w) * right[v, u0] + w * right[v, u0 + 1]
+    diff = np.abs(sampled - frame.left[v, u].astype(float))
+    assert np.median(diff) < 1.5, np.median(diff)
+    assert np.percentile(diff, 80) < 4.0
+    # the same comparison without the disparity shift is far worse: the test has teeth
+    assert np.median(np.abs(right[v, u] - frame.left[v, u])) > 2 * np.median(diff)
+
+
+def test_noise_is_gaussian_with_the_requested_sigma():
+    clean = _renderer(noise_dn=0.0).frame(1).left.astype(float)
+    noisy = _renderer(noise_dn=3.0).frame(1).left.astype(float)
+    inner = (clean > 10) & (clean < 245)
+    assert np.std(noisy[inner] - clean[inner]) == pytest.approx(3.0, rel=0.1)
+
+
+def test_vehicle_pose_follows_the_terrain_slope():
+    terrain = build_scene("climb", 0, length_m=40.0).terrain
+    for x in (0.0, 20.0, 30.0):
+        rotation, position = vehicle_pose(terrain, x, 0.0, 0.0)
+        assert position[2] == pytest.approx(float(terrain.height(x, 0.0)), abs=0.05)
+        slope = (terrain.height(x + 1.4, 0.0) - terrain.height(x - 1.4, 0.0)) / 2.8
+        pitch_up = np.arctan2(rotation[2, 0], np.hypot(rotation[0, 0], rotation[1, 0]))
+        assert pitch_up == pytest.approx(np.arctan(slope), abs=np.radians(1.5))
+        np.testing.assert_allclose(rotation.T @ rotation, np.eye(3), atol=1e-12)
+    rotation, _ = vehicle_pose(terrain, 30.0, 0.0, 0.0)
+    assert np.degrees(np.arcsin(rotation[2, 0])) > 8  # the climb really tilts the vehicle nose up
+
+
+def test_moving_pedestrian_crosses_and_static_obstacles_stay():
+    renderer = _renderer("mounds")
+    first, later = renderer.frame(0), renderer.frame(10)
+    walker = {b.id: b for b in first.obstacles if b.kind == "pedestrian"}
+    assert walker
+    for box in later.obstacles:
+        before = next(b for b in first.obstacles if b.id == box.id)
+        moved = np.linalg.norm(box.center_m[:2] - before.center_m[:2])
+        expected = np.linalg.norm(box.velocity_mps[:2]) * 10 / renderer.fps
+        assert moved == pytest.approx(expected, abs=1e-9)
+    assert any(np.linalg.norm(b.velocity_mps) > 0.5 for b in walker.values())
