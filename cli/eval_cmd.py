@@ -38,20 +38,30 @@ def eval_group() -> None:
 @click.option("--json", "json_path", type=click.Path(dir_okay=False), help="Write results as JSON.")
 @click.option("--csv", "csv_path", type=click.Path(dir_okay=False), help="Write results as CSV.")
 @click.option("--plot", "plot_path", type=click.Path(dir_okay=False), help="Draw Fig. 6 to this PNG.")
+@click.option("--base", "base_log", type=click.Path(exists=True), help="Take the base scene from a frame of this log "
+              "or folder (its stereo points, vehicle frame) instead of a flat plane; the area is then the config's grid.")
+@click.option("--frame", "frame_index", type=click.IntRange(min=0), default=0, show_default=True,
+              help="With --base: which stereo pair of the log (0 = first).")
 @config_options
 def artificial_obstacle(
-    length_m, width_m, cell_m, degree, nets, widths, heights, position, json_path, csv_path, plot_path, config_path, overrides
+    length_m, width_m, cell_m, degree, nets, widths, heights, position, json_path, csv_path, plot_path,
+    base_log, frame_index, config_path, overrides,
 ):
     """Max surface deviation caused by a w×w×h box, in % of h (paper Fig. 6).
 
-    A flat scene over an area starting at the vehicle (x from 0, y centred), sampled like the
-    grid, with and without the box; terrain settings other than the net come from --config/--set.
+    By default a flat scene over an area starting at the vehicle (x from 0, y centred), sampled
+    like the grid, with and without the box; with --base, the points of a real or simulated frame,
+    with and without the points inside the box footprint raised by h. Terrain settings other than
+    the net come from --config/--set.
     """
     from terrainmap.config import GridConfig
     from terrainmap.evaluation import artificial_obstacle as ao
 
     config = load_cli_config(config_path, overrides)
-    grid = GridConfig(x_min_m=0.0, length_m=length_m, width_m=width_m, y_center_m=0.0, cell_size_m=cell_m)
+    if base_log:
+        grid, base_points = config.grid, ao.points_from_log(base_log, config, frame_index)
+    else:
+        grid, base_points = GridConfig(x_min_m=0.0, length_m=length_m, width_m=width_m, y_center_m=0.0, cell_size_m=cell_m), None
     grid.validate()
     terrain = config.terrain
     terrain.degree = degree
@@ -61,7 +71,7 @@ def artificial_obstacle(
     net_list = [int(n) for n in _floats(nets)]
     terrain.start_control_points = min([terrain.start_control_points, *net_list])
     scenarios = ao.grid_of_scenarios(net_list, _floats(widths), _floats(heights))
-    results = ao.run(scenarios, grid=grid, terrain=terrain, position_xy=(pos[0], pos[1]))
+    results = ao.run(scenarios, grid=grid, terrain=terrain, position_xy=(pos[0], pos[1]), base_points=base_points)
     _print_table(results)
     rows = [r.to_dict() for r in results]
     if json_path:

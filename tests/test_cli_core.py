@@ -52,3 +52,18 @@ def test_bench_reports_every_stage(tmp_path):
     for name in ("grid", "surface", "labels", "obstacles"):
         assert set(stages[name]) == {"median_ms", "min_ms", "max_ms", "runs"}
         assert 0 < stages[name]["min_ms"] <= stages[name]["median_ms"] <= stages[name]["max_ms"]
+
+
+def test_eval_artificial_obstacle_on_a_simulated_base_frame(tmp_path):
+    from terrainmap.sim import SimConfig, simulate
+
+    log = tmp_path / "base.mcap"
+    simulate(log, SimConfig(scene="flat", frames=1, seed=3, width=320, height=240, focal_px=250.0))
+    result = CliRunner().invoke(
+        cli,
+        ["eval", "artificial-obstacle", "--base", str(log), "--nets", "25", "--widths", "0.8,12",
+         "--heights", "2", "--position", "12,0", "--json", str(tmp_path / "r.json")],
+    )
+    assert result.exit_code == 0, result.output
+    thin, wide = json.loads((tmp_path / "r.json").read_text())
+    assert thin["max_deviation_pct"] < wide["max_deviation_pct"]
