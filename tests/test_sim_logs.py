@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from click.testing import CliRunner
@@ -176,3 +178,15 @@ def test_cli_simulate_writes_a_log_and_guards_existing_output(tmp_path):
     assert (tmp_path / "run" / "calibration.yaml").is_file() and (tmp_path / "run" / "truth" / "000000.npz").is_file()
     bad = CliRunner().invoke(cli, ["simulate", str(tmp_path / "x.mcap"), "--scene", "moon"])
     assert bad.exit_code != 0 and "moon" in bad.output
+
+
+def test_bundled_example_is_what_its_readme_command_writes(tmp_path):
+    root = Path(__file__).resolve().parents[1]
+    readme = (root / "examples" / "README.md").read_text()
+    command = next(line for line in readme.splitlines() if line.startswith("terrainmap simulate examples/"))
+    args = command.split()[1:]
+    example, args[1] = root / args[1], str(tmp_path / "demo.mcap")
+    result = CliRunner().invoke(cli, args)
+    assert result.exit_code == 0, result.output
+    assert (tmp_path / "demo.mcap").read_bytes() == example.read_bytes()
+    assert example.stat().st_size < 5_000_000

@@ -3,7 +3,10 @@
 Surfaces are Lambertian under a fixed sun plus ambient light, with an albedo textured by
 multi-octave value noise in surface coordinates (world x, y on the terrain; solid-fixed
 coordinates on obstacles), so a surface point has the same brightness in both cameras and
-stereo matching has texture to lock on to. Octaves finer than the pixel footprint fade out.
+stereo matching has texture to lock on to. Octaves finer than the pixel footprint fade out; the
+footprint is ``distance / f / max(cos incidence, 0.6)``: foreshortening only partly counted, which
+keeps the horizontal detail SGBM needs (a full 1/cos blurred mid-range ground and doubled SGBM's
+median error, 0.54 → 0.23 px on ``mounds``).
 The terrain blends two scene colours at low frequency (and a dirt road band where the scene has
 one); obstacles take their kind's colour. The sky is a gradient from a pale horizon to a blue
 zenith; distant surfaces fade into the horizon colour (haze). :func:`expose` then applies
@@ -58,7 +61,7 @@ def _shade_surfaces(hits, scene, colors_by_id, focal_px, surf, d, ray_norm) -> n
     normal = hits.normal.reshape(-1, 3)[surf]
     distance = hits.depth.ravel()[surf] * ray_norm
     cos_incidence = np.abs(np.einsum("ij,ij->i", normal, d)) / ray_norm
-    footprint = (distance / focal_px / np.maximum(cos_incidence, 0.25)).astype(np.float32)
+    footprint = (distance / focal_px / np.maximum(cos_incidence, 0.6)).astype(np.float32)
     uv = hits.texture_uv.reshape(-1, 2)[surf]
     base = np.empty((surf.size, 3), np.float32)
     terrain = label == 1
