@@ -1,0 +1,50 @@
+"""``terrainmap eval accuracy``: terrainmap and the baselines against a simulated log's ground truth."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import click
+
+from .options import config_options, load_cli_config
+
+
+@click.command("accuracy")
+@click.argument("log", type=click.Path(exists=True, path_type=Path))
+@click.option("--methods", default=None, metavar="NAME,...",
+              help="Comma-separated methods (default: every available one: terrainmap and the baselines).")
+@click.option("--max-frames", type=click.IntRange(min=1), default=None, help="Evaluate at most this many frames.")
+@click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), help="Write the report as JSON.")
+@click.option("--plot", "plot_path", type=click.Path(dir_okay=False, path_type=Path),
+              help="Draw elevation RMSE against range for each method to this PNG.")
+@config_options
+def accuracy(log, methods, max_frames, json_path, plot_path, config_path, overrides):
+    """Score elevation, slope, coverage, terrain segmentation and obstacles per range band
+    on LOG, a log written by `terrainmap simulate` (it carries the ground truth).
+
+    Every method runs on the same stereo points of each frame; the definitions of the metrics
+    are in terrainmap.evaluation.accuracy.
+    """
+    from terrainmap.errors import ConfigError
+    from terrainmap.evaluation.accuracy import evaluate, select_methods
+    from terrainmap.evaluation.accuracy_report import format_table, plot_rmse_vs_range
+
+    config = load_cli_config(config_path, overrides)
+    names = [m.strip() for m in methods.split(",") if m.strip()] if methods is not None else None
+    try:
+        names = select_methods(names)
+    except ConfigError as exc:
+        raise click.BadParameter(str(exc).removeprefix("--methods: "), param_hint="--methods") from None
+    show = sys.stderr.isatty()
+    report = evaluate(log, config, methods=names, max_frames=max_frames,
+                      progress=(lambda n: click.echo(f"\rframe {n}", nl=False, err=True)) if show else None)
+    if show:
+        click.echo(err=True)
+    click.echo(format_table(report))
+    click.echo(f"\nwall time {report['seconds']['wall']:.1f} s")
+    if json_path:
+        json_path.write_text(json.dumps(report, indent=2) + "\n")
+    if plot_path:
+        plot_rmse_vs_range(report, plot_path)

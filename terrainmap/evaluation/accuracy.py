@@ -1,0 +1,262 @@
+"""Accuracy of terrainmap and the baselines against the ground truth of a simulated log.
+
+    from terrainmap.config import Config
+    from terrainmap.evaluation.accuracy import evaluate
+
+    report = evaluate("drive.mcap", Config(), methods=["terrainmap", "ransac_plane"], max_frames=20)
+    report["methods"]["terrainmap"]["0-10"]["elevation_rmse_m"]
+
+The log (written by ``terrainmap simulate``) is streamed: one stereo frame and its truth in memory
+at a time. Each frame runs :func:`~terrainmap.pipeline.process_frame` once (terrainmap's own
+layers, point labels and tracked obstacles) and every other method of
+:mod:`.baselines` on the same ``points_vehicle`` with the same config. Metrics, per range band
+(:data:`.scores.BANDS`, horizontal distance from the vehicle origin of the cell centre / point):
+
+- ``elevation_rmse_m``, ``_mae_m``, ``_bias_m`` (method − truth), ``_p95_m`` (of |error|): the
+  method's elevation at the cell centres against the true terrain under them along base z
+  (:mod:`.truth_grid`), over the cells where the method gives a finite value **and** the
+  terrain is observed in this frame (the cell holds truth terrain pixels of the left camera).
+- ``slope_error_median_deg``: ``|slope − true slope|`` over the same cells, the true slope being
+  that of the cell-mean gradient of the truth in the vehicle frame; null for a method without slope.
+- ``coverage``: fraction of the observed terrain cells where the method gives a finite elevation.
+- ``terrain_precision`` / ``_recall`` / ``_f1``: per point, "predicted TERRAIN" against "truth
+  label at the point's pixel is terrain". Points on sky pixels and points the method leaves
+  UNKNOWN are not scored; OBSTACLE **and BELOW** count as predicted not-terrain (a terrain point
+  the surface passes above is a terrain point the method missed).
+- ``obstacle_recall`` (terrainmap only): per frame, the truth obstacles at least
+  ``obstacle_min_height_m`` tall, with at least ``min_visible_pixels`` instance pixels in the left
+  image, centre within ``obstacle_range_m`` and inside the grid area, that are matched by a
+  *confirmed* positive terrainmap obstacle whose centre lies in the truth footprint dilated by
+  ``obstacle_margin_m`` (vehicle frame); summed over frames. Bands by the truth centre's range.
+- ``false_obstacles_per_frame`` (terrainmap only): confirmed positive obstacles matching no truth
+  footprint (of any height), plus confirmed negative obstacles where the truth shows no
+  depression (:func:`.truth_grid.depression_depth` below half of ``obstacles.min_depth_m``,
+  ring radius = half the obstacle's width + margin), per evaluated frame. Bands by detection range.
+
+Frames where the pipeline fails (FrameError) are counted by reason in ``failed_frames`` and
+skipped for every method; a baseline failing on a frame says nothing there (NaN, no labels).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections import Counter, defaultdict
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import numpy as np
+
+from ..config import Config
+from ..errors import ConfigError, FrameError, InputError
+from ..pipeline import PipelineState, process_frame
+from ..sim.truth import TruthFrame, open_truth
+from ..sources import open_source
+from ..types import FrameResult, Label
+from . import baselines
+from .scores import BANDS, METRICS, PROFILE_BINS, PROFILE_STEP_M, MethodScores
+from .truth_grid import TERRAIN_PIXEL, GridTruth, depression_depth, grid_truth
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["BANDS", "METRICS", "evaluate", "select_methods"]
+
+
+def select_methods(methods: list[str] | None) -> list[str]:
+    """The methods to run (default: every available one), checked.
+
+    Raises
+    ------
+    ConfigError
+        An unknown method, or one whose optional package is missing (the message lists the available ones).
+    """
+    available = baselines.available_methods()
+    if methods is None:
+        return available
+    for name in methods:
+        if name not in baselines.METHODS:
+            raise ConfigError(f"--methods: unknown method {name!r}; available: {', '.join(available)}")
+        if name not in available:
+            raise ConfigError(f"--methods: {name!r} needs an optional package that is not installed "
+                              f"(pip install 'terrainmap[baselines]'); available: {', '.join(available)}")
+    if not methods:
+        raise ConfigError(f"--methods: no method given; available: {', '.join(available)}")
+    return list(dict.fromkeys(methods))
+
+
+def _truth_for(frames: Iterator[TruthFrame], stamp_ns: int, log: Path) -> TruthFrame:
+    """Advance the (stamp-ordered) truth frames to the one of ``stamp_ns``."""
+    for truth_frame in frames:
+        if truth_frame.stamp_ns == stamp_ns:
+            return truth_frame
+        if truth_frame.stamp_ns > stamp_ns:
+            break
+    raise InputError(f"{log}: no ground truth for the stereo frame at stamp {stamp_ns}")
+
+
+class _Evaluation:
+    """State of one run over a log (see :func:`evaluate`)."""
+
+    def __init__(self, truth, config: Config, names: list[str], options: dict):
+        self.truth, self.config, self.names, self.options = truth, config, names, options
+        self.scores = {name: MethodScores() for name in names}
+        self.seconds: dict[str, float] = defaultdict(float)
+        self.method_failures: Counter = Counter()
+        self.first_eligible: dict[str, int] = {}
+        self.first_matched: dict[str, int] = {}
+        self.frames = 0
+
+    def add_frame(self, result: FrameResult, truth_frame: TruthFrame) -> None:
+        start = time.perf_counter()
+        gt = grid_truth(self.truth, truth_frame, self.config.grid, min_pixels=self.options["min_terrain_pixels"])
+        points = result.points_vehicle
+        u, v = result.pixels[:, 0], result.pixels[:, 1]
+        pixel_label = truth_frame.label[v, u]
+        point_range = np.hypot(points[:, 0], points[:, 1])
+        self.seconds["truth"] += time.perf_counter() - start
+        for name in self.names:
+            output = self._run(name, result)
+            self.scores[name].add_cells(output.elevation, output.slope, gt.height_m, gt.slope_rad, gt.observed,
+                                        gt.range_m)
+            if output.point_labels is not None:
+                scored = (pixel_label != 0) & (output.point_labels != Label.UNKNOWN)
+                self.scores[name].add_points(output.point_labels[scored] == Label.TERRAIN,
+                                             pixel_label[scored] == TERRAIN_PIXEL, point_range[scored])
+        if "terrainmap" in self.scores:
+            self._score_obstacles(result, gt, truth_frame)
+        self.frames += 1
+
+    def _run(self, name: str, result: FrameResult) -> baselines.MethodOutput:
+        if name == "terrainmap":
+            layers = result.layers
+            return baselines.MethodOutput(layers["elevation"].astype(float), layers["slope"], result.point_labels)
+        start = time.perf_counter()
+        try:
+            output = baselines.METHODS[name](result.points_vehicle, self.config, result.extrinsics)
+        except FrameError as exc:
+            logger.info("%s failed on frame %d: %s", name, result.index, exc)
+            self.method_failures[name] += 1
+            output = baselines.MethodOutput(np.full(self.config.grid.shape, np.nan), None, None)
+        self.seconds[name] += time.perf_counter() - start
+        return output
+
+    def _score_obstacles(self, result: FrameResult, gt: GridTruth, truth_frame: TruthFrame) -> None:
+        opt, grid = self.options, self.config.grid
+        confirmed = [o for o in result.obstacles if o.confirmed]
+        positive = np.array([o.center_m[:2] for o in confirmed if o.kind == "positive"]).reshape(-1, 2)
+        x_max, y_min = grid.x_min_m + grid.length_m, grid.y_center_m - grid.width_m / 2
+        eligible = [t for t in gt.obstacles if t.height_m >= opt["obstacle_min_height_m"]
+                    and t.pixels >= opt["min_visible_pixels"] and t.range_m <= opt["obstacle_range_m"]
+                    and grid.x_min_m <= t.center_m[0] < x_max and y_min <= t.center_m[1] < y_min + grid.width_m]
+        matched = np.array([t.contains_xy(positive, opt["obstacle_margin_m"]).any() for t in eligible], bool)
+        for t, hit in zip(eligible, matched):
+            key = f"{t.id} {t.kind}"
+            self.first_eligible.setdefault(key, self.frames)
+            if hit:
+                self.first_matched.setdefault(key, self.frames)
+        false_range = [float(np.hypot(*o.center_m[:2])) for o in confirmed if self._is_false(o, gt, truth_frame)]
+        self.scores["terrainmap"].add_obstacles([t.range_m for t in eligible], matched, false_range)
+
+    def _is_false(self, obstacle, gt: GridTruth, truth_frame: TruthFrame) -> bool:
+        margin = self.options["obstacle_margin_m"]
+        if obstacle.kind == "positive":
+            return not any(t.contains_xy(obstacle.center_m[:2], margin)[0] for t in gt.obstacles)
+        radius = float(obstacle.size_m[1]) / 2 + margin
+        depth = depression_depth(self.truth, truth_frame.pose_world_base(), obstacle.center_m[:2], radius)
+        return depth < self.config.obstacles.min_depth_m / 2
+
+    def report(self, log: Path, failed: Counter, wall_s: float) -> dict:
+        confirmation = {k: (self.first_matched[k] - f if k in self.first_matched else None)
+                        for k, f in sorted(self.first_eligible.items())}
+        return {
+            "log": str(log),
+            "frames": self.frames,
+            "failed_frames": dict(failed),
+            "methods": {name: s.summary(self.frames) for name, s in self.scores.items()},
+            "method_failures": {name: self.method_failures[name] for name in self.names},
+            "obstacles": {
+                "margin_m": self.options["obstacle_margin_m"], "min_height_m": self.options["obstacle_min_height_m"],
+                "range_m": self.options["obstacle_range_m"], "min_visible_pixels": self.options["min_visible_pixels"],
+                "frames_to_confirmation": confirmation,
+            },
+            "rmse_vs_range": {
+                "range_edges_m": [k * PROFILE_STEP_M for k in range(PROFILE_BINS)] + [None],
+                "methods": {name: s.rmse_profile() for name, s in self.scores.items()},
+            },
+            "seconds": {"wall": wall_s, **{k: round(v, 3) for k, v in self.seconds.items()}},
+            "config": self.config.to_dict(),
+        }
+
+
+def evaluate(
+    log_path: str | Path,
+    config: Config,
+    *,
+    methods: list[str] | None = None,
+    max_frames: int | None = None,
+    obstacle_margin_m: float = 0.5,
+    obstacle_min_height_m: float = 0.5,
+    obstacle_range_m: float = 20.0,
+    min_visible_pixels: int = 20,
+    min_terrain_pixels: int = 1,
+    progress: Callable[[int], None] | None = None,
+) -> dict:
+    """Score terrainmap and the baselines on a simulated log (definitions in the module docstring).
+
+    Parameters
+    ----------
+    log_path : path
+        A log written by ``terrainmap simulate`` (MCAP or folder), with its truth.
+    config : Config
+        Pipeline configuration, used by every method.
+    methods : list of str, optional
+        Names from :data:`.baselines.METHODS` (default: all available).
+    max_frames : int, optional
+        Evaluate at most this many frames.
+    obstacle_margin_m, obstacle_min_height_m, obstacle_range_m, min_visible_pixels
+        Obstacle matching and eligibility (module docstring).
+    min_terrain_pixels : int
+        Truth terrain pixels a cell needs to count as observed.
+    progress : callable, optional
+        Called with the number of frames done after each frame.
+
+    Returns
+    -------
+    dict
+        ``{"methods": {name: {band: {metric: value or None}}}, "log", "frames", "failed_frames",
+        "method_failures", "obstacles", "rmse_vs_range", "seconds", "config"}``.
+
+    Raises
+    ------
+    InputError
+        The log has no ground truth (names the missing topics or files) or cannot be read.
+    ConfigError
+        Bad config or method names.
+    """
+    start = time.perf_counter()
+    config.validate()
+    names = select_methods(methods)
+    log_path = Path(log_path)
+    options = {"obstacle_margin_m": obstacle_margin_m, "obstacle_min_height_m": obstacle_min_height_m,
+               "obstacle_range_m": obstacle_range_m, "min_visible_pixels": min_visible_pixels,
+               "min_terrain_pixels": min_terrain_pixels}
+    failed: Counter = Counter()
+    with open_truth(log_path) as truth, open_source(log_path) as source:
+        run = _Evaluation(truth, config, names, options)
+        state = PipelineState(config)
+        truth_frames = truth.frames()
+        for done, frame in enumerate(source.frames(max_frames=max_frames), 1):
+            truth_frame = _truth_for(truth_frames, frame.stamp_ns, log_path)
+            t0 = time.perf_counter()
+            try:
+                result = process_frame(frame, config, state)
+            except FrameError as exc:
+                failed[exc.reason] += 1
+                logger.info("frame %d failed: %s", frame.index, exc)
+                continue
+            finally:
+                run.seconds["pipeline"] += time.perf_counter() - t0
+            run.add_frame(result, truth_frame)
+            if progress is not None:
+                progress(done)
+    return run.report(log_path, failed, time.perf_counter() - start)

@@ -1,0 +1,61 @@
+"""Human-facing views of an :func:`~terrainmap.evaluation.accuracy.evaluate` report: a text table and a plot."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from .scores import METRICS
+
+HEADERS = {
+    "elevation_rmse_m": "rmse_m", "elevation_mae_m": "mae_m", "elevation_bias_m": "bias_m",
+    "elevation_p95_m": "p95_m", "slope_error_median_deg": "slope°", "coverage": "cover",
+    "terrain_precision": "prec", "terrain_recall": "recall", "terrain_f1": "f1",
+    "obstacle_recall": "obs_rec", "false_obstacles_per_frame": "false/fr",
+}
+"""Short column titles of the table, one per metric."""
+
+
+def _cell(metric: str, value: float | None) -> str:
+    if value is None:
+        return "—"
+    return f"{value:.2f}" if metric in ("slope_error_median_deg", "false_obstacles_per_frame") else f"{value:.3f}"
+
+
+def format_table(report: dict) -> str:
+    """Methods × metrics, one block per range band, as plain text."""
+    methods = report["methods"]
+    width = max(len(m) for m in methods) if methods else 6
+    header = f"{'method':<{width}} " + " ".join(f"{HEADERS[m]:>8}" for m in METRICS)
+    lines = [f"{report['log']}: {report['frames']} frames"
+             + (f", failed {report['failed_frames']}" if report.get("failed_frames") else "")]
+    bands = next(iter(methods.values())).keys() if methods else []
+    for band in bands:
+        lines += ["", f"range {band} m", header]
+        for name, scores in methods.items():
+            lines.append(f"{name:<{width}} " + " ".join(f"{_cell(m, scores[band][m]):>8}" for m in METRICS))
+    return "\n".join(lines)
+
+
+def plot_rmse_vs_range(report: dict, path: str | Path) -> None:
+    """Draw the elevation RMSE against range (2 m bins) for each method to a PNG."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    edges = report["rmse_vs_range"]["range_edges_m"]
+    step = edges[1] - edges[0]
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    for name, rmse in report["rmse_vs_range"]["methods"].items():
+        points = [(edges[k] + step / 2, r) for k, r in enumerate(rmse) if r is not None]
+        if points:
+            ax.plot(*zip(*points), marker="o", label=name)
+    ax.set_xlabel("range (m)")
+    ax.set_ylabel("elevation RMSE (m)")
+    ax.set_yscale("log")
+    ax.set_title(f"{Path(report['log']).name}: {report['frames']} frames")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
