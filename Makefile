@@ -14,8 +14,8 @@ $(VENV)/.installed: pyproject.toml
 
 demo: $(VENV)/.installed
 	mkdir -p $(OUT)
-	$(BIN)/terrainmap eval artificial-obstacle --json $(OUT)/artificial_obstacle.json --csv $(OUT)/artificial_obstacle.csv --plot $(OUT)/artificial_obstacle.png
-	@echo "Wrote $(OUT)/artificial_obstacle.{json,csv,png}"
+	$(BIN)/terrainmap process examples/offroad_demo.mcap -o $(OUT)/offroad_demo.terrain.mcap --overwrite
+	@echo "Open $(OUT)/offroad_demo.terrain.mcap in Foxglove (layout: examples/foxglove_layout.json)."
 
 test: $(VENV)/.installed
 	$(BIN)/python -m pytest

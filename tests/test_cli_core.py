@@ -67,3 +67,9 @@ def test_eval_artificial_obstacle_on_a_simulated_base_frame(tmp_path):
     assert result.exit_code == 0, result.output
     thin, wide = json.loads((tmp_path / "r.json").read_text())
     assert thin["max_deviation_pct"] < wide["max_deviation_pct"]
+
+
+def test_eval_robustness_reports_both_fits():
+    result = CliRunner().invoke(cli, ["eval", "robustness", "--seeds", "2"])
+    assert result.exit_code == 0, result.output
+    assert "iterative (Algorithm V-B.1) RMSE" in result.output and "single unweighted fit" in result.output
