@@ -1,0 +1,228 @@
+"""terrainmap eval accuracy: metrics on known answers, the truth geometry, the report schema, the CLI."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from terrainmap.cli.eval_accuracy import accuracy
+from terrainmap.config import Config
+from terrainmap.errors import ConfigError, InputError
+from terrainmap.evaluation import accuracy as acc
+from terrainmap.evaluation.scores import BANDS, METRICS, Histogram, MethodScores
+from terrainmap.evaluation.truth_grid import grid_truth, height_along_z, observed_cells, truth_obstacles
+from terrainmap.sim import SimConfig, simulate
+from terrainmap.sim.truth import open_truth
+from terrainmap.types import FrameResult, Label, Obstacle
+
+
+@pytest.fixture(scope="module")
+def tiny_log(tmp_path_factory):
+    path = tmp_path_factory.mktemp("sim") / "hills.mcap"
+    simulate(path, SimConfig(scene="hills", frames=3, seed=1, width=320, height=240))
+    return path
+
+
+def _grid(shape=(4, 3), range_m=5.0):
+    return np.full(shape, range_m)
+
+
+# --- scores on hand-built cases -------------------------------------------------------------------------
+
+def test_method_equal_to_truth_scores_zero_error_and_f1_one():
+    truth_h = np.random.default_rng(0).normal(size=(4, 3))
+    truth_slope = np.full((4, 3), 0.1)
+    observed = np.ones((4, 3), bool)
+    scores = MethodScores()
+    scores.add_cells(truth_h.copy(), truth_slope.copy(), truth_h, truth_slope, observed, _grid())
+    labels = np.array([True, True, False, True])
+    scores.add_points(labels, labels, np.full(4, 5.0))
+    band = scores.summary(frames=1)["0-10"]
+    assert band["elevation_rmse_m"] == 0 and band["elevation_bias_m"] == 0 and band["elevation_mae_m"] == 0
+    assert band["elevation_p95_m"] < 0.001 and band["slope_error_median_deg"] < 0.01
+    assert band["coverage"] == 1 and band["terrain_f1"] == 1
+    assert band["obstacle_recall"] is None and band["false_obstacles_per_frame"] is None
+    assert scores.summary(frames=1)["20-35"]["elevation_rmse_m"] is None  # nothing in that band
+
+
+def test_known_errors_coverage_and_confusion_per_band():
+    truth = np.zeros((2, 2))
+    elevation = np.array([[0.1, -0.3], [np.nan, 0.1]])
+    range_m = np.array([[5.0, 5.0], [15.0, 15.0]])
+    scores = MethodScores()
+    scores.add_cells(elevation, None, truth, truth, np.ones((2, 2), bool), range_m)
+    predicted = np.array([True, True, False, False, True])
+    actual = np.array([True, False, True, False, True])
+    scores.add_points(predicted, actual, np.array([5.0, 5.0, 5.0, 15.0, 25.0]))
+    out = scores.summary(frames=2)
+    near, mid, everything = out["0-10"], out["10-20"], out["all"]
+    assert near["elevation_rmse_m"] == pytest.approx(math.sqrt((0.01 + 0.09) / 2))
+    assert near["elevation_bias_m"] == pytest.approx(-0.1) and near["elevation_mae_m"] == pytest.approx(0.2)
+    assert mid["coverage"] == 0.5 and everything["coverage"] == 0.75
+    assert near["slope_error_median_deg"] is None  # the method has no slope
+    # all: tp 2, fp 1, fn 1
+    assert everything["terrain_precision"] == pytest.approx(2 / 3)
+    assert everything["terrain_recall"] == pytest.approx(2 / 3) and everything["terrain_f1"] == pytest.approx(2 / 3)
+    assert near["terrain_precision"] == 0.5 and near["terrain_recall"] == 0.5
+
+
+def test_obstacle_scores_by_band():
+    scores = MethodScores()
+    scores.add_obstacles([5.0, 15.0, 18.0], np.array([True, False, True]), [25.0])
+    scores.add_obstacles([], np.array([], bool), [])
+    out = scores.summary(frames=2)
+    assert out["0-10"]["obstacle_recall"] == 1 and out["10-20"]["obstacle_recall"] == 0.5
+    assert out["all"]["obstacle_recall"] == pytest.approx(2 / 3) and out["20-35"]["obstacle_recall"] is None
+    assert out["all"]["false_obstacles_per_frame"] == 0.5 and out["0-10"]["false_obstacles_per_frame"] == 0
+
+
+def test_histogram_quantile_within_half_a_bin():
+    values = np.random.default_rng(1).uniform(0, 1, 10_001)
+    hist = Histogram(0.001, 10.0)
+    hist.add(values)
+    assert abs(hist.quantile(0.95) - np.quantile(values, 0.95)) <= 0.0011
+    assert Histogram(0.01, 1.0).quantile(0.5) is None
+
+
+# --- truth geometry ----------------------------------------------------------------------------------
+
+class _PlaneTruth:
+    """A terrain plane z = 0.2·x + 0.1·y + 1 in the world frame."""
+
+    def height(self, x, y):
+        return 0.2 * np.asarray(x) + 0.1 * np.asarray(y) + 1.0
+
+
+def test_height_along_z_lands_on_the_terrain_for_a_tilted_vehicle():
+    pitch, roll = np.radians(-11.0), np.radians(5.0)
+    ry = np.array([[np.cos(pitch), 0, np.sin(pitch)], [0, 1, 0], [-np.sin(pitch), 0, np.cos(pitch)]])
+    rx = np.array([[1, 0, 0], [0, np.cos(roll), -np.sin(roll)], [0, np.sin(roll), np.cos(roll)]])
+    pose = np.eye(4)
+    pose[:3, :3], pose[:3, 3] = ry @ rx, [3.0, -2.0, 0.4]
+    x, y = np.meshgrid(np.linspace(2, 35, 7), np.linspace(-10, 10, 5), indexing="ij")
+    h = height_along_z(_PlaneTruth(), pose, x, y)
+    world = np.stack([x, y, h, np.ones_like(x)], -1) @ pose.T
+    np.testing.assert_allclose(world[..., 2], _PlaneTruth().height(world[..., 0], world[..., 1]), atol=1e-4)
+
+
+def test_grid_truth_matches_the_truth_pixels(tiny_log):
+    config = Config().grid
+    with open_truth(tiny_log) as truth:
+        frame = next(truth.frames())
+        gt = grid_truth(truth, frame, config)
+        assert gt.observed.sum() > 100 and not gt.observed[:, 0].any()  # the far right edge is out of view
+        assert observed_cells(truth, frame, config, min_pixels=10**6).sum() == 0
+        assert np.all(np.isfinite(gt.height_m)) and np.all(gt.slope_rad >= 0)
+        near = gt.observed & (gt.range_m < 10)
+        assert np.degrees(np.median(gt.slope_rad[near])) < 10  # rolling hills
+        boxes = truth_obstacles(frame)
+        assert {b.id for b in boxes} == {o.id for o in frame.obstacles}
+        truck = next(b for b in boxes if b.kind == "truck")
+        assert truck.pixels > 100 and truck.contains_xy(truck.center_m[:2] + [0, truck.size_m[1] / 2 + 0.4], 0.5)[0]
+        assert not truck.contains_xy(truck.center_m[:2] + [0, truck.size_m[1] / 2 + 0.6], 0.5)[0]
+
+
+# --- evaluate(): a perfect pipeline scores perfectly; schema; errors ---------------------------------------
+
+def _oracle(truth_path, config: Config):
+    """A process_frame that returns the truth itself (truth pixels as points, truth layers, truth obstacles)."""
+    truth = open_truth(truth_path)
+    frames = {f.stamp_ns: f for f in truth.frames()}
+    cal, ext = truth.calibration, truth.extrinsics
+
+    def process_frame(frame, cfg, state):
+        tf = frames[frame.stamp_ns]
+        gt = grid_truth(truth, tf, cfg.grid)
+        v, u = np.nonzero(tf.label > 0)
+        z = tf.depth[v, u]
+        cam = np.column_stack([(u - cal.cx) / cal.fx * z, (v - cal.cy) / cal.fy * z, z])
+        points = (cam @ ext.rotation.T + ext.translation).astype(np.float32)
+        labels = np.where(tf.label[v, u] == 1, Label.TERRAIN, Label.OBSTACLE).astype(np.uint8)
+        obstacles = [Obstacle(b.center_m, b.size_m, b.yaw_rad, b.height_m, b.pixels, b.range_m, confirmed=True)
+                     for b in gt.obstacles if b.pixels > 0]
+        layers = {"elevation": gt.height_m.astype(np.float32), "slope": gt.slope_rad}
+        return FrameResult(frame.index, frame.stamp_ns, ext, points, np.column_stack([u, v]), labels, None, None,
+                           layers=layers, obstacles=obstacles)
+
+    return process_frame
+
+
+def test_a_pipeline_equal_to_the_truth_scores_perfectly(tiny_log, monkeypatch):
+    monkeypatch.setattr(acc, "process_frame", _oracle(tiny_log, Config()))
+    report = acc.evaluate(tiny_log, Config(), methods=["terrainmap"])
+    assert report["frames"] == 3
+    for band in ("0-10", "10-20", "all"):
+        scores = report["methods"]["terrainmap"][band]
+        assert scores["elevation_rmse_m"] < 1e-5 and scores["elevation_p95_m"] <= 0.001
+        assert scores["slope_error_median_deg"] <= 0.01 and scores["coverage"] == 1
+        assert scores["terrain_f1"] == 1 and scores["false_obstacles_per_frame"] == 0
+    assert report["methods"]["terrainmap"]["all"]["obstacle_recall"] == 1
+    assert all(v == 0 for v in report["obstacles"]["frames_to_confirmation"].values())
+
+
+def test_report_schema_on_a_simulated_log(tiny_log):
+    report = acc.evaluate(tiny_log, Config(), methods=["terrainmap", "ransac_plane"], max_frames=2)
+    json.dumps(report)  # JSON-able
+    assert report["frames"] == 2 and report["log"] == str(tiny_log)
+    assert set(report["methods"]) == {"terrainmap", "ransac_plane"}
+    for scores in report["methods"].values():
+        assert list(scores) == list(BANDS) == ["0-10", "10-20", "20-35", "all"]
+        assert all(list(band) == list(METRICS) for band in scores.values())
+    tm, plane = report["methods"]["terrainmap"]["all"], report["methods"]["ransac_plane"]["all"]
+    assert plane["obstacle_recall"] is None and plane["false_obstacles_per_frame"] is None
+    assert tm["false_obstacles_per_frame"] is not None and 0 <= tm["coverage"] <= 1
+    assert 0 < tm["terrain_f1"] <= 1 and tm["elevation_rmse_m"] < 2.0
+    assert report["config"]["grid"]["cell_size_m"] == 0.5 and report["seconds"]["wall"] > 0
+
+
+def _strip_truth(src, dst):
+    """Copy an MCAP without its /truth/... channels."""
+    from mcap.reader import make_reader
+    from mcap.writer import Writer
+
+    with open(src, "rb") as fin, open(dst, "wb") as fout:
+        reader, writer = make_reader(fin), Writer(fout)
+        writer.start()
+        schemas, channels = {}, {}
+        for schema, channel, message in reader.iter_messages():
+            if channel.topic.startswith("/truth"):
+                continue
+            if schema.id not in schemas:
+                schemas[schema.id] = writer.register_schema(schema.name, schema.encoding, schema.data)
+            if channel.id not in channels:
+                channels[channel.id] = writer.register_channel(channel.topic, channel.message_encoding,
+                                                               schemas[schema.id], channel.metadata)
+            writer.add_message(channels[channel.id], message.log_time, message.data, message.publish_time)
+        writer.finish()
+
+
+def test_a_log_without_truth_is_an_input_error_naming_the_topics(tiny_log, tmp_path):
+    plain = tmp_path / "plain.mcap"
+    _strip_truth(tiny_log, plain)
+    with pytest.raises(InputError, match=r"plain\.mcap.*missing topics.*/truth/"):
+        acc.evaluate(plain, Config(), methods=["terrainmap"])
+
+
+def test_unknown_method_lists_the_available_ones(tiny_log):
+    with pytest.raises(ConfigError, match=r"unknown method 'nope'; available: terrainmap, .*ransac_plane"):
+        acc.evaluate(tiny_log, Config(), methods=["terrainmap", "nope"])
+    result = CliRunner().invoke(accuracy, [str(tiny_log), "--methods", "terrainmap,nope"])
+    assert result.exit_code == 2 and "unknown method 'nope'; available: terrainmap" in result.output
+
+
+def test_cli_prints_the_table_and_writes_json_and_plot(tiny_log, tmp_path):
+    out_json, out_png = tmp_path / "r.json", tmp_path / "r.png"
+    result = CliRunner().invoke(accuracy, [
+        str(tiny_log), "--methods", "terrainmap,lowest_point", "--max-frames", "2", "--json", str(out_json),
+        "--plot", str(out_png), "--set", "terrain.control_points_x=15",
+    ])
+    assert result.exit_code == 0, result.output
+    for text in ("range 0-10 m", "range 10-20 m", "range all m", "rmse_m", "terrainmap", "lowest_point", "wall time"):
+        assert text in result.output
+    report = json.loads(out_json.read_text())
+    assert report["frames"] == 2 and report["config"]["terrain"]["control_points_x"] == 15
+    assert out_png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
