@@ -20,7 +20,7 @@ from .grid import HeightGrid, cell_index, quantize
 from .obstacle_stage import make_tracker, run_obstacle_stage
 from .segmentation import label_cells, label_points
 from .slope import layers as grid_layers
-from .stereo import StereoMatcher, to_vehicle
+from .stereo import StereoMatcher, StereoResult, to_vehicle
 from .terrain import TerrainEstimate, estimate_terrain
 from .tracking import ObstacleTracker
 from .types import Extrinsics, FrameResult, StereoFrame
@@ -117,6 +117,62 @@ class PipelineState:
             self.tracker = make_tracker(self.config)
 
 
+@dataclass
+class Matched:
+    """The first half of a frame (:func:`match_frame`): stereo and the points in the vehicle frame."""
+
+    stereo: StereoResult
+    points_vehicle: np.ndarray
+    pixels: np.ndarray
+    extrinsics: Extrinsics
+    timings_ms: dict[str, float]
+
+
+def match_frame(frame: StereoFrame, config: Config, state: PipelineState) -> Matched:
+    """SGM disparity → 3D points in the vehicle frame (uses and updates ``state.matcher`` and
+    ``state.extrinsics`` only, so it can run one frame ahead of :func:`finish_frame`)."""
+    watch = Stopwatch()
+    with watch("stereo"):
+        if state.matcher is None or not state.matcher.same_setup(frame.calibration, config.stereo):
+            state.matcher = StereoMatcher(frame.calibration, config.stereo)
+        stereo = state.matcher.compute(frame.left, frame.right)
+    with watch("points"):
+        points_cam, pixels = state.matcher.reproject(stereo.disparity)
+        extrinsics = frame.extrinsics or state.extrinsics
+        if extrinsics is None:
+            extrinsics = state.extrinsics = estimate_extrinsics(points_cam, config.extrinsics)
+        points = to_vehicle(points_cam, extrinsics)
+    return Matched(stereo, points, pixels, extrinsics, watch.ms)
+
+
+def finish_frame(frame: StereoFrame, matched: Matched, config: Config, state: PipelineState) -> FrameResult:
+    """Points → grid → terrain → slope, labels → obstacles (``state.tracker``) and cost."""
+    watch = Stopwatch()
+    watch.ms.update(matched.timings_ms)
+    points = matched.points_vehicle
+    terrain = map_points(points, config, watch)
+    with watch("obstacles"):
+        obstacles, cost = run_obstacle_stage(
+            points, terrain.point_labels, terrain.grid, terrain.layers, frame.stamp_ns, state.tracker, config
+        )
+    return FrameResult(
+        index=frame.index,
+        stamp_ns=frame.stamp_ns,
+        extrinsics=matched.extrinsics,
+        points_vehicle=points,
+        pixels=matched.pixels,
+        point_labels=terrain.point_labels,
+        grid=terrain.grid,
+        terrain=terrain.terrain,
+        layers={**terrain.layers, "cost": cost},
+        disparity=matched.stereo.disparity,
+        image=matched.stereo.image,
+        obstacles=obstacles,
+        stats={**terrain.stats, "points": float(len(points)), "obstacles": float(len(obstacles))},
+        timings_ms=watch.ms,
+    )
+
+
 def process_frame(frame: StereoFrame, config: Config, state: PipelineState) -> FrameResult:
     """The whole pipeline on one stereo pair: SGM disparity → 3D points (vehicle frame) → grid →
     terrain surface → slope, labels → obstacles (tracked) and traversability cost.
@@ -129,36 +185,4 @@ def process_frame(frame: StereoFrame, config: Config, state: PipelineState) -> F
     CalibrationError, InputError
         The frame cannot be used at all (bad calibration, image sizes); the run stops.
     """
-    watch = Stopwatch()
-    with watch("stereo"):
-        if state.matcher is None or not state.matcher.same_setup(frame.calibration, config.stereo):
-            state.matcher = StereoMatcher(frame.calibration, config.stereo)
-        stereo = state.matcher.compute(frame.left, frame.right)
-    with watch("points"):
-        points_cam, pixels = state.matcher.reproject(stereo.disparity)
-        extrinsics = frame.extrinsics or state.extrinsics
-        if extrinsics is None:
-            extrinsics = state.extrinsics = estimate_extrinsics(points_cam, config.extrinsics)
-        points = to_vehicle(points_cam, extrinsics)
-    terrain = map_points(points, config, watch)
-    with watch("obstacles"):
-        obstacles, cost = run_obstacle_stage(
-            points, terrain.point_labels, terrain.grid, terrain.layers, frame.stamp_ns, state.tracker, config
-        )
-    layers = {**terrain.layers, "cost": cost}
-    return FrameResult(
-        index=frame.index,
-        stamp_ns=frame.stamp_ns,
-        extrinsics=extrinsics,
-        points_vehicle=points,
-        pixels=pixels,
-        point_labels=terrain.point_labels,
-        grid=terrain.grid,
-        terrain=terrain.terrain,
-        layers=layers,
-        disparity=stereo.disparity,
-        image=stereo.image,
-        obstacles=obstacles,
-        stats={**terrain.stats, "points": float(len(points)), "obstacles": float(len(obstacles))},
-        timings_ms=watch.ms,
-    )
+    return finish_frame(frame, match_frame(frame, config, state), config, state)

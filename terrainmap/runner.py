@@ -1,5 +1,11 @@
 """The runner: iterate a source, run the pure per-frame core, feed the sinks, keep statistics.
 
+The first half of each frame (reading it, SGM matching, points: :func:`match_frame`) runs one
+frame ahead in a worker thread while the main thread finishes the previous frame (terrain,
+labels, obstacles: :func:`finish_frame`) and writes it. OpenCV and numpy release the GIL in
+their heavy loops, so on two cores the two halves overlap; the results are the same as running
+:func:`process_frame` frame by frame.
+
 Frames that yield no terrain (:class:`~terrainmap.errors.FrameError`) are counted by reason and
 skipped; any other error ends the run. Either way every sink is closed, so the outputs written
 so far are finalised and readable. Memory is bounded whatever the length of the log: the
@@ -13,12 +19,13 @@ import random
 import statistics
 import time
 from collections import Counter
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 from .config import Config
 from .errors import FrameError
-from .pipeline import PipelineState, process_frame
+from .pipeline import Matched, PipelineState, finish_frame, match_frame
 from .sinks.base import Sink
 from .types import Extrinsics, FrameResult, StereoFrame
 
@@ -80,9 +87,11 @@ def run(
     state = PipelineState(config)
     start = time.perf_counter()
     try:
-        for frame in frames:
+        for frame, matched in _matched_ahead(frames, config, state):
             try:
-                result = process_frame(frame, config, state)
+                if isinstance(matched, FrameError):
+                    raise matched
+                result = finish_frame(frame, matched, config, state)
             except FrameError as exc:
                 summary.failures[exc.reason] += 1
                 log.info("frame %d: %s", frame.index, exc)
@@ -100,6 +109,29 @@ def run(
         summary.wall_s = time.perf_counter() - start
         _close_all(sinks)
     return summary
+
+
+def _matched_ahead(
+    frames: Iterable[StereoFrame], config: Config, state: PipelineState
+) -> Iterator[tuple[StereoFrame, Matched | FrameError]]:
+    """Yield each frame with its :func:`match_frame` result (or the FrameError it raised), the
+    next frame being read and matched in a worker thread meanwhile. Other errors re-raise here."""
+    source = iter(frames)
+
+    def step():
+        frame = next(source, None)
+        if frame is None:
+            return None
+        try:
+            return frame, match_frame(frame, config, state)
+        except FrameError as exc:
+            return frame, exc
+
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="terrainmap-match") as pool:
+        pending = pool.submit(step)
+        while (item := pending.result()) is not None:
+            pending = pool.submit(step)
+            yield item
 
 
 def _close_all(sinks: list[Sink]) -> None:

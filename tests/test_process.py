@@ -120,3 +120,34 @@ def test_unusable_calibration_is_reported(shared_data, tmp_path, capsys):
         main(["process", str(folder), "-o", str(tmp_path / "o.mcap")])
     assert exc.value.code == 2
     assert "baseline" in capsys.readouterr().err
+
+
+def test_overlapped_runner_gives_the_sequential_results(tmp_path):
+    from terrainmap.pipeline import PipelineState, process_frame
+    from terrainmap.sim import SimConfig, simulate
+
+    log = tmp_path / "sim.mcap"
+    simulate(log, SimConfig(scene="mounds", frames=4, seed=2, width=320, height=240, focal_px=250.0))
+
+    class Keep:
+        def __init__(self):
+            self.results = []
+
+        def write(self, frame, result):
+            self.results.append(result)
+
+        def close(self):
+            pass
+
+    config = Config()
+    keep = Keep()
+    with open_source(log) as source:
+        summary = runner.run(source.frames(), config, [keep])
+    state = PipelineState(config)
+    with open_source(log) as source:
+        expected = [process_frame(frame, config, state) for frame in source.frames()]
+    assert summary.frames_done == 4
+    for got, want in zip(keep.results, expected, strict=True):
+        np.testing.assert_array_equal(got.point_labels, want.point_labels)
+        np.testing.assert_array_equal(got.layers["elevation"], want.layers["elevation"])
+        assert [o.track_id for o in got.obstacles] == [o.track_id for o in want.obstacles]
