@@ -23,7 +23,7 @@ def _floats(text: str) -> list[float]:
 
 @click.group("eval")
 def eval_group() -> None:
-    """Evaluate terrain estimation (paper Sec. VI and beyond)."""
+    """Evaluate terrain estimation: the paper's Fig. 6, robustness, accuracy vs ground truth."""
 
 
 @eval_group.command("artificial-obstacle")

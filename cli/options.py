@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import functools
 from collections.abc import Callable
 
 import click
@@ -12,22 +11,16 @@ from terrainmap.config import Config, load_config
 
 def config_options(func: Callable) -> Callable:
     """``--config PATH.toml`` and repeatable ``--set section.field=value``."""
-
-    @click.option(
-        "--config", "config_path", type=click.Path(dir_okay=False), default=None, help="TOML config file."
-    )
-    @click.option(
+    func = click.option(
         "--set",
         "overrides",
         multiple=True,
         metavar="SECTION.FIELD=VALUE",
         help="Override one config field, e.g. --set terrain.control_points_x=15 (repeatable).",
-    )
-    @functools.wraps(func)
-    def wrapper(*args, **kwargs):
-        return func(*args, **kwargs)
-
-    return wrapper
+    )(func)
+    return click.option(
+        "--config", "config_path", type=click.Path(dir_okay=False), default=None, help="TOML config file."
+    )(func)
 
 
 def load_cli_config(config_path: str | None, overrides: tuple[str, ...]) -> Config:
