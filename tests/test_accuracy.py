@@ -177,6 +177,11 @@ def test_report_schema_on_a_simulated_log(tiny_log):
     assert tm["false_obstacles_per_frame"] is not None and 0 <= tm["coverage"] <= 1
     assert 0 < tm["terrain_f1"] <= 1 and tm["elevation_rmse_m"] < 2.0
     assert report["config"]["grid"]["cell_size_m"] == 0.5 and report["seconds"]["wall"] > 0
+    # both methods cover every observed cell, so the common-cell RMSE is the RMSE
+    for name in ("terrainmap", "ransac_plane"):
+        common = report["common_cells"][name]["all"]
+        assert common["cells"] > 0
+        assert common["elevation_rmse_m"] == pytest.approx(report["methods"][name]["all"]["elevation_rmse_m"])
 
 
 def _strip_truth(src, dst):

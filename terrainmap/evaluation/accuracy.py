@@ -33,6 +33,9 @@ layers, point labels and tracked obstacles) and every other method of
   depression (:func:`.truth_grid.depression_depth` below half of ``obstacles.min_depth_m``,
   ring radius = half the obstacle's width + margin), per evaluated frame. Bands by detection range.
 
+``common_cells`` (extra key) repeats the elevation metrics over the cells that *every* selected
+method covers, so methods with partial coverage are compared on the same cells.
+
 Frames where the pipeline fails (FrameError) are counted by reason in ``failed_frames`` and
 skipped for every method; a baseline failing on a frame says nothing there (NaN, no labels).
 """
@@ -114,10 +117,12 @@ class _Evaluation:
         pixel_label = truth_frame.label[v, u]
         point_range = np.hypot(points[:, 0], points[:, 1])
         self.seconds["truth"] += time.perf_counter() - start
-        for name in self.names:
-            output = self._run(name, result)
+        outputs = {name: self._run(name, result) for name in self.names}
+        common = gt.observed & np.logical_and.reduce([np.isfinite(o.elevation) for o in outputs.values()])
+        for name, output in outputs.items():
             self.scores[name].add_cells(output.elevation, output.slope, gt.height_m, gt.slope_rad, gt.observed,
                                         gt.range_m)
+            self.scores[name].add_common(output.elevation, gt.height_m, common, gt.range_m)
             if output.point_labels is not None:
                 scored = (pixel_label != 0) & (output.point_labels != Label.UNKNOWN)
                 self.scores[name].add_points(output.point_labels[scored] == Label.TERRAIN,
@@ -173,6 +178,7 @@ class _Evaluation:
             "frames": self.frames,
             "failed_frames": dict(failed),
             "methods": {name: s.summary(self.frames) for name, s in self.scores.items()},
+            "common_cells": {name: s.common_summary() for name, s in self.scores.items()},
             "method_failures": {name: self.method_failures[name] for name in self.names},
             "obstacles": {
                 "margin_m": self.options["obstacle_margin_m"], "min_height_m": self.options["obstacle_min_height_m"],
@@ -224,7 +230,7 @@ def evaluate(
     -------
     dict
         ``{"methods": {name: {band: {metric: value or None}}}, "log", "frames", "failed_frames",
-        "method_failures", "obstacles", "rmse_vs_range", "seconds", "config"}``.
+        "common_cells", "method_failures", "obstacles", "rmse_vs_range", "seconds", "config"}``.
 
     Raises
     ------

@@ -33,6 +33,13 @@ def format_table(report: dict) -> str:
         lines += ["", f"range {band} m", header]
         for name, scores in methods.items():
             lines.append(f"{name:<{width}} " + " ".join(f"{_cell(m, scores[band][m]):>8}" for m in METRICS))
+    common = report.get("common_cells")
+    if common and len(common) > 1:
+        lines += ["", "elevation RMSE (m) on the cells every method covers"]
+        lines.append(f"{'method':<{width}} " + " ".join(f"{band:>8}" for band in bands))
+        for name, per_band in common.items():
+            lines.append(f"{name:<{width}} "
+                         + " ".join(f"{_cell('', per_band[b]['elevation_rmse_m']):>8}" for b in bands))
     return "\n".join(lines)
 
 

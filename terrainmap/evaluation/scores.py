@@ -115,6 +115,7 @@ class MethodScores:
     def __init__(self) -> None:
         self.bands = {name: BandScores() for name in BANDS}
         self.has_slope = self.has_labels = self.has_obstacles = False
+        self.common = {name: ErrorStats() for name in BANDS}
         self.profile_n = np.zeros(PROFILE_BINS, np.int64)
         self.profile_sq = np.zeros(PROFILE_BINS)
 
@@ -136,6 +137,16 @@ class MethodScores:
             band.elevation.add(error[cells])
             if slope_rad is not None:
                 band.slope_deg.add(slope_error[cells & np.isfinite(slope_error)])
+
+    def add_common(self, elevation_m, truth_height_m, common, range_m) -> None:
+        """Elevation errors over ``common`` (m0, m1) bool: the cells every compared method covers."""
+        error = elevation_m - truth_height_m
+        for name, in_band in band_masks(range_m).items():
+            self.common[name].add(error[common & in_band])
+
+    def common_summary(self) -> dict[str, dict[str, float | None]]:
+        """Elevation metrics over the common cells, per band (plus their ``cells`` count)."""
+        return {name: {**stats.summary(), "cells": stats.n} for name, stats in self.common.items()}
 
     def add_points(self, predicted_terrain: np.ndarray, truth_terrain: np.ndarray, range_m: np.ndarray) -> None:
         """Scored points of one frame (bool each, (N,)): predicted TERRAIN, truth terrain."""
