@@ -64,14 +64,19 @@ def cell_index(points: np.ndarray, config: GridConfig) -> np.ndarray:
     """Flat cell index ``ix·m1 + iy`` of each point (N,), or ``m0·m1`` for points outside the
     area, outside ``[z_min_m, z_max_m]`` or not finite. ``points`` is N×3 (vehicle frame, m)."""
     m0, m1 = config.shape
-    inv = np.float32(1.0 / config.cell_size_m) if points.dtype == np.float32 else 1.0 / config.cell_size_m
+    dtype = points.dtype.type if points.dtype in (np.float32, np.float64) else np.float64
+    inv = dtype(1.0 / config.cell_size_m)
     with np.errstate(invalid="ignore"):
-        # floor, not truncation: (-0.5).astype(int) would be 0, inside the grid.
-        ix = np.floor((points[:, 0] - points.dtype.type(config.x_min_m)) * inv).astype(np.int32)
-        iy = np.floor((points[:, 1] - points.dtype.type(config.y_min_m)) * inv).astype(np.int32)
-        z = points[:, 2]
-        # NaN casts to a huge negative integer and compares false below: non-finite points fall out.
-        inside = (ix >= 0) & (ix < m0) & (iy >= 0) & (iy < m1) & (z >= config.z_min_m) & (z <= config.z_max_m)
+        # trunc(f + 1) − 1 equals floor(f) for f ≥ −1 and is negative below: all that matters here.
+        # NaN casts to a huge negative integer: non-finite points fall out with the rest.
+        ix = ((points[:, 0] - dtype(config.x_min_m - config.cell_size_m)) * inv).astype(np.int32)
+        iy = ((points[:, 1] - dtype(config.y_min_m - config.cell_size_m)) * inv).astype(np.int32)
+        ix -= 1
+        iy -= 1
+        z_ok = np.abs(points[:, 2] - dtype((config.z_max_m + config.z_min_m) / 2))
+        z_ok = z_ok <= dtype((config.z_max_m - config.z_min_m) / 2)  # False for NaN too
+        # As unsigned, negative indices become huge: one comparison per axis checks both ends.
+        inside = (ix.view(np.uint32) < m0) & (iy.view(np.uint32) < m1) & z_ok
     ix *= m1
     ix += iy
     return np.where(inside, ix, np.int32(m0 * m1))
