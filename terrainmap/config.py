@@ -228,6 +228,12 @@ class StereoConfig:
     """Points nearer than this (camera depth) are dropped."""
     max_range_m: float = 40.0
     """Points farther than this (camera depth) are dropped."""
+    min_texture: float = 2.5
+    """Disparities are dropped where the left image's local standard deviation (grey levels, over
+    ``texture_window`` pixels) is below this: untextured sky and glare match at random. 0 keeps
+    everything. The sensor noise alone gives ~2 here; KITTI's asphalt 2.5–5."""
+    texture_window: int = 11
+    """Side of the square window of ``min_texture``, pixels (odd)."""
 
     def validate(self) -> None:
         _check(
@@ -254,6 +260,8 @@ class StereoConfig:
             f"must be one of sgbm, hh, sgbm_3way, hh4, got {self.mode!r}",
         )
         _check(0 < self.min_range_m < self.max_range_m, "stereo.min_range_m", "must be in (0, max_range_m)")
+        _check(self.min_texture >= 0, "stereo.min_texture", "must be >= 0")
+        _check(self.texture_window % 2 == 1 and self.texture_window >= 3, "stereo.texture_window", "must be odd and >= 3")
 
 
 @dataclass

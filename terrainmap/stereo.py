@@ -209,10 +209,13 @@ class StereoMatcher:
 
     def match(self, left_rect: np.ndarray, right_rect: np.ndarray) -> np.ndarray:
         """SGBM on a rectified pair → disparity H×W float32 in pixels, NaN where invalid."""
-        raw = self.sgbm.compute(_grey(left_rect), _grey(right_rect))  # int16, disparity × 16
+        grey = _grey(left_rect)
+        raw = self.sgbm.compute(grey, _grey(right_rect))  # int16, disparity × 16
         disparity = raw.astype(np.float32)
         disparity *= 1.0 / 16.0
         disparity[raw < self.config.min_disparity * 16] = np.nan
+        if self.config.min_texture > 0:
+            disparity[_local_variance(grey, self.config.texture_window) < self.config.min_texture**2] = np.nan
         return disparity
 
     def compute(self, left: np.ndarray, right: np.ndarray) -> StereoResult:
@@ -276,6 +279,13 @@ def to_vehicle(points_cam: np.ndarray, extrinsics: Extrinsics) -> np.ndarray:
         return points.copy()
     transform = np.hstack([np.asarray(extrinsics.rotation), np.reshape(extrinsics.translation, (3, 1))])
     return cv2.transform(points.reshape(-1, 1, 3), transform.astype(np.float32)).reshape(-1, 3)
+
+
+def _local_variance(grey: np.ndarray, window: int) -> np.ndarray:
+    """Variance of the grey levels over a ``window``×``window`` box around each pixel, float32."""
+    g = grey.astype(np.float32)
+    mean = cv2.boxFilter(g, -1, (window, window))
+    return cv2.boxFilter(g * g, -1, (window, window)) - mean * mean
 
 
 def _grey(image: np.ndarray) -> np.ndarray:

@@ -208,3 +208,27 @@ def test_same_setup_recognises_equal_calibration():
     assert matcher.same_setup(dataclasses.replace(GOOD), StereoConfig())
     assert not matcher.same_setup(dataclasses.replace(GOOD, fx=101.0), StereoConfig())
     assert not matcher.same_setup(GOOD, StereoConfig(num_disparities=64))
+
+
+def test_untextured_regions_give_no_disparity():
+    """Sky-like noise only (σ = 2 grey levels) matches at random: the texture filter drops it."""
+    from terrainmap.config import StereoConfig
+    from terrainmap.stereo import StereoMatcher
+    from terrainmap.types import StereoCalibration
+
+    rng = np.random.default_rng(0)
+    h, w = 120, 200
+    texture = rng.integers(0, 255, (h, w + 40)).astype(np.uint8)
+    texture = cv2.GaussianBlur(texture, (3, 3), 0)
+    left = texture[:, 20 : 20 + w].copy()
+    right = texture[:, 28 : 28 + w].copy()  # 8 px disparity everywhere
+    sky = (np.clip(rng.normal(128, 2, (h // 2, w)), 0, 255)).astype(np.uint8)
+    left[: h // 2], right[: h // 2] = sky, np.clip(rng.normal(128, 2, (h // 2, w)), 0, 255).astype(np.uint8)
+    calib = StereoCalibration(width=w, height=h, fx=100.0, fy=100.0, cx=w / 2, cy=h / 2, baseline_m=0.3)
+    on = StereoMatcher(calib, StereoConfig(num_disparities=32)).compute(left, right).disparity
+    off = StereoMatcher(calib, StereoConfig(num_disparities=32, min_texture=0)).compute(left, right).disparity
+    inner = np.s_[h // 2 + 8 : h - 8, 48 : w - 8]
+    assert np.nanmedian(on[inner]) == pytest.approx(8, abs=0.5)  # textured half kept
+    assert np.isfinite(on[inner]).mean() > 0.9
+    assert np.isfinite(on[8 : h // 2 - 8]).mean() < 0.05  # noise-only half dropped
+    assert np.isfinite(off[8 : h // 2 - 8]).mean() > np.isfinite(on[8 : h // 2 - 8]).mean()
