@@ -44,7 +44,7 @@ def process(log, output, flavor, compression, rrd, overwrite, source_opts, confi
         frames = source.frames(**source_opts.frames_kwargs())
         sinks = [open_mcap_sink(output, flavor, config=config, metadata={"source": str(log)}, compression=compression)]
         if rrd is not None:
-            from terrainmap.sinks.rerun_sink import RerunSink
+            from terrainmap.sinks.rerun_recording import RerunSink
 
             try:
                 sinks.append(RerunSink(rrd, config=config))

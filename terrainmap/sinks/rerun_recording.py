@@ -1,0 +1,217 @@
+"""Rerun recordings (``terrainmap process --rrd OUT.rrd``): every stage of every frame.
+
+One explicit :class:`rerun.RecordingStream` saved to the ``.rrd`` with a default blueprint: the
+3D view of the vehicle surroundings (points coloured by label, the terrain surface coloured by
+slope, grid samples before and after equalization, obstacle boxes), the left image with the
+labels drawn on it, the depth image, and plots of per-stage times and fit statistics.
+
+Entity tree (vehicle frame ``world`` = ``base_link``, z up)::
+
+    world                         ViewCoordinates RIGHT_HAND_Z_UP (static)
+    world/camera                  Transform3D (camera pose) + Pinhole; image, labels (segmentation)
+    world/points                  Points3D, class ids = Label (AnnotationContext on world, static)
+    world/grid/samples            grid samples before equalization (eq. 1, valid cells)
+    world/grid/equalized          samples after the last equalization
+    world/terrain/slope           Mesh3D over the cell centres, coloured by slope (0–30°)
+    world/terrain/elevation       the same mesh coloured by elevation (hidden in the blueprint)
+    world/terrain/cost            the same mesh coloured by traversability cost (hidden)
+    world/obstacles               Boxes3D with "id kind" labels
+    depth                         DepthImage (metres, from the disparity)
+    timings/<stage>, stats/<name> Scalars
+
+Timelines: ``frame`` (sequence, the frame index) and ``stamp`` (the source image's time).
+Written for rerun-sdk 0.41 (pinned); the files open in the Rerun viewer 0.41.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import rerun as rr
+import rerun.blueprint as rrb
+
+from ..config import Config
+from ..errors import InputError, TerrainmapError
+from ..grid import cell_centers
+from ..types import FrameResult, Label, StereoFrame
+
+LABEL_COLORS = {
+    Label.UNKNOWN: (140, 140, 140),
+    Label.TERRAIN: (60, 180, 75),
+    Label.OBSTACLE: (230, 25, 75),
+    Label.BELOW: (0, 130, 200),
+}
+SLOPE_RANGE_RAD = (0.0, np.radians(30.0))
+
+
+def blueprint() -> rrb.Blueprint:
+    """The default layout embedded in every recording."""
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Spatial3DView(
+                name="terrain",
+                origin="/world",
+                contents=["+ /world/**", "- /world/terrain/elevation", "- /world/terrain/cost"],
+            ),
+            rrb.Vertical(
+                rrb.Spatial2DView(name="left image and labels", origin="/world/camera"),
+                rrb.Spatial2DView(name="depth", origin="/depth"),
+                rrb.TimeSeriesView(name="stage times (ms)", origin="/timings"),
+                rrb.TimeSeriesView(name="fit statistics", origin="/stats"),
+            ),
+            column_shares=[3, 2],
+        ),
+        collapse_panels=True,
+    )
+
+
+def _colormap(values: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    """Values → RGB uint8 on a green–yellow–red ramp (NaN grey), shape (..., 3)."""
+    t = np.clip((np.nan_to_num(values, nan=lo) - lo) / max(hi - lo, 1e-9), 0.0, 1.0)
+    rgb = np.stack([np.clip(2 * t, 0, 1), np.clip(2 - 2 * t, 0, 1), np.full_like(t, 0.15)], axis=-1)
+    out = (255 * rgb).astype(np.uint8)
+    out[np.isnan(values)] = (128, 128, 128)
+    return out
+
+
+def _triangles(m0: int, m1: int) -> np.ndarray:
+    """Two triangles per grid square of an (m0, m1) vertex lattice, (2·(m0−1)·(m1−1), 3) uint32."""
+    i = (np.arange(m0 - 1)[:, None] * m1 + np.arange(m1 - 1)[None, :]).ravel()
+    return np.concatenate([np.stack([i, i + m1, i + 1], 1), np.stack([i + 1, i + m1, i + m1 + 1], 1)]).astype(np.uint32)
+
+
+class RerunSink:
+    """Writes a Rerun recording; a :class:`~terrainmap.sinks.base.Sink`.
+
+    Parameters
+    ----------
+    path : str or Path
+        Output ``.rrd`` file (overwritten).
+    config : Config
+        ``config.rerun.max_points`` caps the points logged per frame (uniform subsampling).
+    """
+
+    def __init__(self, path: str | Path, *, config: Config, application_id: str = "terrainmap"):
+        self.path = Path(path)
+        self._config = config
+        self._closed = False
+        self._static_done = False
+        self._mesh_key: tuple | None = None
+        self.frames_written = 0
+        self._rec = rr.RecordingStream(application_id)
+        try:
+            self._rec.save(str(self.path), default_blueprint=blueprint())
+        except Exception as exc:  # rerun reports an unwritable path with its own exception types
+            raise InputError(f"cannot create Rerun output {self.path}: {exc}") from exc
+
+    def write(self, frame: StereoFrame, result: FrameResult) -> None:
+        if self._closed:
+            raise TerrainmapError(f"Rerun output {self.path} is already closed")
+        rec = self._rec
+        if not self._static_done:
+            self._log_static(frame)
+        rec.set_time("frame", sequence=frame.index)
+        rec.set_time("stamp", timestamp=np.datetime64(frame.stamp_ns, "ns"))
+        self._log_camera(frame, result)
+        self._log_points(result)
+        self._log_terrain(result)
+        self._log_obstacles(result)
+        for stage, ms in result.timings_ms.items():
+            rec.log(f"timings/{stage}", rr.Scalars(ms))
+        for name, value in result.stats.items():
+            rec.log(f"stats/{name}", rr.Scalars(value))
+        self.frames_written += 1
+
+    def _log_static(self, frame: StereoFrame) -> None:
+        rec = self._rec
+        rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+        context = rr.AnnotationContext([(int(k), k.name.lower(), c) for k, c in LABEL_COLORS.items()])
+        rec.log("world", context, static=True)
+        c = frame.calibration
+        rec.log(
+            "world/camera",
+            rr.Pinhole(focal_length=[c.fx, c.fy], principal_point=[c.cx, c.cy], width=c.width, height=c.height,
+                       camera_xyz=rr.ViewCoordinates.RDF, image_plane_distance=1.0),
+            static=True,
+        )
+        self._static_done = True
+
+    def _log_camera(self, frame: StereoFrame, result: FrameResult) -> None:
+        rec = self._rec
+        ext = result.extrinsics
+        rec.log("world/camera", rr.Transform3D(translation=np.asarray(ext.translation, float),
+                                               mat3x3=np.asarray(ext.rotation, float)))
+        if result.image is not None:
+            rec.log("world/camera/image", rr.Image(result.image).compress(jpeg_quality=85))
+            labels = np.zeros(result.image.shape[:2], np.uint8)
+            labels[result.pixels[:, 1], result.pixels[:, 0]] = result.point_labels
+            rec.log("world/camera/image/labels", rr.SegmentationImage(labels, opacity=0.45))
+        if result.disparity is not None:
+            c = frame.calibration
+            with np.errstate(divide="ignore", invalid="ignore"):
+                depth = (c.fx * c.baseline_m / (result.disparity[::2, ::2] + c.doffs)).astype(np.float32)
+            depth[~np.isfinite(depth)] = 0.0
+            rec.log("depth", rr.DepthImage(depth, meter=1.0, depth_range=[0.0, self._config.stereo.max_range_m]))
+
+    def _log_points(self, result: FrameResult) -> None:
+        n = len(result.points_vehicle)
+        step = max(1, -(-n // self._config.rerun.max_points))
+        self._rec.log("world/points", rr.Points3D(result.points_vehicle[::step],
+                                                  class_ids=result.point_labels[::step], radii=0.03))
+
+    def _log_terrain(self, result: FrameResult) -> None:
+        rec = self._rec
+        grid = result.grid
+        xs, ys = cell_centers(grid.config)
+        X, Y = np.meshgrid(xs, ys, indexing="ij")
+        valid = grid.valid
+        for name, z in (("samples", grid.z), ("equalized", result.terrain.samples)):
+            rec.log(f"world/grid/{name}", rr.Points3D(np.column_stack([X[valid], Y[valid], z[valid]]), radii=0.06,
+                                                      colors=(255, 255, 255) if name == "samples" else (255, 200, 0)))
+        layers = result.layers
+        vertices = np.column_stack([X.ravel(), Y.ravel(), layers["elevation"].ravel()]).astype(np.float32)
+        key = grid.shape
+        if key != self._mesh_key:  # the triangle list depends on the grid shape only
+            self._triangles, self._mesh_key = _triangles(*grid.shape), key
+        colorings = {
+            "slope": _colormap(layers["slope"].ravel(), *SLOPE_RANGE_RAD),
+            "elevation": _colormap(layers["elevation"].ravel(), float(np.nanmin(layers["elevation"])),
+                                   float(np.nanmax(layers["elevation"]))),
+        }
+        if "cost" in layers:
+            colorings["cost"] = _colormap(layers["cost"].ravel(), 0.0, 1.0)
+        for name, colors in colorings.items():
+            rec.log(f"world/terrain/{name}", rr.Mesh3D(vertex_positions=vertices, triangle_indices=self._triangles,
+                                                      vertex_colors=colors))
+
+    def _log_obstacles(self, result: FrameResult) -> None:
+        obstacles = [o for o in result.obstacles if o.confirmed]
+        if not obstacles:
+            self._rec.log("world/obstacles", rr.Clear(recursive=False))
+            return
+        yaw = np.array([o.yaw_rad for o in obstacles])
+        self._rec.log(
+            "world/obstacles",
+            rr.Boxes3D(
+                centers=np.array([o.center_m for o in obstacles]),
+                half_sizes=np.array([o.size_m for o in obstacles]) / 2,
+                quaternions=np.column_stack([np.zeros((len(yaw), 2)), np.sin(yaw / 2), np.cos(yaw / 2)]),
+                class_ids=[int(Label.OBSTACLE if o.kind == "positive" else Label.BELOW) for o in obstacles],
+                labels=[f"{o.track_id} {o.kind} {o.height_m:.1f} m" for o in obstacles],
+            ),
+        )
+
+    def close(self) -> None:
+        """Flush and finish the recording; safe to call twice."""
+        if self._closed:
+            return
+        self._closed = True
+        self._rec.flush()
+        self._rec.disconnect()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc_info) -> None:
+        self.close()
