@@ -18,7 +18,7 @@ from terrainmap.sources import open_source
 ENTITIES = {
     "/world/points", "/world/camera/image", "/world/camera/image/labels", "/depth", "/world/grid/samples",
     "/world/grid/equalized", "/world/terrain/slope", "/world/terrain/elevation", "/world/terrain/cost",
-    "/world/obstacles", "/timings/surface", "/stats/iterations",
+    "/world/obstacles", "/timings/surface", "/stats/fit/iterations",
 }
 
 

@@ -12,12 +12,14 @@ Entity tree (vehicle frame ``world`` = ``base_link``, z up)::
     world/points                  Points3D, class ids = Label (AnnotationContext on world, static)
     world/grid/samples            grid samples before equalization (eq. 1, valid cells)
     world/grid/equalized          samples after the last equalization
-    world/terrain/slope           Mesh3D over the cell centres, coloured by slope (0–30°)
+    world/terrain/slope           Mesh3D over the valid cells' centres, coloured by slope (0–30°)
     world/terrain/elevation       the same mesh coloured by elevation (hidden in the blueprint)
     world/terrain/cost            the same mesh coloured by traversability cost (hidden)
     world/obstacles               Boxes3D with "id kind" labels
     depth                         DepthImage (metres, from the disparity)
-    timings/<stage>, stats/<name> Scalars
+    timings/<stage>               Scalars, ms
+    stats/fit/<name>              Scalars: iterations, mean_error_m
+    stats/counts/<name>           Scalars: points, cells, obstacles
 
 Timelines: ``frame`` (sequence, the frame index) and ``stamp`` (the source image's time).
 Written for rerun-sdk 0.41 (pinned); the files open in the Rerun viewer 0.41.
@@ -58,7 +60,7 @@ def blueprint() -> rrb.Blueprint:
                 rrb.Spatial2DView(name="left image and labels", origin="/world/camera"),
                 rrb.Spatial2DView(name="depth", origin="/depth"),
                 rrb.TimeSeriesView(name="stage times (ms)", origin="/timings"),
-                rrb.TimeSeriesView(name="fit statistics", origin="/stats"),
+                rrb.TimeSeriesView(name="fit: iterations, mean error (m)", origin="/stats/fit"),
             ),
             column_shares=[3, 2],
         ),
@@ -120,7 +122,8 @@ class RerunSink:
         for stage, ms in result.timings_ms.items():
             rec.log(f"timings/{stage}", rr.Scalars(ms))
         for name, value in result.stats.items():
-            rec.log(f"stats/{name}", rr.Scalars(value))
+            group = "fit" if name in ("iterations", "mean_error_m") else "counts"
+            rec.log(f"stats/{group}/{name}", rr.Scalars(value))
         self.frames_written += 1
 
     def _log_static(self, frame: StereoFrame) -> None:
@@ -171,9 +174,9 @@ class RerunSink:
                                                       colors=(255, 255, 255) if name == "samples" else (255, 200, 0)))
         layers = result.layers
         vertices = np.column_stack([X.ravel(), Y.ravel(), layers["elevation"].ravel()]).astype(np.float32)
-        key = grid.shape
-        if key != self._mesh_key:  # the triangle list depends on the grid shape only
-            self._triangles, self._mesh_key = _triangles(*grid.shape), key
+        if grid.shape != self._mesh_key:  # the full triangle list depends on the grid shape only
+            self._triangles, self._mesh_key = _triangles(*grid.shape), grid.shape
+        triangles = self._triangles[valid.ravel()[self._triangles].all(axis=1)]  # cells with data only
         colorings = {
             "slope": _colormap(layers["slope"].ravel(), *SLOPE_RANGE_RAD),
             "elevation": _colormap(layers["elevation"].ravel(), float(np.nanmin(layers["elevation"])),
@@ -182,7 +185,7 @@ class RerunSink:
         if "cost" in layers:
             colorings["cost"] = _colormap(layers["cost"].ravel(), 0.0, 1.0)
         for name, colors in colorings.items():
-            rec.log(f"world/terrain/{name}", rr.Mesh3D(vertex_positions=vertices, triangle_indices=self._triangles,
+            rec.log(f"world/terrain/{name}", rr.Mesh3D(vertex_positions=vertices, triangle_indices=triangles,
                                                       vertex_colors=colors))
 
     def _log_obstacles(self, result: FrameResult) -> None:
