@@ -198,14 +198,16 @@ class StereoConfig:
     ========== ===== ============== ============ =========== ===========
 
     ``sgbm_3way`` is the only mode OpenCV parallelises well (2 threads halve its time; the others
-    barely gain) and it is as accurate as full 8-path ``hh`` here, hence the default. 96
-    disparities reach down to a depth of f·B/96: 4.0 m on KITTI (whose road is first visible at
-    5.8 m), 1.6 m on a 640×480 rig with f = 500 px and B = 0.3 m; raise it for nearer objects.
+    barely gain) and it is as accurate as full 8-path ``hh`` here, hence the default. D
+    disparities reach down to a depth of f·B/D: 2.0 m on KITTI at the automatic D = 192 (its road
+    is first visible at 5.8 m), 1.6 m on a 640×480 rig with f = 500 px and B = 0.3 m (D = 96).
     ``preFilterCap`` 63 and block 5 gave the fewest gross errors at equal coverage.
     """
 
-    num_disparities: int = 96
-    """Disparity search range in pixels (multiple of 16), from ``min_disparity``."""
+    num_disparities: int = 0
+    """Disparity search range in pixels (multiple of 16), from ``min_disparity``; 0 = 15 % of the
+    image width, rounded up to 16 (96 at 640 px), which keeps the nearest usable depth the same
+    for any resolution of the same lens (1.6 m at f = 500 px, B = 0.3 m)."""
     min_disparity: int = 0
     """Smallest disparity searched, pixels (before the principal-point / ``doffs`` offset)."""
     block_size: int = 5
@@ -239,9 +241,9 @@ class StereoConfig:
 
     def validate(self) -> None:
         _check(
-            self.num_disparities > 0 and self.num_disparities % 16 == 0,
+            self.num_disparities >= 0 and self.num_disparities % 16 == 0,
             "stereo.num_disparities",
-            f"must be a positive multiple of 16, got {self.num_disparities}",
+            f"must be 0 (auto) or a positive multiple of 16, got {self.num_disparities}",
         )
         _check(
             self.block_size % 2 == 1 and 1 <= self.block_size <= 11,

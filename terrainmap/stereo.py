@@ -145,12 +145,18 @@ def _rectified_pinhole(calibration: StereoCalibration) -> RectifiedPinhole:
     )  # fmt: skip
 
 
-def create_sgbm(config: StereoConfig) -> cv2.StereoSGBM:
-    """The OpenCV matcher configured from ``config`` (P1, P2 scaled by the block area, one channel)."""
+def disparity_range(config: StereoConfig, width: int) -> int:
+    """``config.num_disparities``, or 15 % of ``width`` rounded up to 16 when it is 0 (auto)."""
+    return config.num_disparities or max(16, -(-round(0.15 * width) // 16) * 16)
+
+
+def create_sgbm(config: StereoConfig, width: int) -> cv2.StereoSGBM:
+    """The OpenCV matcher configured from ``config`` for images ``width`` pixels wide (P1, P2 scaled
+    by the block area, one channel)."""
     area = config.block_size**2
     return cv2.StereoSGBM.create(
         minDisparity=config.min_disparity,
-        numDisparities=config.num_disparities,
+        numDisparities=disparity_range(config, width),
         blockSize=config.block_size,
         P1=config.p1_per_pixel * area,
         P2=config.p2_per_pixel * area,
@@ -178,7 +184,7 @@ class StereoMatcher:
         check_calibration(calibration)
         self.calibration = calibration
         self.config = config or StereoConfig()
-        self.sgbm = create_sgbm(self.config)
+        self.sgbm = create_sgbm(self.config, calibration.width)
         """The bare ``cv2.StereoSGBM`` (``sgbm.compute(grey_left, grey_right)`` is "SGBM alone")."""
         if calibration.rectified:
             self._maps = None

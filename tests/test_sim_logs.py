@@ -189,4 +189,4 @@ def test_bundled_example_is_what_its_readme_command_writes(tmp_path):
     result = CliRunner().invoke(cli, args)
     assert result.exit_code == 0, result.output
     assert (tmp_path / "demo.mcap").read_bytes() == example.read_bytes()
-    assert example.stat().st_size < 5_000_000
+    assert example.stat().st_size < 8_000_000  # "a few MB"
