@@ -146,7 +146,7 @@ class RerunSink:
         rec.log("world/camera", rr.Transform3D(translation=np.asarray(ext.translation, float),
                                                mat3x3=np.asarray(ext.rotation, float)))
         if result.image is not None:
-            rec.log("world/camera/image", rr.Image(result.image).compress(jpeg_quality=85))
+            rec.log("world/camera/image", rr.Image(result.image))
             labels = np.zeros(result.image.shape[:2], np.uint8)
             labels[result.pixels[:, 1], result.pixels[:, 0]] = result.point_labels
             rec.log("world/camera/image/labels", rr.SegmentationImage(labels, opacity=0.45))
