@@ -14,8 +14,9 @@ $(VENV)/.installed: pyproject.toml
 
 demo: $(VENV)/.installed
 	mkdir -p $(OUT)
-	$(BIN)/terrainmap process examples/offroad_demo.mcap -o $(OUT)/offroad_demo.terrain.mcap --overwrite
-	@echo "Open $(OUT)/offroad_demo.terrain.mcap in Foxglove (layout: examples/foxglove_layout.json)."
+	$(BIN)/terrainmap process examples/offroad_demo.mcap -o $(OUT)/offroad_demo.terrain.mcap --rrd $(OUT)/offroad_demo.rrd --overwrite
+	@echo "Open $(OUT)/offroad_demo.terrain.mcap in Foxglove (layout: examples/foxglove_layout.json)"
+	@echo "and $(OUT)/offroad_demo.rrd in the Rerun viewer 0.41 ($(BIN)/rerun $(OUT)/offroad_demo.rrd)."
 
 test: $(VENV)/.installed
 	$(BIN)/python -m pytest
