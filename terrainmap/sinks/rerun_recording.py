@@ -8,7 +8,7 @@ labels drawn on it, the depth image, and plots of per-stage times and fit statis
 Entity tree (vehicle frame ``world`` = ``base_link``, z up)::
 
     world                         ViewCoordinates RIGHT_HAND_Z_UP (static)
-    world/camera                  Transform3D (camera pose) + Pinhole; image, labels (segmentation)
+    world/camera                  Transform3D (camera pose) + Pinhole (static); image, labels
     world/points                  Points3D, class ids = Label (AnnotationContext on world, static)
     world/grid/samples            grid samples before equalization (eq. 1, valid cells)
     world/grid/equalized          samples after the last equalization
@@ -100,6 +100,7 @@ class RerunSink:
         self._closed = False
         self._static_done = False
         self._mesh_key: tuple | None = None
+        self._pose: tuple | None = None
         self.frames_written = 0
         self._rec = rr.RecordingStream(application_id)
         try:
@@ -143,8 +144,11 @@ class RerunSink:
     def _log_camera(self, frame: StereoFrame, result: FrameResult) -> None:
         rec = self._rec
         ext = result.extrinsics
-        rec.log("world/camera", rr.Transform3D(translation=np.asarray(ext.translation, float),
-                                               mat3x3=np.asarray(ext.rotation, float)))
+        pose = (tuple(np.ravel(ext.translation)), tuple(np.ravel(ext.rotation)))
+        if pose != self._pose:  # static: logged once, again only if the pose changes
+            rec.log("world/camera", rr.Transform3D(translation=np.asarray(ext.translation, float),
+                                                   mat3x3=np.asarray(ext.rotation, float)), static=True)
+            self._pose = pose
         if result.image is not None:
             rec.log("world/camera/image", rr.Image(result.image))
             labels = np.zeros(result.image.shape[:2], np.uint8)

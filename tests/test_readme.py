@@ -1,0 +1,37 @@
+"""The README's promises: its two set-up commands exist, and every command it shows runs."""
+
+import re
+from pathlib import Path
+
+import pytest
+from click.testing import CliRunner
+
+from terrainmap.cli.main import cli
+
+ROOT = Path(__file__).resolve().parents[1]
+README = (ROOT / "README.md").read_text()
+
+
+def test_two_setup_commands_come_first_and_ci_runs_the_test_one():
+    setup = README.split("## Usage")[0]
+    assert "make demo" in setup and "make test" in setup
+    makefile = (ROOT / "Makefile").read_text()
+    assert re.search(r"^demo:", makefile, re.M) and re.search(r"^test:", makefile, re.M)
+    assert "make test" in (ROOT / ".ci" / "run").read_text()
+
+
+@pytest.mark.parametrize(
+    "command", sorted(set(re.findall(r"^terrainmap ((?:eval )?[a-z-]+)", README, re.M)))
+)
+def test_every_command_in_the_readme_exists(command):
+    result = CliRunner().invoke(cli, [*command.split(), "--help"])
+    assert result.exit_code == 0, result.output
+
+
+def test_every_config_field_the_readme_names_exists():
+    from terrainmap.config import Config
+
+    config = Config().to_dict()
+    for section, field in re.findall(r"`([a-z]+)\.([a-z_]+)(?:=[^`]*)?`", README):
+        if section in config:
+            assert field in config[section], f"README names {section}.{field}"
