@@ -219,3 +219,28 @@ def quaternion_from_matrix(rotation: np.ndarray) -> tuple[float, float, float, f
     if quat[3] < 0:
         quat = -quat
     return tuple(float(v) for v in quat)
+
+
+def grid_map_frame(x_min_m: float, y_min_m: float, shape: tuple[int, int], resolution_m: float) -> dict:
+    """``grid_map_msgs/GridMapInfo`` of a grid of ``shape`` = (cells along x, along y) whose corner
+    is (x_min_m, y_min_m): grid_map puts the pose at the map centre."""
+    nx, ny = shape
+    center = (x_min_m + nx * resolution_m / 2, y_min_m + ny * resolution_m / 2, 0.0)
+    return {"resolution": resolution_m, "length_x": nx * resolution_m, "length_y": ny * resolution_m,
+            "pose": pose(center)}
+
+
+def grid_map_layer(values: np.ndarray) -> dict:
+    """A GridMap layer (``std_msgs/Float32MultiArray``) from an array indexed [ix, iy] (x, y up).
+
+    grid_map stores column-major from the +x, +y corner: cell [ix, iy] goes to index
+    (i, j) = (nx−1−ix, ny−1−iy), stored at data[j][i]. ``data`` is a float32 numpy array."""
+    nx, ny = values.shape
+    layout = {
+        "dim": [
+            {"label": "column_index", "size": ny, "stride": nx * ny},
+            {"label": "row_index", "size": nx, "stride": nx},
+        ],
+        "data_offset": 0,
+    }
+    return {"layout": layout, "data": np.ascontiguousarray(values[::-1, ::-1].T, dtype=np.float32).ravel()}

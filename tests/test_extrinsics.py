@@ -3,11 +3,10 @@
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
-import cv2
 import numpy as np
 import pytest
+from conftest import load_kitti
 
 from terrainmap.config import ExtrinsicsConfig
 from terrainmap.errors import CalibrationError, FrameError
@@ -18,9 +17,6 @@ from terrainmap.extrinsics import (
     extrinsics_from_pose,
 )
 from terrainmap.stereo import StereoMatcher, to_vehicle
-from terrainmap.types import StereoCalibration
-
-KITTI = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "kitti2015_000005"
 
 
 def _scene_cam(extrinsics, rng, ground=4000, clutter=1500):
@@ -119,22 +115,9 @@ def test_extrinsics_from_calibration_checks_the_rotation():
 @pytest.fixture(scope="module")
 def kitti_points():
     """(GT-disparity points, SGBM points) of KITTI 000005 in the camera frame."""
-    if not KITTI.is_dir():
-        pytest.skip("shared KITTI data not available")
-    left, right = (
-        cv2.imread(str(KITTI / d / "000005_10.png"), cv2.IMREAD_GRAYSCALE) for d in ("image_2", "image_3")
-    )
-    raw = cv2.imread(str(KITTI / "disp_occ_0" / "000005_10.png"), cv2.IMREAD_UNCHANGED)
-    P = {}
-    for line in (KITTI / "calib_cam_to_cam" / "000005.txt").read_text().splitlines():
-        key, _, values = line.partition(":")
-        P[key] = np.array(values.split(), float).reshape(3, 4)
-    P2, P3 = P["P_rect_02"], P["P_rect_03"]
-    calib = StereoCalibration(
-        left.shape[1], left.shape[0], P2[0, 0], P2[1, 1], P2[0, 2], P2[1, 2], (P2[0, 3] - P3[0, 3]) / P2[0, 0]
-    )
+    left, right, gt, calib = load_kitti()
     matcher = StereoMatcher(calib)
-    points_gt, _ = matcher.reproject(np.where(raw > 0, raw / 256.0, np.nan).astype(np.float32))
+    points_gt, _ = matcher.reproject(gt)
     points_sgbm, _ = matcher.reproject(matcher.compute(left, right).disparity)
     return points_gt, points_sgbm
 

@@ -3,11 +3,11 @@
 from __future__ import annotations
 
 import dataclasses
-from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
+from conftest import load_kitti
 
 from terrainmap.config import StereoConfig
 from terrainmap.errors import CalibrationError, InputError
@@ -15,29 +15,11 @@ from terrainmap.extrinsics import extrinsics_from_pose
 from terrainmap.stereo import StereoMatcher, to_vehicle
 from terrainmap.types import StereoCalibration
 
-KITTI = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "kitti2015_000005"
-
 
 @pytest.fixture(scope="module")
 def kitti():
     """(left RGB, right RGB, GT disparity with NaN = unknown, calibration) of KITTI 000005_10."""
-    if not KITTI.is_dir():
-        pytest.skip("shared KITTI data not available")
-    left, right = (
-        cv2.imread(str(KITTI / d / "000005_10.png"))[:, :, ::-1].copy() for d in ("image_2", "image_3")
-    )
-    raw = cv2.imread(str(KITTI / "disp_occ_0" / "000005_10.png"), cv2.IMREAD_UNCHANGED)
-    gt = np.where(raw > 0, raw / 256.0, np.nan).astype(np.float32)
-    P = {}
-    for line in (KITTI / "calib_cam_to_cam" / "000005.txt").read_text().splitlines():
-        key, _, values = line.partition(":")
-        P[key] = np.array(values.split(), float).reshape(3, 4)
-    P2, P3 = P["P_rect_02"], P["P_rect_03"]
-    calib = StereoCalibration(
-        width=left.shape[1], height=left.shape[0], fx=P2[0, 0], fy=P2[1, 1], cx=P2[0, 2], cy=P2[1, 2],
-        baseline_m=(P2[0, 3] - P3[0, 3]) / P2[0, 0], source="kitti 000005",
-    )  # fmt: skip
-    return left, right, gt, calib
+    return load_kitti()
 
 
 @pytest.fixture(scope="module")
@@ -212,10 +194,6 @@ def test_same_setup_recognises_equal_calibration():
 
 def test_untextured_regions_give_no_disparity():
     """Sky-like noise only (σ = 2 grey levels) matches at random: the texture filter drops it."""
-    from terrainmap.config import StereoConfig
-    from terrainmap.stereo import StereoMatcher
-    from terrainmap.types import StereoCalibration
-
     rng = np.random.default_rng(0)
     h, w = 120, 200
     texture = rng.integers(0, 255, (h, w + 40)).astype(np.uint8)

@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import InputError
-from ..ros2defs import header, pose, quaternion_from_matrix
+from ..ros2defs import grid_map_frame, grid_map_layer, header, pose, quaternion_from_matrix
 from .heightfield import Heightfield
 from .obstacles import KINDS, ObstacleBox
 
@@ -92,22 +92,13 @@ def pose_message(rotation: np.ndarray, position: np.ndarray, stamp_ns: int, fram
 
 def grid_map_message(terrain: Heightfield, stamp_ns: int, frame_id: str) -> dict:
     """``grid_map_msgs/GridMap`` dict with the ``elevation`` layer (module docstring)."""
-    nx, ny = terrain.shape
-    res = terrain.resolution_m
-    center = (terrain.x_min_m + nx * res / 2, terrain.y_min_m + ny * res / 2, 0.0)
-    layout = {
-        "dim": [
-            {"label": "column_index", "size": ny, "stride": nx * ny},
-            {"label": "row_index", "size": nx, "stride": nx},
-        ],
-        "data_offset": 0,
-    }
-    data = terrain.z[::-1, ::-1].T.ravel().tolist()
+    layer = grid_map_layer(terrain.z)
+    layer["data"] = layer["data"].tolist()  # mcap_ros2's encoder takes lists
     return {
         "header": header(stamp_ns, frame_id),
-        "info": {"resolution": res, "length_x": nx * res, "length_y": ny * res, "pose": pose(center)},
+        "info": grid_map_frame(terrain.x_min_m, terrain.y_min_m, terrain.shape, terrain.resolution_m),
         "layers": ["elevation"], "basic_layers": ["elevation"],
-        "data": [{"layout": layout, "data": data}], "outer_start_index": 0, "inner_start_index": 0,
+        "data": [layer], "outer_start_index": 0, "inner_start_index": 0,
     }
 
 

@@ -31,6 +31,8 @@ from ..ros2defs import (
     POINTFIELD_FLOAT32,
     POINTFIELD_UINT8,
     SCHEMAS,
+    grid_map_frame,
+    grid_map_layer,
     header,
     pose,
     transform_stamped,
@@ -55,23 +57,12 @@ def grid_map_message(result: FrameResult) -> dict:
     """GridMap dict (layer data as numpy arrays, for :func:`~terrainmap.sinks.cdr.encode_grid_map`)."""
     layers = grid_layers(result)
     grid = result.grid.config
-    m0, m1 = grid.shape
-    c = grid.cell_size_m
-    center = (grid.x_min_m + m0 * c / 2, grid.y_min_m + m1 * c / 2, 0.0)
-    layout = {
-        "dim": [
-            {"label": "column_index", "size": m1, "stride": m0 * m1},
-            {"label": "row_index", "size": m0, "stride": m0},
-        ],
-        "data_offset": 0,
-    }
     return {
         "header": header(result.stamp_ns, VEHICLE_FRAME),
-        "info": {"resolution": c, "length_x": m0 * c, "length_y": m1 * c, "pose": pose(center)},
+        "info": grid_map_frame(grid.x_min_m, grid.y_min_m, grid.shape, grid.cell_size_m),
         "layers": list(layers),
         "basic_layers": ["elevation"] if "elevation" in layers else [],
-        # [ix, iy] -> (i, j) = (m0-1-ix, m1-1-iy), stored [j][i] (column-major)
-        "data": [{"layout": layout, "data": a[::-1, ::-1].T.astype(np.float32)} for a in layers.values()],
+        "data": [grid_map_layer(a) for a in layers.values()],
         "outer_start_index": 0,
         "inner_start_index": 0,
     }
