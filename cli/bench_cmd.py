@@ -7,7 +7,9 @@ from pathlib import Path
 
 import click
 
-from .options import config_options, load_cli_config
+from terrainmap.config import load_config
+
+from .options import config_options
 
 
 @click.command()
@@ -18,7 +20,7 @@ def bench(runs: int, json_path: str | None, config_path: str | None, overrides: 
     """Time each pipeline stage at the paper configuration on synthetic input."""
     from terrainmap import bench as lib
 
-    config = load_cli_config(config_path, overrides)
+    config = load_config(config_path, overrides)
     env = lib.environment()
     click.echo("machine: " + ", ".join(f"{k}={v}" for k, v in env.items()))
     results = lib.run(config, runs=runs)

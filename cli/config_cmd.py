@@ -4,11 +4,13 @@ from __future__ import annotations
 
 import click
 
-from .options import config_options, load_cli_config
+from terrainmap.config import load_config
+
+from .options import config_options
 
 
 @click.command()
 @config_options
 def config(config_path: str | None, overrides: tuple[str, ...]) -> None:
     """Print the effective config (defaults < --config TOML < --set) as TOML."""
-    click.echo(load_cli_config(config_path, overrides).to_toml(), nl=False)
+    click.echo(load_config(config_path, overrides).to_toml(), nl=False)

@@ -8,7 +8,9 @@ from pathlib import Path
 
 import click
 
-from .options import config_options, load_cli_config
+from terrainmap.config import load_config
+
+from .options import config_options
 
 
 @click.command("accuracy")
@@ -31,7 +33,7 @@ def accuracy(log, methods, max_frames, json_path, plot_path, config_path, overri
     from terrainmap.evaluation.accuracy import evaluate, select_methods
     from terrainmap.evaluation.accuracy_report import format_table, plot_rmse_vs_range
 
-    config = load_cli_config(config_path, overrides)
+    config = load_config(config_path, overrides)
     names = [m.strip() for m in methods.split(",") if m.strip()] if methods is not None else None
     try:
         names = select_methods(names)

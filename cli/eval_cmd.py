@@ -8,7 +8,9 @@ from pathlib import Path
 
 import click
 
-from .options import config_options, load_cli_config
+from terrainmap.config import load_config
+
+from .options import config_options
 
 
 def _floats(text: str) -> list[float]:
@@ -57,7 +59,7 @@ def artificial_obstacle(
     from terrainmap.config import GridConfig
     from terrainmap.evaluation import artificial_obstacle as ao
 
-    config = load_cli_config(config_path, overrides)
+    config = load_config(config_path, overrides)
     if base_log:
         grid, base_points = config.grid, ao.points_from_log(base_log, config, frame_index)
     else:
@@ -109,7 +111,7 @@ def robustness(noise_m, outlier_fraction, outlier_max_m, empty_fraction, seeds, 
     """Surface RMSE vs truth on synthetic rolling terrain: iterative estimator vs one plain fit."""
     from terrainmap.evaluation import robustness as lib
 
-    config = load_cli_config(config_path, overrides)
+    config = load_config(config_path, overrides)
     r = lib.run(config, seeds=range(seeds), noise_m=noise_m, outlier_fraction=outlier_fraction,
                 outlier_max_m=outlier_max_m, empty_fraction=empty_fraction)
     click.echo(f"iterative (Algorithm V-B.1) RMSE {100 * r['iterative_rmse_m']:.2f} cm; "

@@ -6,8 +6,6 @@ from collections.abc import Callable
 
 import click
 
-from terrainmap.config import Config, load_config
-
 
 def config_options(func: Callable) -> Callable:
     """``--config PATH.toml`` and repeatable ``--set section.field=value``."""
@@ -21,7 +19,3 @@ def config_options(func: Callable) -> Callable:
     return click.option(
         "--config", "config_path", type=click.Path(dir_okay=False), default=None, help="TOML config file."
     )(func)
-
-
-def load_cli_config(config_path: str | None, overrides: tuple[str, ...]) -> Config:
-    return load_config(config_path, overrides)

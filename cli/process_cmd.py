@@ -7,7 +7,9 @@ from pathlib import Path
 
 import click
 
-from .options import config_options, load_cli_config
+from terrainmap.config import load_config
+
+from .options import config_options
 from .source_options import source_options
 
 
@@ -35,7 +37,7 @@ def process(log, output, flavor, compression, rrd, overwrite, source_opts, confi
     from terrainmap import runner
     from terrainmap.sinks import open_mcap_sink
 
-    config = load_cli_config(config_path, overrides)
+    config = load_config(config_path, overrides)
     output = output or default_output(log)
     for path in (output, rrd):
         if path is not None and path.exists() and not overwrite:
