@@ -79,7 +79,8 @@ def cell_index(points: np.ndarray, config: GridConfig) -> np.ndarray:
         inside = (ix.view(np.uint32) < m0) & (iy.view(np.uint32) < m1) & z_ok
     ix *= m1
     ix += iy
-    return np.where(inside, ix, np.int32(m0 * m1))
+    # intp, so that bincount and ufunc.at downstream do not convert the index again and again
+    return np.where(inside, ix, np.int32(m0 * m1)).astype(np.intp)
 
 
 def quantize(points_vehicle: np.ndarray, config: GridConfig, *, index: np.ndarray | None = None) -> HeightGrid:

@@ -71,13 +71,14 @@ def label_points(
     xs, ys = cell_centers(grid)
     above, below = _thresholds(xs[:, None], ys[None, :], config)
     c, gx, gy = cell_planes(elevation, dz_dx, dz_dy, grid)
-    # Thresholds folded into the planes: z − gx·x − gy·y is compared with c + above / c − below.
-    hi = np.append(above.astype(np.float32).ravel(), np.float32(0)) + c
-    lo = np.append(-below.astype(np.float32).ravel(), np.float32(0)) + c
-    s = pts[:, 2] - gx.take(index) * pts[:, 0] - gy.take(index) * pts[:, 1]
+    # One row per cell (gx, gy, c + above, c − below), gathered once per point: the thresholds are
+    # folded in, so z − gx·x − gy·y is compared with the last two columns.
+    table = np.stack([gx, gy, np.append(above.ravel(), 0) + c, np.append(-below.ravel(), 0) + c], axis=1)
+    rows = table.astype(np.float32).take(index, axis=0)
+    s = pts[:, 2] - rows[:, 0] * pts[:, 0] - rows[:, 1] * pts[:, 1]
     with np.errstate(invalid="ignore"):
-        labels = (s > hi.take(index)).view(np.uint8) + np.uint8(Label.TERRAIN)  # TERRAIN 1, OBSTACLE 2
-        labels += (s < lo.take(index)).view(np.uint8) * np.uint8(Label.BELOW - Label.TERRAIN)  # BELOW 3
+        labels = (s > rows[:, 2]).view(np.uint8) + np.uint8(Label.TERRAIN)  # TERRAIN 1, OBSTACLE 2
+        labels += (s < rows[:, 3]).view(np.uint8) * np.uint8(Label.BELOW - Label.TERRAIN)  # BELOW 3
     labels *= (index < elevation.size).view(np.uint8)  # UNKNOWN 0 outside the area (and non-finite points)
     return labels
 
