@@ -153,9 +153,7 @@ def _clusters(
     k, npts, top = int(ok.sum()), npts[ok], top[ok]
 
     yaw, u, v = _principal_axes(x, y, cid, npts)
-    u_lo, u_hi = _reduce(np.minimum, u, cid, k, np.inf), _reduce(np.maximum, u, cid, k, -np.inf)
-    v_lo, v_hi = _reduce(np.minimum, v, cid, k, np.inf), _reduce(np.maximum, v, cid, k, -np.inf)
-    uc, vc = (u_lo + u_hi) / 2, (v_lo + v_hi) / 2
+    (uc, u_half), (vc, v_half) = (_robust_extent(w, cid, k, npts) for w in (u, v))
     cos, sin = np.cos(yaw), np.sin(yaw)
     cx, cy = uc * cos - vc * sin, uc * sin + vc * cos
     ground = terrain_at(np.column_stack([cx, cy]), elevation, grid_config)
@@ -168,7 +166,7 @@ def _clusters(
 
     order = np.argsort(rng, kind="stable")
     centers = np.column_stack([cx, cy, (z_lo + z_hi) / 2])[order]
-    sizes = np.column_stack([u_hi - u_lo, v_hi - v_lo, z_hi - z_lo])[order]
+    sizes = np.column_stack([2 * u_half, 2 * v_half, z_hi - z_lo])[order]
     scalars = zip(
         yaw[order].tolist(), top[order].tolist(), npts[order].tolist(), rng[order].tolist(), strict=True
     )
@@ -176,6 +174,18 @@ def _clusters(
         Obstacle(center_m=c, size_m=sz, yaw_rad=y, height_m=h, point_count=n, range_m=r, kind=kind)
         for c, sz, (y, h, n, r) in zip(centers, sizes, scalars, strict=True)
     ]
+
+
+def _robust_extent(w: np.ndarray, cid: np.ndarray, k: int, npts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-cluster centre and half-size along one axis: the mean, and the smaller of half the
+    extent and 2σ. Compact objects keep their full extent (2σ of a uniform spread exceeds half its
+    length); the sparse tails that stereo depth error smears out behind and in front of an
+    obstacle at range are cut off instead of stretching its box."""
+    mean = np.bincount(cid, w, k) / npts
+    sigma = np.sqrt(np.maximum(np.bincount(cid, w * w, k) / npts - mean * mean, 0.0))
+    lo, hi = _reduce(np.minimum, w, cid, k, np.inf), _reduce(np.maximum, w, cid, k, -np.inf)
+    half = np.minimum((hi - lo) / 2, 2 * sigma)
+    return np.clip(mean, lo + half, hi - half), half
 
 
 def _reduce(ufunc: np.ufunc, values: np.ndarray, cid: np.ndarray, n: int, identity: float) -> np.ndarray:

@@ -189,3 +189,19 @@ def test_boxes_found_on_the_real_terrain_estimate():
         near = [o for o in found if np.hypot(o.center_m[0] - bx, o.center_m[1] - by) < width / 2 + 0.3]
         assert len(near) == 1, (bx, by, [o.center_m for o in found])
         assert near[0].height_m == pytest.approx(height, abs=0.25)
+
+
+def test_box_ignores_a_sparse_smeared_tail():
+    """Stereo smears far obstacles along the viewing ray: a few stray points behind a compact
+    object must not stretch its box or pull its centre off the object."""
+    from terrainmap.obstacles import _robust_extent
+
+    rng = np.random.default_rng(0)
+    compact = rng.uniform(-0.5, 0.5, 400)  # a 1 m object
+    tail = np.linspace(0.5, 6.0, 12)  # sparse smear up to 6 m behind it
+    cid = np.zeros(len(compact) + len(tail), int)
+    npts = np.array([len(cid)], float)
+    centre, half = _robust_extent(np.concatenate([compact, tail]), cid, 1, npts)
+    assert abs(centre[0]) < 0.3 and half[0] < 1.2  # the plain extent would give centre 2.75, half 3.25
+    centre, half = _robust_extent(compact, np.zeros(400, int), 1, np.array([400.0]))
+    assert half[0] == pytest.approx(0.5, abs=0.01) and abs(centre[0]) < 0.05  # compact: full extent kept
