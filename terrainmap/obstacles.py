@@ -177,15 +177,15 @@ def _clusters(
 
 
 def _robust_extent(w: np.ndarray, cid: np.ndarray, k: int, npts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per-cluster centre and half-size along one axis: the mean, and the smaller of half the
-    extent and 2σ. Compact objects keep their full extent (2σ of a uniform spread exceeds half its
-    length); the sparse tails that stereo depth error smears out behind and in front of an
-    obstacle at range are cut off instead of stretching its box."""
+    """Per-cluster centre and half-size along one axis, of the interval [mean − 2σ, mean + 2σ]
+    cut to the points' extent. Compact objects keep their full extent (2σ of a uniform spread
+    exceeds half its length); the sparse tails that stereo depth error smears out behind and in
+    front of an obstacle at range are cut off instead of stretching its box."""
     mean = np.bincount(cid, w, k) / npts
     sigma = np.sqrt(np.maximum(np.bincount(cid, w * w, k) / npts - mean * mean, 0.0))
-    lo, hi = _reduce(np.minimum, w, cid, k, np.inf), _reduce(np.maximum, w, cid, k, -np.inf)
-    half = np.minimum((hi - lo) / 2, 2 * sigma)
-    return np.clip(mean, lo + half, hi - half), half
+    lo = np.maximum(_reduce(np.minimum, w, cid, k, np.inf), mean - 2 * sigma)
+    hi = np.minimum(_reduce(np.maximum, w, cid, k, -np.inf), mean + 2 * sigma)
+    return (lo + hi) / 2, (hi - lo) / 2
 
 
 def _reduce(ufunc: np.ufunc, values: np.ndarray, cid: np.ndarray, n: int, identity: float) -> np.ndarray:
