@@ -162,6 +162,7 @@ def test_a_pipeline_equal_to_the_truth_scores_perfectly(tiny_log, monkeypatch):
         assert scores["terrain_f1"] == 1 and scores["false_obstacles_per_frame"] == 0
     assert report["methods"]["terrainmap"]["all"]["obstacle_recall"] == 1
     assert all(v == 0 for v in report["obstacles"]["frames_to_confirmation"].values())
+    assert all(v == 0 for v in report["obstacles"]["id_switches"].values())
 
 
 def test_report_schema_on_a_simulated_log(tiny_log):

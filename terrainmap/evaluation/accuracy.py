@@ -33,6 +33,11 @@ layers, point labels and tracked obstacles) and every other method of
   depression (:func:`.truth_grid.depression_depth` below half of ``obstacles.min_depth_m``,
   ring radius = half the obstacle's width + margin), per evaluated frame. Bands by detection range.
 
+``obstacles`` (extra key) holds, per truth obstacle, ``frames_to_confirmation`` (frames from
+first being eligible to first being matched, None if never) and ``id_switches`` (how often the
+track id matched to it — the matching track nearest its centre — changed between frames where it
+was matched).
+
 ``common_cells`` (extra key) repeats the elevation metrics over the cells that *every* selected
 method covers, so methods with partial coverage are compared on the same cells.
 
@@ -107,6 +112,8 @@ class _Evaluation:
         self.method_failures: Counter = Counter()
         self.first_eligible: dict[str, int] = {}
         self.first_matched: dict[str, int] = {}
+        self.last_track: dict[str, int] = {}
+        self.id_switches: Counter = Counter()
         self.frames = 0
 
     def add_frame(self, result: FrameResult, truth_frame: TruthFrame) -> None:
@@ -148,17 +155,25 @@ class _Evaluation:
     def _score_obstacles(self, result: FrameResult, gt: GridTruth, truth_frame: TruthFrame) -> None:
         opt, grid = self.options, self.config.grid
         confirmed = [o for o in result.obstacles if o.confirmed]
-        positive = np.array([o.center_m[:2] for o in confirmed if o.kind == "positive"]).reshape(-1, 2)
+        tracks = [o for o in confirmed if o.kind == "positive"]
+        positive = np.array([o.center_m[:2] for o in tracks]).reshape(-1, 2)
         x_max, y_min = grid.x_min_m + grid.length_m, grid.y_center_m - grid.width_m / 2
         eligible = [t for t in gt.obstacles if t.height_m >= opt["obstacle_min_height_m"]
                     and t.pixels >= opt["min_visible_pixels"] and t.range_m <= opt["obstacle_range_m"]
                     and grid.x_min_m <= t.center_m[0] < x_max and y_min <= t.center_m[1] < y_min + grid.width_m]
-        matched = np.array([t.contains_xy(positive, opt["obstacle_margin_m"]).any() for t in eligible], bool)
-        for t, hit in zip(eligible, matched):
+        inside = [t.contains_xy(positive, opt["obstacle_margin_m"]) for t in eligible]
+        matched = np.array([hits.any() for hits in inside], bool)
+        for t, hits in zip(eligible, inside):
             key = f"{t.id} {t.kind}"
             self.first_eligible.setdefault(key, self.frames)
-            if hit:
+            if hits.any():
                 self.first_matched.setdefault(key, self.frames)
+                # the matching track nearest to the truth centre; a new id there is an id switch
+                near = np.flatnonzero(hits)[np.argmin(np.hypot(*(positive[hits] - t.center_m[:2]).T))]
+                track = tracks[near].track_id
+                if self.last_track.get(key, track) != track:
+                    self.id_switches[key] += 1
+                self.last_track[key] = track
         false_range = [float(np.hypot(*o.center_m[:2])) for o in confirmed if self._is_false(o, gt, truth_frame)]
         self.scores["terrainmap"].add_obstacles([t.range_m for t in eligible], matched, false_range)
 
@@ -184,6 +199,7 @@ class _Evaluation:
                 "margin_m": self.options["obstacle_margin_m"], "min_height_m": self.options["obstacle_min_height_m"],
                 "range_m": self.options["obstacle_range_m"], "min_visible_pixels": self.options["min_visible_pixels"],
                 "frames_to_confirmation": confirmation,
+                "id_switches": {k: self.id_switches[k] for k in sorted(self.first_matched)},
             },
             "rmse_vs_range": {
                 "range_edges_m": [k * PROFILE_STEP_M for k in range(PROFILE_BINS)] + [None],
