@@ -74,8 +74,10 @@ class StereoResult:
     pinhole: RectifiedPinhole
 
 
-def check_calibration(calibration: StereoCalibration) -> None:
-    """Raise :class:`CalibrationError` (one line, naming the problem) if the calibration is unusable."""
+def check_calibration(calibration: StereoCalibration, *, size_known: bool = True) -> StereoCalibration:
+    """Return ``calibration``, or raise :class:`CalibrationError` (one line, naming its source and
+    the problem) if it is unusable. ``size_known=False`` accepts an image size of 0×0, for
+    calibration files that do not state it (the first image fills it in)."""
     name = calibration.source or "stereo calibration"
     for field, value in (
         ("fx", calibration.fx),
@@ -83,8 +85,12 @@ def check_calibration(calibration: StereoCalibration) -> None:
         ("baseline_m", calibration.baseline_m),
     ):
         if not (math.isfinite(value) and value > 0):
-            raise CalibrationError(f"{name}: {field} must be a positive number, got {value}")
-    if calibration.width <= 0 or calibration.height <= 0:
+            raise CalibrationError(f"{name}: {field} must be > 0, got {value}")
+    for field in ("cx", "cy", "doffs"):
+        if not math.isfinite(getattr(calibration, field)):
+            raise CalibrationError(f"{name}: {field} is not finite")
+    unknown = not size_known and calibration.width == 0 and calibration.height == 0
+    if not unknown and (calibration.width <= 0 or calibration.height <= 0):
         raise CalibrationError(
             f"{name}: image size must be positive, got {calibration.width}×{calibration.height}"
         )
@@ -97,6 +103,7 @@ def check_calibration(calibration: StereoCalibration) -> None:
                 )
         if not np.all(np.isfinite(np.asarray(calibration.T, float))) or np.linalg.norm(calibration.T) <= 0:
             raise CalibrationError(f"{name}: T must be a non-zero finite translation (the baseline)")
+    return calibration
 
 
 def _rectification(calibration: StereoCalibration) -> tuple[tuple, tuple, RectifiedPinhole]:

@@ -159,10 +159,10 @@ GOOD = StereoCalibration(64, 48, 100.0, 100.0, 32.0, 24.0, 0.5, source="calib.ya
 @pytest.mark.parametrize(
     ("changes", "message"),
     [
-        ({"baseline_m": 0.0}, "baseline_m must be a positive number"),
-        ({"baseline_m": -0.3}, "baseline_m must be a positive number"),
-        ({"fx": 0.0}, "fx must be a positive number"),
-        ({"fy": float("nan")}, "fy must be a positive number"),
+        ({"baseline_m": 0.0}, "baseline_m must be > 0"),
+        ({"baseline_m": -0.3}, "baseline_m must be > 0"),
+        ({"fx": 0.0}, "fx must be > 0"),
+        ({"fy": float("nan")}, "fy must be > 0"),
         ({"rectified": False}, "rectified is false, so K_left"),
     ],
 )

@@ -33,6 +33,7 @@ import numpy as np
 import yaml
 
 from ..errors import CalibrationError
+from ..stereo import check_calibration as stereo_check
 from ..types import Extrinsics, StereoCalibration
 from .tf import quaternion_to_matrix
 
@@ -41,17 +42,8 @@ _UNRECTIFIED = ("K_left", "K_right", "dist_left", "dist_right", "R", "T")
 
 
 def check_calibration(calib: StereoCalibration) -> StereoCalibration:
-    """Raise :class:`CalibrationError` (naming ``calib.source``) for a nonsensical calibration."""
-    for name in ("fx", "fy", "baseline_m"):
-        value = getattr(calib, name)
-        if not (math.isfinite(value) and value > 0):
-            raise CalibrationError(f"{calib.source}: {name} must be > 0, got {value}")
-    for name in ("cx", "cy", "doffs"):
-        if not math.isfinite(getattr(calib, name)):
-            raise CalibrationError(f"{calib.source}: {name} is not finite")
-    if calib.width < 0 or calib.height < 0:
-        raise CalibrationError(f"{calib.source}: negative image size {calib.width}×{calib.height}")
-    return calib
+    """:func:`terrainmap.stereo.check_calibration` for a file that may not state the image size."""
+    return stereo_check(calib, size_known=False)
 
 
 def fit_to_image(calib: StereoCalibration, shape: tuple[int, ...], image_name: str) -> StereoCalibration:
