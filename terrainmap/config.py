@@ -371,7 +371,7 @@ class CostConfig:
 class RerunConfig:
     """What goes into Rerun recordings (display only; does not change any result)."""
 
-    max_points: int = 50000
+    max_points: int = 30000
     """Points logged per frame at most (uniformly subsampled beyond that)."""
 
     def validate(self) -> None:
