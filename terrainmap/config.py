@@ -51,7 +51,9 @@ class GridConfig:
     """Points above this height are ignored (sky, overhanging structures)."""
     sigma_factor: float = 1.0
     """k in eq. 1, ``Z = max(min z, mean z − k·σ)``; the paper uses 1. It leans each sample low by
-    about k times the point noise of its cell (attenuating points above the terrain)."""
+    about k times the point noise of its cell: what keeps cars and walls sharing cells with the
+    road out of the surface (KITTI 000005), at the price of a low bias where stereo noise makes
+    σ large (simulated drives: 0 halves the RMSE within 10 m; README, Accuracy)."""
     fill_empty: bool = True
     """Empty cells take the mean height of their observed 8-neighbours (paper Sec. IV)."""
 
@@ -172,11 +174,16 @@ class SegmentationConfig:
     """Both thresholds grow by this many metres per metre of range, as stereo height noise does
     (0.45 m at 20 m). Larger values trade recall of low obstacles near walls (KITTI's parked cars)
     for fewer false obstacles far away (simulated drives)."""
+    disparity_tolerance_px: float = 1.0
+    """Where the stereo camera is known, both thresholds are at least the height above the surface
+    that a disparity error of this many pixels produces at that cell (it grows with depth² and is
+    largest on slopes that face the camera); 0 disables. See :mod:`terrainmap.segmentation`."""
 
     def validate(self) -> None:
         _check(self.obstacle_height_m > 0, "segmentation.obstacle_height_m", "must be > 0")
         _check(self.below_depth_m > 0, "segmentation.below_depth_m", "must be > 0")
         _check(self.threshold_per_m >= 0, "segmentation.threshold_per_m", "must be >= 0")
+        _check(self.disparity_tolerance_px >= 0, "segmentation.disparity_tolerance_px", "must be >= 0")
 
 
 @dataclass

@@ -6,7 +6,7 @@ frame, with ``x0 = grid.x_min_m``, ``y0 = grid.y_min_m`` and ``c`` the cell size
 forward along x, iy to the left along y. Writers convert to each message's layout.
 
 Per cell, the sample height is eq. 1, ``Z = max(min z, mean z − k·σ)`` over the points in the cell
-(k = ``sigma_factor``, 1 in the paper).
+(k = ``sigma_factor``, 1 in the paper; with k = 0, Z is the cell mean).
 Empty cells take the mean of their observed 8-neighbours; cells with none stay INVALID, Z = 0.
 """
 
@@ -115,14 +115,16 @@ def quantize(points_vehicle: np.ndarray, config: GridConfig, *, index: np.ndarra
         raise FrameError("no_points_in_area", "no finite point lies in the grid area")
     s1 = np.bincount(idx, weights=z, minlength=ncell + 1)[:ncell]
     s2 = np.bincount(idx, weights=z * z, minlength=ncell + 1)[:ncell]
-    zmin = np.full(ncell + 1, np.inf)
-    np.minimum.at(zmin, idx, z)
-
     observed = count > 0
     n = np.maximum(count, 1)
     mean = s1 / n
     sigma = np.sqrt(np.maximum(s2 / n - mean * mean, 0.0))
-    zc = np.where(observed, np.maximum(zmin[:ncell], mean - config.sigma_factor * sigma), 0.0)
+    zc = mean - config.sigma_factor * sigma
+    if config.sigma_factor > 0:  # the mean never lies below the minimum: skip the costly ufunc.at
+        zmin = np.full(ncell + 1, np.inf)
+        np.minimum.at(zmin, idx, z)
+        zc = np.maximum(zmin[:ncell], zc)
+    zc = np.where(observed, zc, 0.0)
     ztop = np.where(observed, mean + sigma, 0.0)
     return _fill(zc.reshape(m0, m1), ztop.reshape(m0, m1), count.reshape(m0, m1), config)
 

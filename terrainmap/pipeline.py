@@ -18,7 +18,7 @@ from .config import Config
 from .extrinsics import estimate_extrinsics
 from .grid import HeightGrid, cell_index, quantize
 from .obstacle_stage import make_tracker, run_obstacle_stage
-from .segmentation import label_cells, label_points
+from .segmentation import StereoCamera, label_cells, label_points
 from .slope import layers as grid_layers
 from .stereo import StereoMatcher, StereoResult, to_vehicle
 from .terrain import TerrainEstimate, estimate_terrain
@@ -65,7 +65,9 @@ class TerrainMap:
         }
 
 
-def map_points(points_vehicle: np.ndarray, config: Config, watch: Stopwatch | None = None) -> TerrainMap:
+def map_points(
+    points_vehicle: np.ndarray, config: Config, watch: Stopwatch | None = None, camera: StereoCamera | None = None
+) -> TerrainMap:
     """Terrain map of one point cloud.
 
     Parameters
@@ -75,6 +77,8 @@ def map_points(points_vehicle: np.ndarray, config: Config, watch: Stopwatch | No
         ignored (labelled UNKNOWN).
     config : Config
         Uses the ``grid``, ``terrain`` and ``segmentation`` sections.
+    camera : StereoCamera, optional
+        The stereo rig the points came from: segmentation thresholds then follow its height noise.
 
     Raises
     ------
@@ -88,11 +92,12 @@ def map_points(points_vehicle: np.ndarray, config: Config, watch: Stopwatch | No
     with watch("surface"):
         terrain = estimate_terrain(grid, config.terrain)
         layers = grid_layers(terrain.elevation, terrain.dz_dx, terrain.dz_dy)
-        layers["label"] = label_cells(grid, layers["elevation"], config.segmentation)
+        gradient = (terrain.dz_dx, terrain.dz_dy)
+        layers["label"] = label_cells(grid, layers["elevation"], config.segmentation, gradient=gradient, camera=camera)
         layers["valid"] = grid.valid
     with watch("labels"):
         labels = label_points(
-            points_vehicle, terrain.elevation, terrain.dz_dx, terrain.dz_dy, config.grid, config.segmentation, index=idx
+            points_vehicle, terrain.elevation, *gradient, config.grid, config.segmentation, index=idx, camera=camera
         )
     return TerrainMap(grid, terrain, layers, labels, watch.ms)
 
@@ -125,6 +130,7 @@ class Matched:
     points_vehicle: np.ndarray
     pixels: np.ndarray
     extrinsics: Extrinsics
+    camera: StereoCamera
     timings_ms: dict[str, float]
 
 
@@ -142,7 +148,9 @@ def match_frame(frame: StereoFrame, config: Config, state: PipelineState) -> Mat
         if extrinsics is None:
             extrinsics = state.extrinsics = estimate_extrinsics(points_cam, config.extrinsics)
         points = to_vehicle(points_cam, extrinsics)
-    return Matched(stereo, points, pixels, extrinsics, watch.ms)
+    pinhole = state.matcher.pinhole
+    camera = StereoCamera.from_rig(pinhole.fx, pinhole.baseline_m, extrinsics)
+    return Matched(stereo, points, pixels, extrinsics, camera, watch.ms)
 
 
 def finish_frame(frame: StereoFrame, matched: Matched, config: Config, state: PipelineState) -> FrameResult:
@@ -150,7 +158,7 @@ def finish_frame(frame: StereoFrame, matched: Matched, config: Config, state: Pi
     watch = Stopwatch()
     watch.ms.update(matched.timings_ms)
     points = matched.points_vehicle
-    terrain = map_points(points, config, watch)
+    terrain = map_points(points, config, watch, matched.camera)
     with watch("obstacles"):
         obstacles, cost = run_obstacle_stage(
             points, terrain.point_labels, terrain.grid, terrain.layers, frame.stamp_ns, state.tracker, config

@@ -5,6 +5,15 @@ that and BELOW under it, with both thresholds growing with range r = ‖(x, y)�
 ``threshold_per_m · r`` (stereo noise grows with distance). Points outside the grid area are
 UNKNOWN.
 
+Where the stereo camera is known (:class:`StereoCamera`), each cell's thresholds are also at
+least the height change a disparity error of ``disparity_tolerance_px`` makes there. A point
+at camera depth Z along the ray ``ρ = p − c`` (c the camera centre) moves by
+``Δp = ρ · Z · Δd / (f·B)`` for a disparity error Δd, which changes its height above the
+tangent plane ``S ≈ c₀ + gx·x + gy·y`` by ``Δh = (ρz − gx·ρx − gy·ρy) · Z · Δd / (f·B)``. On flat
+ground 20 m ahead of a camera 1.8 m up with f·B = 150 px·m that is 0.24 m per pixel; on a 17°
+slope facing the camera, 1.0 m per pixel: a fixed threshold there calls stereo noise an obstacle.
+The cell centre and the surface there stand in for the points of the cell.
+
 For speed, S under a point comes from the exact spline value and analytic gradient at the
 centre of the point's cell (first-order Taylor: a few table lookups per point, no spline
 evaluation): the error is at most ``½ · max|∂²S| · d²`` with d ≤ cell/√2 the distance to the
@@ -17,14 +26,54 @@ from __future__ import annotations
 
 import numpy as np
 
+from dataclasses import dataclass
+
 from .config import GridConfig, SegmentationConfig
 from .grid import HeightGrid, cell_centers, cell_index
 from .types import Label
 
 
-def _thresholds(x, y, config: SegmentationConfig) -> tuple[np.ndarray, np.ndarray]:
+@dataclass(frozen=True)
+class StereoCamera:
+    """What segmentation needs of the stereo rig, vehicle frame: the left camera centre
+    ``center_m`` (3,), its unit optical axis ``axis`` (3,), and ``focal_baseline`` = f·B (px·m)."""
+
+    center_m: np.ndarray
+    axis: np.ndarray
+    focal_baseline: float
+
+    @classmethod
+    def from_rig(cls, fx_px: float, baseline_m: float, extrinsics) -> StereoCamera:
+        """From the rectified focal length, the baseline and the camera's :class:`~terrainmap.types.Extrinsics`."""
+        rotation = np.asarray(extrinsics.rotation, float)
+        return cls(np.asarray(extrinsics.translation, float), rotation[:, 2], float(fx_px * baseline_m))
+
+    def height_per_px(self, x, y, z, dz_dx, dz_dy) -> np.ndarray:
+        """|Δh| per pixel of disparity error (m/px) at surface points (x, y, z) with gradient
+        (dz_dx, dz_dy), arrays broadcast together (see the module docstring)."""
+        rx, ry, rz = x - self.center_m[0], y - self.center_m[1], z - self.center_m[2]
+        depth = np.maximum(rx * self.axis[0] + ry * self.axis[1] + rz * self.axis[2], 0.0)
+        return depth * np.abs(rz - dz_dx * rx - dz_dy * ry) / self.focal_baseline
+
+
+def thresholds(
+    grid: GridConfig,
+    config: SegmentationConfig,
+    camera: StereoCamera | None = None,
+    elevation: np.ndarray | None = None,
+    dz_dx: np.ndarray | None = None,
+    dz_dy: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per-cell (above, below) thresholds, (m0, m1) metres each (see the module docstring). The
+    stereo term needs ``camera`` and the surface (``elevation`` and its gradient at the cell centres)."""
+    xs, ys = cell_centers(grid)
+    x, y = xs[:, None], ys[None, :]
     grow = config.threshold_per_m * np.hypot(x, y)
-    return config.obstacle_height_m + grow, config.below_depth_m + grow
+    above, below = config.obstacle_height_m + grow, config.below_depth_m + grow
+    if camera is not None and config.disparity_tolerance_px > 0:
+        noise = config.disparity_tolerance_px * camera.height_per_px(x, y, elevation, dz_dx, dz_dy)
+        above, below = np.maximum(above, noise), np.maximum(below, noise)
+    return np.broadcast_to(above, grid.shape), np.broadcast_to(below, grid.shape)
 
 
 def cell_planes(elevation: np.ndarray, dz_dx: np.ndarray, dz_dy: np.ndarray, grid: GridConfig) -> np.ndarray:
@@ -53,6 +102,7 @@ def label_points(
     config: SegmentationConfig,
     *,
     index: np.ndarray | None = None,
+    camera: StereoCamera | None = None,
 ) -> np.ndarray:
     """Label each point TERRAIN / OBSTACLE / BELOW / UNKNOWN: (N,) uint8 (:class:`Label`).
 
@@ -64,12 +114,13 @@ def label_points(
         (:class:`~terrainmap.terrain.TerrainEstimate` has them).
     index : (N,) int array, optional
         :func:`~terrainmap.grid.cell_index` of the points, reused from the grid stage.
+    camera : StereoCamera, optional
+        Scales the thresholds with the stereo height noise of each cell (:func:`thresholds`).
     """
     pts = np.asarray(points_vehicle, dtype=np.float32)
     if index is None:
         index = cell_index(pts, grid)
-    xs, ys = cell_centers(grid)
-    above, below = _thresholds(xs[:, None], ys[None, :], config)
+    above, below = thresholds(grid, config, camera, elevation, dz_dx, dz_dy)
     c, gx, gy = cell_planes(elevation, dz_dx, dz_dy, grid)
     # One row per cell (gx, gy, c + above, c − below), gathered once per point: the thresholds are
     # folded in, so z − gx·x − gy·y is compared with the last two columns.
@@ -83,12 +134,19 @@ def label_points(
     return labels
 
 
-def label_cells(grid: HeightGrid, elevation: np.ndarray, config: SegmentationConfig) -> np.ndarray:
+def label_cells(
+    grid: HeightGrid,
+    elevation: np.ndarray,
+    config: SegmentationConfig,
+    *,
+    gradient: tuple[np.ndarray, np.ndarray] | None = None,
+    camera: StereoCamera | None = None,
+) -> np.ndarray:
     """Per-cell labels (m0, m1) uint8: UNKNOWN where no point fell, OBSTACLE where the cell's top
     (``grid.z_top``, min(max z, mean + σ)) rises above the surface by the obstacle threshold,
-    BELOW where its eq.-1 sample lies under it by the below threshold, TERRAIN otherwise."""
-    xs, ys = cell_centers(grid.config)
-    above, below = _thresholds(xs[:, None], ys[None, :], config)
+    BELOW where its eq.-1 sample lies under it by the below threshold, TERRAIN otherwise.
+    ``camera`` and the surface ``gradient`` (dz_dx, dz_dy) add the stereo term of :func:`thresholds`."""
+    above, below = thresholds(grid.config, config, camera if gradient else None, elevation, *(gradient or (None, None)))
     labels = np.full(grid.shape, Label.TERRAIN, dtype=np.uint8)
     labels[grid.z_top - elevation > above] = Label.OBSTACLE
     labels[grid.z - elevation < -below] = Label.BELOW

@@ -8,6 +8,7 @@ from terrainmap.errors import FrameError, InputError
 from terrainmap.grid import cell_centers, cell_index, quantize
 
 SMALL = GridConfig(x_min_m=0.0, length_m=3.0, width_m=2.0, y_center_m=0.0, cell_size_m=1.0)  # 3×2 cells
+MEAN = GridConfig(**{**SMALL.__dict__, "sigma_factor": 0.0})  # Z = the cell mean
 
 
 def test_cell_geometry_and_indexing():
@@ -35,6 +36,9 @@ def test_eq1_on_hand_built_cells():
     assert g.z[1, 1] == pytest.approx(0.0)
     assert g.z[2, 0] == pytest.approx(0.7)
     np.testing.assert_array_equal(g.count, [[3, 0], [0, 4], [1, 0]])
+    mean = quantize(pts, MEAN)  # k = 0 skips the minimum
+    np.testing.assert_allclose(mean.z[[0, 1, 2], [0, 1, 0]], [1.0, 2.5, 0.7])
+    np.testing.assert_array_equal(mean.z_top[g.observed], g.z_top[g.observed])
 
 
 def test_empty_cells_take_the_mean_of_observed_neighbours_else_invalid():

@@ -1,11 +1,26 @@
 import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from terrainmap.config import Config, GridConfig, SegmentationConfig
 from terrainmap.grid import cell_index, quantize
 from terrainmap.pipeline import map_points
-from terrainmap.segmentation import cell_planes, label_cells, label_points, surface_under_points
+from terrainmap.segmentation import (
+    StereoCamera,
+    cell_planes,
+    label_cells,
+    label_points,
+    surface_under_points,
+    thresholds,
+)
 from terrainmap.synthetic import cloud, rolling_terrain
-from terrainmap.types import Label
+from terrainmap.types import Extrinsics, Label
+
+# A camera 1.8 m up, pitched 6° down, f·B = 500 px × 0.3 m (the simulator's rig)
+_PITCH = np.deg2rad(6.0)
+_OPTICAL = np.array([[0, 0, 1], [-1, 0, 0], [0, -1, 0]], float)  # optical x, y, z in base_link
+_ROT = np.array([[np.cos(_PITCH), 0, np.sin(_PITCH)], [0, 1, 0], [-np.sin(_PITCH), 0, np.cos(_PITCH)]]) @ _OPTICAL
+CAMERA = StereoCamera.from_rig(500.0, 0.3, Extrinsics(rotation=_ROT, translation=np.array([0.0, 0.0, 1.8])))
 
 
 def test_per_point_surface_matches_exact_evaluation():
@@ -63,3 +78,37 @@ def test_cell_labels():
     assert labels[1, 0] == Label.OBSTACLE
     assert labels[2, 0] == Label.BELOW
     assert labels[3, 1] == Label.UNKNOWN  # no point
+
+
+@settings(max_examples=50, deadline=None)
+@given(x=st.floats(3, 30), y=st.floats(-10, 10), gx=st.floats(-0.5, 0.5), gy=st.floats(-0.5, 0.5),
+       z=st.floats(-2, 2))
+def test_height_per_px_is_the_height_change_of_a_disparity_error(x, y, gx, gy, z):
+    # Move the surface point along its camera ray as a disparity error of δ px does (Z = f·B / d)
+    # and measure its height above the tangent plane: first order in δ, it is δ · height_per_px.
+    point = np.array([x, y, z])
+    ray = point - CAMERA.center_m
+    depth = ray @ CAMERA.axis
+    delta = 1e-4
+    depth_moved = CAMERA.focal_baseline / (CAMERA.focal_baseline / depth - delta)
+    moved = CAMERA.center_m + ray * depth_moved / depth
+    rise = (moved[2] - z) - gx * (moved[0] - x) - gy * (moved[1] - y)
+    expected = CAMERA.height_per_px(x, y, z, gx, gy)
+    assert abs(abs(rise) / delta - expected) <= 1e-3 * max(expected, 1e-3)
+
+
+def test_stereo_thresholds_grow_where_disparity_noise_lifts_points():
+    config, grid = SegmentationConfig(), GridConfig()
+    flat = np.zeros(grid.shape)
+    fixed = thresholds(grid, config)
+    above, below = thresholds(grid, config, CAMERA, flat, flat, flat)
+    assert np.all(above >= fixed[0]) and np.all(below >= fixed[1])
+    ix = int((20.0 - grid.x_min_m) / grid.cell_size_m)
+    iy = grid.shape[1] // 2
+    # 1 px at 20 m on flat ground moves a point ≈ 20 × 1.8 / 150 = 0.24 m: under the fixed 0.45 m
+    assert above[ix, iy] == fixed[0][ix, iy]
+    # ground rising at 0.3 towards the camera: 20 × |−1.8 − 0.3 × 20| / 150 ≈ 1.0 m
+    rising = thresholds(grid, config, CAMERA, flat, np.full(grid.shape, 0.3), flat)[0]
+    assert 0.9 < rising[ix, iy] < 1.2
+    off = SegmentationConfig(disparity_tolerance_px=0)
+    assert np.array_equal(thresholds(grid, off, CAMERA, flat, flat, flat)[0], fixed[0])
