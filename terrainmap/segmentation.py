@@ -24,9 +24,9 @@ the clamped spline bends most, up to ~10 cm); a test checks this.
 
 from __future__ import annotations
 
-import numpy as np
-
 from dataclasses import dataclass
+
+import numpy as np
 
 from .config import GridConfig, SegmentationConfig
 from .grid import HeightGrid, cell_centers, cell_index
