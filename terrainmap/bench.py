@@ -87,13 +87,13 @@ def sim_frame(scene: str = "mounds", seed: int = 7, width: int = 640, height: in
     """A rendered stereo pair as a :class:`~terrainmap.types.StereoFrame` (calibration and true
     extrinsics attached, as a log from ``terrainmap simulate`` would give them)."""
     from .sim import SimConfig
-    from .sim.render import Renderer
     from .sim.scenes import build_scene
     from .types import StereoFrame
 
-    sim = SimConfig(scene=scene, frames=1, seed=seed, width=width, height=height)
-    rig = sim.rig()
-    rendered = Renderer(build_scene(scene, seed, length_m=10.0), rig, seed=seed).frame(0)
+    renderer = SimConfig(scene=scene, frames=1, seed=seed, width=width, height=height).renderer(
+        build_scene(scene, seed, length_m=10.0)
+    )
+    rendered, rig = renderer.frame(0), renderer.rig
     return StereoFrame(0, rendered.stamp_ns, rendered.left, rendered.right, rig.calibration(), rig.extrinsics())
 
 
@@ -101,15 +101,14 @@ def frame_stages(config: Config) -> dict[str, Stage]:
     """``sgbm_alone``, ``frame_total`` and ``mcap_write`` on a simulated 640×480 pair."""
     import tempfile
 
-    import cv2
-
     from .pipeline import PipelineState, process_frame
     from .sinks import open_mcap_sink
+    from .stereo import to_grey
 
     frame = sim_frame()
     state = PipelineState(config)
     result = process_frame(frame, config, state)
-    grey = [im if im.ndim == 2 else cv2.cvtColor(im, cv2.COLOR_RGB2GRAY) for im in (frame.left, frame.right)]
+    grey = [to_grey(im) for im in (frame.left, frame.right)]
     out = tempfile.NamedTemporaryFile(suffix=".mcap", delete=False)
     out.close()
     sink = open_mcap_sink(out.name, config=config)

@@ -18,7 +18,7 @@ from .config import Config
 from .extrinsics import estimate_extrinsics
 from .grid import HeightGrid, cell_index, quantize
 from .obstacle_stage import make_tracker, run_obstacle_stage
-from .segmentation import StereoCamera, label_cells, label_points
+from .segmentation import StereoCamera, label_cells, label_points, thresholds
 from .slope import layers as grid_layers
 from .stereo import StereoMatcher, StereoResult, to_vehicle
 from .terrain import TerrainEstimate, estimate_terrain
@@ -93,11 +93,12 @@ def map_points(
         terrain = estimate_terrain(grid, config.terrain)
         layers = grid_layers(terrain.elevation, terrain.dz_dx, terrain.dz_dy)
         gradient = (terrain.dz_dx, terrain.dz_dy)
-        layers["label"] = label_cells(grid, layers["elevation"], config.segmentation, gradient=gradient, camera=camera)
+        limits = thresholds(config.grid, config.segmentation, camera, terrain.elevation, *gradient)
+        layers["label"] = label_cells(grid, layers["elevation"], config.segmentation, limits=limits)
         layers["valid"] = grid.valid
     with watch("labels"):
         labels = label_points(
-            points_vehicle, terrain.elevation, *gradient, config.grid, config.segmentation, index=idx, camera=camera
+            points_vehicle, terrain.elevation, *gradient, config.grid, config.segmentation, index=idx, limits=limits
         )
     return TerrainMap(grid, terrain, layers, labels, watch.ms)
 

@@ -102,7 +102,7 @@ def label_points(
     config: SegmentationConfig,
     *,
     index: np.ndarray | None = None,
-    camera: StereoCamera | None = None,
+    limits: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> np.ndarray:
     """Label each point TERRAIN / OBSTACLE / BELOW / UNKNOWN: (N,) uint8 (:class:`Label`).
 
@@ -114,13 +114,13 @@ def label_points(
         (:class:`~terrainmap.terrain.TerrainEstimate` has them).
     index : (N,) int array, optional
         :func:`~terrainmap.grid.cell_index` of the points, reused from the grid stage.
-    camera : StereoCamera, optional
-        Scales the thresholds with the stereo height noise of each cell (:func:`thresholds`).
+    limits : (above, below) of (m0, m1) arrays, optional
+        Per-cell thresholds from :func:`thresholds` (the fixed ones of ``config`` if omitted).
     """
     pts = np.asarray(points_vehicle, dtype=np.float32)
     if index is None:
         index = cell_index(pts, grid)
-    above, below = thresholds(grid, config, camera, elevation, dz_dx, dz_dy)
+    above, below = limits or thresholds(grid, config)
     c, gx, gy = cell_planes(elevation, dz_dx, dz_dy, grid)
     # One row per cell (gx, gy, c + above, c − below), gathered once per point: the thresholds are
     # folded in, so z − gx·x − gy·y is compared with the last two columns.
@@ -139,14 +139,13 @@ def label_cells(
     elevation: np.ndarray,
     config: SegmentationConfig,
     *,
-    gradient: tuple[np.ndarray, np.ndarray] | None = None,
-    camera: StereoCamera | None = None,
+    limits: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> np.ndarray:
     """Per-cell labels (m0, m1) uint8: UNKNOWN where no point fell, OBSTACLE where the cell's top
     (``grid.z_top``, min(max z, mean + σ)) rises above the surface by the obstacle threshold,
     BELOW where its eq.-1 sample lies under it by the below threshold, TERRAIN otherwise.
-    ``camera`` and the surface ``gradient`` (dz_dx, dz_dy) add the stereo term of :func:`thresholds`."""
-    above, below = thresholds(grid.config, config, camera if gradient else None, elevation, *(gradient or (None, None)))
+    ``limits``: per-cell (above, below) thresholds as in :func:`label_points`."""
+    above, below = limits or thresholds(grid.config, config)
     labels = np.full(grid.shape, Label.TERRAIN, dtype=np.uint8)
     labels[grid.z_top - elevation > above] = Label.OBSTACLE
     labels[grid.z - elevation < -below] = Label.BELOW

@@ -222,8 +222,8 @@ class StereoMatcher:
 
     def match(self, left_rect: np.ndarray, right_rect: np.ndarray) -> np.ndarray:
         """SGBM on a rectified pair → disparity H×W float32 in pixels, NaN where invalid."""
-        grey = _grey(left_rect)
-        raw = self.sgbm.compute(grey, _grey(right_rect))  # int16, disparity × 16
+        grey = to_grey(left_rect)
+        raw = self.sgbm.compute(grey, to_grey(right_rect))  # int16, disparity × 16
         disparity = raw.astype(np.float32)
         disparity *= 1.0 / 16.0
         disparity[raw < self.config.min_disparity * 16] = np.nan
@@ -301,7 +301,8 @@ def _local_variance(grey: np.ndarray, window: int) -> np.ndarray:
     return cv2.boxFilter(g * g, -1, (window, window)) - mean * mean
 
 
-def _grey(image: np.ndarray) -> np.ndarray:
+def to_grey(image: np.ndarray) -> np.ndarray:
+    """The image as one uint8 channel (RGB converted), as SGBM matches it."""
     return image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
 
 

@@ -18,7 +18,7 @@ from .folder_log import FolderLog
 from .mcap_log import McapLog
 from .render import Renderer
 from .rig import LEFT_FRAME, VEHICLE_FRAME, WORLD_FRAME, CameraRig
-from .scenes import SCENES, build_scene
+from .scenes import SCENES, Scene, build_scene
 
 logger = logging.getLogger(__name__)
 
@@ -76,6 +76,13 @@ class SimConfig:
             camera_height_m=self.camera_height_m, pitch_rad=math.radians(self.pitch_deg),
         )
 
+    def renderer(self, scene: Scene) -> Renderer:
+        """The renderer of ``scene`` with this rig, motion and sensor settings."""
+        return Renderer(
+            scene, self.rig(), speed_mps=self.speed_mps, fps=self.fps, noise_dn=self.noise,
+            vignetting=self.vignetting, mono=not self.color, seed=self.seed,
+        )
+
     @property
     def length_m(self) -> float:
         """Distance driven over the log."""
@@ -112,11 +119,8 @@ def simulate(out: str | Path, config: SimConfig, progress: Callable[[int], None]
     config.validate()
     start = time.perf_counter()
     scene = build_scene(config.scene, config.seed, length_m=config.length_m, resolution_m=config.terrain_resolution_m)
-    rig = config.rig()
-    renderer = Renderer(
-        scene, rig, speed_mps=config.speed_mps, fps=config.fps, noise_dn=config.noise,
-        vignetting=config.vignetting, mono=not config.color, seed=config.seed,
-    )
+    renderer = config.renderer(scene)
+    rig = renderer.rig
     description = describe(config, scene)
     out = Path(out)
     if config.format == "mcap":
