@@ -19,10 +19,14 @@ Per frame (:meth:`ObstacleTracker.update`):
    (when the tracker knows it) at once. Track ids count up from 1 and are never reused.
 
 Reported: every track matched in this frame (tentative ones with ``confirmed=False``) and the
-confirmed tracks that coast through a miss, at their predicted position with their last
-detected shape. Only confirmed ones are obstacles for the cost map, so a candidate seen in a
-single frame never becomes one (for ``confirm_hits >= 2``). ``velocity_mps`` is (vx, vy, 0):
-relative to the vehicle without a pose, over ground with one, in vehicle axes.
+confirmed tracks that have missed at most ``report_misses`` frames (0 by default), at their
+predicted position with their last detected shape. A confirmed track that coasts longer is not
+reported but keeps its id if it is matched again within ``max_misses`` frames: on the simulated
+scenes, reporting them through all ``max_misses`` (3) frames roughly doubled the false obstacles
+within 20 m and added at most 0.09 to obstacle recall. Only confirmed ones are obstacles for the
+cost map, so a candidate seen in a single frame never becomes one (for ``confirm_hits >= 2``).
+``velocity_mps`` is (vx, vy, 0): relative to the vehicle without a pose, over ground with one,
+in vehicle axes.
 """
 
 from __future__ import annotations
@@ -227,7 +231,7 @@ class ObstacleTracker:
 
     def _report(self, rot: np.ndarray, trans: np.ndarray, yaw_v: float) -> list[Obstacle]:
         confirmed = self._hits >= self.config.confirm_hits
-        shown = np.flatnonzero((self._misses == 0) | confirmed)
+        shown = np.flatnonzero((self._misses == 0) | (confirmed & (self._misses <= self.config.report_misses)))
         z_t = np.array([self._shape[i][1] for i in shown]).reshape(-1)
         centers = (np.column_stack([self._x[shown, :2], z_t]) - trans) @ rot  # rotᵀ·(p − t) per row
         velocities = np.column_stack([self._x[shown, 2:], np.zeros(len(shown))]) @ rot

@@ -103,7 +103,7 @@ def test_min_cell_points_drops_sparse_cells():
     plane = Plane()
     sparse = np.array([[10.25, 0.25, 1.0], [10.75, 0.25, 1.0]])  # one point in each of two cells
     labels = np.full(2, Label.OBSTACLE, np.uint8)
-    assert len(extract_obstacles(sparse, labels, GRID, plane, ObstacleConfig(min_points=1))) == 1
+    assert len(extract_obstacles(sparse, labels, GRID, plane, ObstacleConfig(min_points=1, min_cell_points=1))) == 1
     assert (
         extract_obstacles(sparse, labels, GRID, plane, ObstacleConfig(min_points=1, min_cell_points=2)) == []
     )

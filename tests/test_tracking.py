@@ -119,7 +119,7 @@ def test_track_leaving_the_area_is_dropped_at_once_and_its_id_not_reused():
 
 
 def test_confirmed_track_coasts_through_misses_then_is_dropped():
-    tracker = ObstacleTracker(TrackingConfig(confirm_hits=2, max_misses=2))
+    tracker = ObstacleTracker(TrackingConfig(confirm_hits=2, max_misses=2, report_misses=2))
     for k in range(3):
         (out,) = tracker.update([detection(10 + 0.1 * k, 0)], k * DT_NS)
     track_id = out.track_id
@@ -129,6 +129,17 @@ def test_confirmed_track_coasts_through_misses_then_is_dropped():
         assert coast.center_m[0] == pytest.approx(10 + 0.1 * k, abs=0.1)
     assert tracker.update([], 5 * DT_NS) == []  # third miss > max_misses
     assert tracker.track_count == 0
+
+
+def test_coasting_track_is_not_reported_by_default_but_keeps_its_id():
+    tracker = ObstacleTracker(TrackingConfig(confirm_hits=2, max_misses=2))
+    for k in range(3):
+        (out,) = tracker.update([detection(10.0, 0)], k * DT_NS)
+    assert out.confirmed
+    assert tracker.update([], 3 * DT_NS) == []  # missed: not an obstacle this frame
+    assert tracker.track_count == 1
+    (back,) = tracker.update([detection(10.0, 0)], 4 * DT_NS)
+    assert back.track_id == out.track_id and back.confirmed
 
 
 def test_world_frame_tracking_with_vehicle_pose():
@@ -206,3 +217,5 @@ def test_config_rejects_nonsense(field):
         TrackingConfig(**{field: 0}).validate()
     with pytest.raises(ConfigError, match="tracking.max_misses"):
         TrackingConfig(max_misses=-1).validate()
+    with pytest.raises(ConfigError, match="tracking.report_misses"):
+        TrackingConfig(max_misses=2, report_misses=3).validate()
