@@ -296,9 +296,8 @@ def to_vehicle(points_cam: np.ndarray, extrinsics: Extrinsics) -> np.ndarray:
 
 def _local_variance(grey: np.ndarray, window: int) -> np.ndarray:
     """Variance of the grey levels over a ``window``×``window`` box around each pixel, float32."""
-    g = grey.astype(np.float32)
-    mean = cv2.boxFilter(g, -1, (window, window))
-    return cv2.boxFilter(g * g, -1, (window, window)) - mean * mean
+    mean = cv2.boxFilter(grey, cv2.CV_32F, (window, window))
+    return cv2.sqrBoxFilter(grey, cv2.CV_32F, (window, window)) - mean * mean
 
 
 def to_grey(image: np.ndarray) -> np.ndarray:
