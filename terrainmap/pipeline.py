@@ -176,6 +176,7 @@ def finish_frame(frame: StereoFrame, matched: Matched, config: Config, state: Pi
         layers={**terrain.layers, "cost": cost},
         disparity=matched.stereo.disparity,
         image=matched.stereo.image,
+        pinhole=matched.stereo.pinhole,
         obstacles=obstacles,
         stats={**terrain.stats, "points": float(len(points)), "obstacles": float(len(obstacles))},
         timings_ms=watch.ms,

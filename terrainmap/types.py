@@ -142,6 +142,7 @@ class FrameResult:
     layers: dict[str, np.ndarray] = field(default_factory=dict)
     disparity: np.ndarray | None = None  # H×W float32 px, NaN where invalid
     image: np.ndarray | None = None  # rectified left image
+    pinhole: object | None = None  # terrainmap.stereo.RectifiedPinhole of image and disparity
     obstacles: list[Obstacle] = field(default_factory=list)
     stats: dict[str, float] = field(default_factory=dict)
     timings_ms: dict[str, float] = field(default_factory=dict)

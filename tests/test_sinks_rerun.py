@@ -86,3 +86,31 @@ def test_points_are_subsampled_for_display(log, tmp_path):
     batch = points[0].to_record_batch()
     column = next(name for name in batch.schema.names if name.endswith("positions"))
     assert len(batch.column(column)[0]) <= 1000
+
+
+def test_camera_and_depth_use_the_rectified_pinhole(log, tmp_path):
+    """Input rectified here has a pinhole other than the raw calibration: the recording's camera
+    and depth image must follow the images and disparities it shows, not ``frame.calibration``."""
+    import dataclasses
+
+    import numpy as np
+
+    from terrainmap.pipeline import PipelineState, process_frame
+
+    config = Config()
+    with open_source(log) as source:
+        frame = next(source.frames())
+    result = process_frame(frame, config, PipelineState(config))
+    result.pinhole = dataclasses.replace(result.pinhole, fx=2 * frame.calibration.fx, fy=2 * frame.calibration.fy)
+    rrd = tmp_path / "pinhole.rrd"
+    with RerunSink(rrd, config=config) as sink:
+        sink.write(frame, result)
+    batches = [(str(c.entity_path), c.to_record_batch()) for c in RrdReader(str(rrd)).store().stream().to_chunks()]
+    pinhole = next(b for path, b in batches if path == "/world/camera" and "Pinhole:image_from_camera" in b.schema.names)
+    assert pinhole.column("Pinhole:image_from_camera")[0].as_py()[0][0] == 2 * frame.calibration.fx
+    depth_image = next(b for path, b in batches if path == "/depth")
+    depth = np.frombuffer(bytes(depth_image.column("DepthImage:buffer")[0].as_py()[0]), np.float32)
+    disparity = result.disparity[::2, ::2].ravel()
+    seen = np.isfinite(disparity) & (disparity > 0)
+    expected = result.pinhole.fx * result.pinhole.baseline_m / disparity[seen]
+    np.testing.assert_allclose(depth[seen], expected, rtol=1e-5)

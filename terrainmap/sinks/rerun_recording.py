@@ -113,7 +113,7 @@ class RerunSink:
             raise TerrainmapError(f"Rerun output {self.path} is already closed")
         rec = self._rec
         if not self._static_done:
-            self._log_static(frame)
+            self._log_static(_camera_model(frame, result))
         rec.set_time("frame", sequence=frame.index)
         rec.set_time("stamp", timestamp=np.datetime64(frame.stamp_ns, "ns"))
         self._log_camera(frame, result)
@@ -127,12 +127,11 @@ class RerunSink:
             rec.log(f"stats/{group}/{name}", rr.Scalars(value))
         self.frames_written += 1
 
-    def _log_static(self, frame: StereoFrame) -> None:
+    def _log_static(self, c) -> None:
         rec = self._rec
         rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
         context = rr.AnnotationContext([(int(k), k.name.lower(), c) for k, c in LABEL_COLORS.items()])
         rec.log("world", context, static=True)
-        c = frame.calibration
         rec.log(
             "world/camera",
             rr.Pinhole(focal_length=[c.fx, c.fy], principal_point=[c.cx, c.cy], width=c.width, height=c.height,
@@ -155,7 +154,7 @@ class RerunSink:
             labels[result.pixels[:, 1], result.pixels[:, 0]] = result.point_labels
             rec.log("world/camera/image/labels", rr.SegmentationImage(labels, opacity=0.45))
         if result.disparity is not None:
-            c = frame.calibration
+            c = _camera_model(frame, result)
             with np.errstate(divide="ignore", invalid="ignore"):
                 depth = (c.fx * c.baseline_m / (result.disparity[::2, ::2] + c.doffs)).astype(np.float32)
             depth[~np.isfinite(depth)] = 0.0
@@ -222,3 +221,11 @@ class RerunSink:
 
     def __exit__(self, *exc_info) -> None:
         self.close()
+
+
+def _camera_model(frame: StereoFrame, result: FrameResult):
+    """The pinhole of the logged image and disparity: the rectified one (differs from
+    ``frame.calibration`` when the input was rectified here), the calibration for results built
+    without one."""
+    return result.pinhole if result.pinhole is not None else frame.calibration
+
