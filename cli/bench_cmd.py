@@ -27,5 +27,7 @@ def bench(runs: int, json_path: str | None, config_path: str | None, overrides: 
     click.echo(f"{'stage':<14}{'median ms':>10}{'min ms':>10}{'max ms':>10}{'runs':>6}")
     for name, r in results.items():
         click.echo(f"{name:<14}{r['median_ms']:10.2f}{r['min_ms']:10.2f}{r['max_ms']:10.2f}{r['runs']:6d}")
+    for what, value, limit in lib.goals(results):
+        click.echo(f"{what}: {value:.2f} ({'meets' if value <= limit else 'MISSES'} the goal of at most {limit:g})")
     if json_path:
         Path(json_path).write_text(json.dumps(results, indent=2) + "\n")

@@ -1,7 +1,8 @@
 """``terrainmap bench``: per-stage timings at the paper configuration (a benchmark, not a test).
 
-Each stage is timed over repeated runs on the same input; we report the median, min and max in
-milliseconds. The inputs are synthetic so the figures are comparable anywhere:
+Each stage is timed over repeated runs on the same input, the stages taking turns round by round;
+we report the median, min and max in milliseconds, and :func:`goals` holds the medians to the
+speed goals. The inputs are synthetic so the figures are comparable anywhere:
 
 - ``grid``, ``surface``, ``labels``, ``obstacles``: a 300k-point cloud over rolling terrain
   with box obstacles (the size of a 640×480 stereo frame), paper configuration (34 m × 22 m,
@@ -29,19 +30,12 @@ from .config import Config
 Stage = Callable[[], object]
 
 
-def _time(fn: Stage, runs: int, warmup: int = 2) -> dict[str, float]:
-    for _ in range(warmup):
-        fn()
-    times = []
-    for _ in range(runs):
-        start = time.perf_counter()
-        fn()
-        times.append((time.perf_counter() - start) * 1e3)
+def _summary(times: list[float]) -> dict[str, float]:
     return {
         "median_ms": statistics.median(times),
         "min_ms": min(times),
         "max_ms": max(times),
-        "runs": runs,
+        "runs": len(times),
     }
 
 
@@ -150,8 +144,33 @@ def _cpu_name() -> str:
     return platform.processor() or platform.machine()
 
 
-def run(config: Config | None = None, *, runs: int = 30, stages: dict[str, Stage] | None = None) -> dict:
-    """Time every stage; returns ``{stage: {median_ms, min_ms, max_ms, runs}}``."""
+def run(config: Config | None = None, *, runs: int = 30, stages: dict[str, Stage] | None = None, warmup: int = 2) -> dict:
+    """Time every stage; returns ``{stage: {median_ms, min_ms, max_ms, runs}}``.
+
+    The stages take turns, one call of each per round, so that a machine that slows down or
+    speeds up during the run (a shared virtual machine drifts by ±25 %) weighs on all of them
+    alike and ratios such as ``frame_total / sgbm_alone`` compare like with like.
+    """
     config = config or Config()
     stages = stages if stages is not None else {**core_stages(config), **frame_stages(config)}
-    return {name: _time(fn, runs) for name, fn in stages.items()}
+    times: dict[str, list[float]] = {name: [] for name in stages}
+    for round_ in range(warmup + runs):
+        for name, fn in stages.items():
+            start = time.perf_counter()
+            fn()
+            if round_ >= warmup:
+                times[name].append((time.perf_counter() - start) * 1e3)
+    return {name: _summary(t) for name, t in times.items()}
+
+
+def goals(results: dict) -> list[tuple[str, float, float]]:
+    """The speed goals the medians are held to, ``(what, measured, at most)``, for the stages present."""
+    med = {name: r["median_ms"] for name, r in results.items()}
+    out = []
+    if {"grid", "labels"} <= med.keys():
+        out.append(("grid + labels, ms", med["grid"] + med["labels"], 5.0))
+    if "obstacles" in med:
+        out.append(("obstacles (extraction, tracking, cost), ms", med["obstacles"], 5.0))
+    if {"frame_total", "sgbm_alone"} <= med.keys():
+        out.append(("frame_total / sgbm_alone", med["frame_total"] / med["sgbm_alone"], 1.6))
+    return out

@@ -48,10 +48,24 @@ def test_bench_reports_every_stage(tmp_path):
     result = CliRunner().invoke(cli, ["bench", "--runs", "2", "--json", str(tmp_path / "b.json")])
     assert result.exit_code == 0, result.output
     assert "machine:" in result.output
+    assert "frame_total / sgbm_alone:" in result.output and "grid + labels, ms:" in result.output
     stages = json.loads((tmp_path / "b.json").read_text())
     for name in ("grid", "surface", "labels", "obstacles"):
         assert set(stages[name]) == {"median_ms", "min_ms", "max_ms", "runs"}
         assert 0 < stages[name]["min_ms"] <= stages[name]["median_ms"] <= stages[name]["max_ms"]
+
+
+def test_bench_stages_take_turns_and_goals_follow_the_medians():
+    from terrainmap import bench
+
+    calls = []
+    stages = {name: (lambda name=name: calls.append(name)) for name in ("sgbm_alone", "frame_total")}
+    results = bench.run(runs=3, stages=stages, warmup=1)
+    assert calls == ["sgbm_alone", "frame_total"] * 4  # interleaved: one call of each per round
+    assert results["frame_total"]["runs"] == 3
+    fake = {"grid": 3.0, "labels": 1.5, "sgbm_alone": 20.0, "frame_total": 34.0}
+    checks = bench.goals({name: {"median_ms": ms} for name, ms in fake.items()})
+    assert checks == [("grid + labels, ms", 4.5, 5.0), ("frame_total / sgbm_alone", 1.7, 1.6)]
 
 
 def test_eval_artificial_obstacle_on_a_simulated_base_frame(tmp_path):
