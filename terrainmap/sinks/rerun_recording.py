@@ -127,14 +127,15 @@ class RerunSink:
             rec.log(f"stats/{group}/{name}", rr.Scalars(value))
         self.frames_written += 1
 
-    def _log_static(self, c) -> None:
+    def _log_static(self, pinhole) -> None:
         rec = self._rec
         rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
         context = rr.AnnotationContext([(int(k), k.name.lower(), c) for k, c in LABEL_COLORS.items()])
         rec.log("world", context, static=True)
         rec.log(
             "world/camera",
-            rr.Pinhole(focal_length=[c.fx, c.fy], principal_point=[c.cx, c.cy], width=c.width, height=c.height,
+            rr.Pinhole(focal_length=[pinhole.fx, pinhole.fy], principal_point=[pinhole.cx, pinhole.cy],
+                       width=pinhole.width, height=pinhole.height,
                        camera_xyz=rr.ViewCoordinates.RDF, image_plane_distance=1.0),
             static=True,
         )
@@ -228,4 +229,3 @@ def _camera_model(frame: StereoFrame, result: FrameResult):
     ``frame.calibration`` when the input was rectified here), the calibration for results built
     without one."""
     return result.pinhole if result.pinhole is not None else frame.calibration
-
