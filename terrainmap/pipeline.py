@@ -18,12 +18,12 @@ from .config import Config
 from .extrinsics import estimate_extrinsics
 from .grid import HeightGrid, cell_index, quantize
 from .obstacle_stage import make_tracker, run_obstacle_stage
-from .segmentation import StereoCamera, label_cells, label_points, thresholds
+from .segmentation import label_cells, label_points, thresholds
 from .slope import layers as grid_layers
 from .stereo import StereoMatcher, StereoResult, to_vehicle
 from .terrain import TerrainEstimate, estimate_terrain
 from .tracking import ObstacleTracker
-from .types import Extrinsics, FrameResult, StereoFrame
+from .types import Extrinsics, FrameResult, StereoCamera, StereoFrame
 
 
 class Stopwatch:
@@ -78,7 +78,8 @@ def map_points(
     config : Config
         Uses the ``grid``, ``terrain`` and ``segmentation`` sections.
     camera : StereoCamera, optional
-        The stereo rig the points came from: segmentation thresholds then follow its height noise.
+        The stereo rig the points came from: eq. 1 then discounts its height noise
+        (``grid.stereo_noise_px``) and segmentation thresholds can follow it.
 
     Raises
     ------
@@ -88,7 +89,7 @@ def map_points(
     watch = watch or Stopwatch()
     with watch("grid"):
         idx = cell_index(points_vehicle, config.grid)
-        grid = quantize(points_vehicle, config.grid, index=idx)
+        grid = quantize(points_vehicle, config.grid, index=idx, camera=camera)
     with watch("surface"):
         terrain = estimate_terrain(grid, config.terrain)
         layers = grid_layers(terrain.elevation, terrain.dz_dx, terrain.dz_dy)

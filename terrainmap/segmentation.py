@@ -24,36 +24,11 @@ the clamped spline bends most, up to ~10 cm); a test checks this.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
 from .config import GridConfig, SegmentationConfig
 from .grid import HeightGrid, cell_centers, cell_index
-from .types import Label
-
-
-@dataclass(frozen=True)
-class StereoCamera:
-    """What segmentation needs of the stereo rig, vehicle frame: the left camera centre
-    ``center_m`` (3,), its unit optical axis ``axis`` (3,), and ``focal_baseline`` = f·B (px·m)."""
-
-    center_m: np.ndarray
-    axis: np.ndarray
-    focal_baseline: float
-
-    @classmethod
-    def from_rig(cls, fx_px: float, baseline_m: float, extrinsics) -> StereoCamera:
-        """From the rectified focal length, the baseline and the camera's :class:`~terrainmap.types.Extrinsics`."""
-        rotation = np.asarray(extrinsics.rotation, float)
-        return cls(np.asarray(extrinsics.translation, float), rotation[:, 2], float(fx_px * baseline_m))
-
-    def height_per_px(self, x, y, z, dz_dx, dz_dy) -> np.ndarray:
-        """|Δh| per pixel of disparity error (m/px) at surface points (x, y, z) with gradient
-        (dz_dx, dz_dy), arrays broadcast together (see the module docstring)."""
-        rx, ry, rz = x - self.center_m[0], y - self.center_m[1], z - self.center_m[2]
-        depth = np.maximum(rx * self.axis[0] + ry * self.axis[1] + rz * self.axis[2], 0.0)
-        return depth * np.abs(rz - dz_dx * rx - dz_dy * ry) / self.focal_baseline
+from .types import Label, StereoCamera
 
 
 def thresholds(

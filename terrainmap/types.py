@@ -146,3 +146,29 @@ class FrameResult:
     obstacles: list[Obstacle] = field(default_factory=list)
     stats: dict[str, float] = field(default_factory=dict)
     timings_ms: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class StereoCamera:
+    """The stereo rig's noise geometry, vehicle frame: the left camera centre ``center_m`` (3,), its
+    unit optical axis ``axis`` (3,), and ``focal_baseline`` = f·B (px·m). A point at camera depth Z
+    along the ray ``ρ = p − c`` moves by ``Δp = ρ · Z · Δd / (f·B)`` for a disparity error Δd; the
+    grid (eq. 1 noise) and segmentation (thresholds) use it."""
+
+    center_m: np.ndarray
+    axis: np.ndarray
+    focal_baseline: float
+
+    @classmethod
+    def from_rig(cls, fx_px: float, baseline_m: float, extrinsics) -> StereoCamera:
+        """From the rectified focal length, the baseline and the camera's :class:`~terrainmap.types.Extrinsics`."""
+        rotation = np.asarray(extrinsics.rotation, float)
+        return cls(np.asarray(extrinsics.translation, float), rotation[:, 2], float(fx_px * baseline_m))
+
+    def height_per_px(self, x, y, z, dz_dx, dz_dy) -> np.ndarray:
+        """|Δh| per pixel of disparity error (m/px), the height change above the plane of gradient
+        (dz_dx, dz_dy) through the points (x, y, z): ``Z · |ρz − gx·ρx − gy·ρy| / (f·B)``; arrays
+        broadcast together. With a zero gradient, the change of z itself."""
+        rx, ry, rz = x - self.center_m[0], y - self.center_m[1], z - self.center_m[2]
+        depth = np.maximum(rx * self.axis[0] + ry * self.axis[1] + rz * self.axis[2], 0.0)
+        return depth * np.abs(rz - dz_dx * rx - dz_dy * ry) / self.focal_baseline

@@ -34,6 +34,8 @@ def test_toml_round_trip_and_overrides(tmp_path):
         ("grid.length_m=33.3", "whole number of cells"),
         ("terrain.start_control_points=2", r"at least degree \+ 1"),
         ("grid.cell_size_m=nan", "cannot use 'nan'"),
+        ("grid.stereo_noise_px=-0.5", "grid.stereo_noise_px: must be >= 0"),
+        ("tracking.report_misses=4", "tracking.report_misses: must be in 0..tracking.max_misses"),
     ],
 )
 def test_bad_values_name_the_field(override, message):

@@ -6,6 +6,7 @@ from hypothesis import strategies as st
 from terrainmap.config import GridConfig
 from terrainmap.errors import FrameError, InputError
 from terrainmap.grid import cell_centers, cell_index, quantize
+from terrainmap.types import Extrinsics, StereoCamera
 
 SMALL = GridConfig(x_min_m=0.0, length_m=3.0, width_m=2.0, y_center_m=0.0, cell_size_m=1.0)  # 3×2 cells
 MEAN = GridConfig(**{**SMALL.__dict__, "sigma_factor": 0.0})  # Z = the cell mean
@@ -39,6 +40,40 @@ def test_eq1_on_hand_built_cells():
     mean = quantize(pts, MEAN)  # k = 0 skips the minimum
     np.testing.assert_allclose(mean.z[[0, 1, 2], [0, 1, 0]], [1.0, 2.5, 0.7])
     np.testing.assert_array_equal(mean.z_top[g.observed], g.z_top[g.observed])
+
+
+# A level camera 1.8 m up at the origin, f·B = 150 px·m (the simulator's rig without its pitch)
+_RIG = StereoCamera.from_rig(
+    500.0, 0.3, Extrinsics(rotation=np.array([[0, 0, 1], [-1, 0, 0], [0, -1, 0]], float), translation=np.array([0, 0, 1.8]))
+)
+_FAR = GridConfig(x_min_m=14.0, length_m=2.0, width_m=2.0, y_center_m=0.0, cell_size_m=1.0)  # 2×2 cells, 14–16 m
+
+
+def _stereo_ground(n: int, noise_px: float, seed: int = 0) -> np.ndarray:
+    """Points of the plane z = 0 at 10–20 m, each moved along its camera ray by a disparity error."""
+    rng = np.random.default_rng(seed)
+    ground = np.column_stack([rng.uniform(10, 20, n), rng.uniform(-1, 1, n), np.zeros(n)])
+    ray = ground - _RIG.center_m
+    depth = ray @ _RIG.axis
+    return _RIG.center_m + ray * (1 + depth * rng.normal(0, noise_px, n) / _RIG.focal_baseline)[:, None]
+
+
+def test_stereo_noise_no_longer_pulls_eq1_below_the_ground():
+    pts = _stereo_ground(200_000, 0.5)
+    paper = quantize(pts, GridConfig(**{**_FAR.__dict__, "stereo_noise_px": 0.0}), camera=_RIG)
+    aware = quantize(pts, _FAR, camera=_RIG)
+    assert np.all(paper.z < -0.06)  # eq. 1: about σ of the noise (8 cm at 15 m) below the ground
+    assert np.all(np.abs(aware.z) < 0.02)
+    np.testing.assert_array_equal(quantize(pts, _FAR).z, paper.z)  # no rig: the paper's eq. 1
+
+
+def test_stereo_noise_discount_keeps_obstacles_out_of_the_sample():
+    """A 1.5 m object sharing a cell with noisy ground spreads far beyond the noise: Z stays low."""
+    ground = _stereo_ground(20_000, 0.5)
+    rng = np.random.default_rng(1)
+    wall = np.column_stack([np.full(1_500, 14.5), rng.uniform(-0.9, -0.1, 1_500), rng.uniform(0, 1.5, 1_500)])
+    g = quantize(np.vstack([ground, wall]), _FAR, camera=_RIG)
+    assert g.z[0, 0] < 0.05 and g.z_top[0, 0] > 0.5
 
 
 def test_empty_cells_take_the_mean_of_observed_neighbours_else_invalid():

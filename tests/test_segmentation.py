@@ -6,7 +6,6 @@ from terrainmap.config import Config, GridConfig, SegmentationConfig
 from terrainmap.grid import cell_index, quantize
 from terrainmap.pipeline import map_points
 from terrainmap.segmentation import (
-    StereoCamera,
     cell_planes,
     label_cells,
     label_points,
@@ -14,7 +13,7 @@ from terrainmap.segmentation import (
     thresholds,
 )
 from terrainmap.synthetic import cloud, rolling_terrain
-from terrainmap.types import Extrinsics, Label
+from terrainmap.types import Extrinsics, Label, StereoCamera
 
 # A camera 1.8 m up, pitched 6° down, f·B = 500 px × 0.3 m (the simulator's rig)
 _PITCH = np.deg2rad(6.0)
