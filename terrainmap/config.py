@@ -50,14 +50,14 @@ class GridConfig:
     z_max_m: float = 10.0
     """Points above this height are ignored (sky, overhanging structures)."""
     sigma_factor: float = 1.0
-    """k in eq. 1, ``Z = max(min z, mean z − k·σ)``; the paper uses 1. It leans each sample low by
-    about k times the point noise of its cell: what keeps cars and walls sharing cells with the
-    road out of the surface (KITTI 000005), at the price of a low bias where stereo noise makes
-    σ large (simulated drives: 0 halves the RMSE within 10 m; README, Accuracy)."""
+    """k in eq. 1, ``Z = max(min z, mean z − k·σ)``; the paper uses 1. It keeps cars and walls
+    sharing cells with the road out of the surface (KITTI 000005: with 0 the lane's slope rises
+    from 4.4° to 5.7°); the low bias it gives where stereo noise makes σ large is what
+    ``stereo_noise_px`` takes out (README, Accuracy)."""
     stereo_noise_px: float = 0.5
     """Disparity noise of the stereo matcher (1σ, pixels). Where the pipeline knows the stereo
     rig, eq. 1's σ of a cell is reduced in quadrature by the height spread this noise alone gives
-    there (``noise · Z·|z − c_z|/(f·B)``: 6 cm at 10 m, 24 cm at 20 m for the simulated rig), so
+    there (``noise · Z·|z − c_z|/(f·B)``: 6 cm at 10 m, 12 cm at 20 m for the simulated rig), so
     that stereo noise does not pull the sample below the terrain while obstacles sharing a cell
     still do. 0 gives the paper's eq. 1 exactly. 0.5 is about SGBM's error on the simulated drives
     (std of errors under 3 px: 0.39–0.53; KITTI 000005: 0.85)."""
@@ -190,9 +190,9 @@ class SegmentationConfig:
     """Where the stereo camera is known, both thresholds are at least the height above the surface
     that a disparity error of this many pixels produces at that cell (it grows with depth² and is
     largest on slopes that face the camera); 0 disables. See :mod:`terrainmap.segmentation`.
-    1 raises the terrain F1 at 10–20 m on the simulated ditch and canyon, but confirms 0.2–0.3
-    more false obstacles per frame in three of the six simulated scenes and raises the bar for
-    low obstacles on slopes facing the camera (README, Accuracy), hence off by default."""
+    1 raises the terrain F1 at 10–20 m on the simulated ditch and canyon, but confirms more false
+    obstacles in the hills and canyon and raises the bar for low obstacles on slopes facing the
+    camera (README, Accuracy), hence off by default."""
 
     def validate(self) -> None:
         _check(self.obstacle_height_m > 0, "segmentation.obstacle_height_m", "must be > 0")

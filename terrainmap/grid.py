@@ -11,7 +11,7 @@ known, σ counts only the spread beyond the stereo noise: ``σ' = √max(σ² �
 ``σ_s = stereo_noise_px · Z·|z̄ − c_z|/(f·B)``, the height spread that a disparity noise of
 ``stereo_noise_px`` gives to points at the cell's mean height z̄ and camera depth Z
 (:meth:`~terrainmap.types.StereoCamera.height_per_px`). Noise alone then leaves Z at the mean
-instead of σ_s below the terrain (24 cm at 20 m for f·B = 150 px·m, 0.5 px), while a car or a
+instead of σ_s below the terrain (12 cm at 20 m for f·B = 150 px·m, 0.5 px), while a car or a
 wall sharing a cell with the ground still spreads its points far beyond σ_s and pulls Z down
 to the ground as the paper intends. ``stereo_noise_px = 0`` or no rig gives eq. 1 exactly.
 Empty cells take the mean of their observed 8-neighbours; cells with none stay INVALID, Z = 0.
