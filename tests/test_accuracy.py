@@ -220,6 +220,17 @@ def test_unknown_method_lists_the_available_ones(tiny_log):
     assert result.exit_code == 2 and "unknown method 'nope'; available: terrainmap" in result.output
 
 
+def test_table_lists_each_true_obstacle():
+    from terrainmap.evaluation.accuracy_report import format_table
+
+    report = {"log": "x.mcap", "frames": 3, "methods": {}, "obstacles": {
+        "min_height_m": 0.5, "range_m": 20.0,
+        "frames_to_confirmation": {"1 pedestrian": 2, "3 pole": None}, "id_switches": {"1 pedestrian": 1}}}
+    lines = format_table(report).splitlines()
+    assert lines[-2].split() == ["1", "pedestrian", "2", "1"]
+    assert lines[-1].split() == ["3", "pole", "never", "—"]
+
+
 def test_cli_prints_the_table_and_writes_json_and_plot(tiny_log, tmp_path):
     out_json, out_png = tmp_path / "r.json", tmp_path / "r.png"
     result = CliRunner().invoke(accuracy, [
@@ -230,5 +241,9 @@ def test_cli_prints_the_table_and_writes_json_and_plot(tiny_log, tmp_path):
     for text in ("range 0-10 m", "range 10-20 m", "range all m", "rmse_m", "terrainmap", "lowest_point", "wall time"):
         assert text in result.output
     report = json.loads(out_json.read_text())
+    if report["obstacles"]["frames_to_confirmation"]:
+        assert "frames to confirm" in result.output
+        for key in report["obstacles"]["frames_to_confirmation"]:
+            assert key in result.output
     assert report["frames"] == 2 and report["config"]["terrain"]["control_points_x"] == 15
     assert out_png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

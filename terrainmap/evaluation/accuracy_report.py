@@ -40,7 +40,21 @@ def format_table(report: dict) -> str:
         for name, per_band in common.items():
             lines.append(f"{name:<{width}} "
                          + " ".join(f"{_cell('', per_band[b]['elevation_rmse_m']):>8}" for b in bands))
-    return "\n".join(lines)
+    return "\n".join(lines + _obstacle_lines(report.get("obstacles")))
+
+
+def _obstacle_lines(obstacles: dict | None) -> list[str]:
+    """Per true obstacle: frames from first eligible to first confirmed, and track id switches."""
+    if not obstacles or not obstacles.get("frames_to_confirmation"):
+        return []
+    confirm, switches = obstacles["frames_to_confirmation"], obstacles["id_switches"]
+    width = max(len(key) for key in confirm)
+    lines = ["", f"true obstacles ≥ {obstacles['min_height_m']} m within {obstacles['range_m']} m "
+             "against terrainmap's confirmed tracks",
+             f"{'obstacle':<{width}} {'frames to confirm':>18} {'id switches':>12}"]
+    for key, frames in confirm.items():
+        lines.append(f"{key:<{width}} {'never' if frames is None else frames:>18} {switches.get(key, '—'):>12}")
+    return lines
 
 
 def plot_rmse_vs_range(report: dict, path: str | Path) -> None:
