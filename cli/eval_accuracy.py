@@ -21,8 +21,10 @@ from .options import config_options
 @click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), help="Write the report as JSON.")
 @click.option("--plot", "plot_path", type=click.Path(dir_okay=False, path_type=Path),
               help="Draw elevation RMSE against range for each method to this PNG.")
+@click.option("--obstacle-margin", type=click.FloatRange(min=0), default=0.5, show_default=True,
+              help="A track matches a true obstacle when its centre lies in the true footprint grown by this, m.")
 @config_options
-def accuracy(log, methods, max_frames, json_path, plot_path, config_path, overrides):
+def accuracy(log, methods, max_frames, json_path, plot_path, obstacle_margin, config_path, overrides):
     """Score elevation, slope, coverage, terrain segmentation and obstacles per range band
     on LOG, a log written by `terrainmap simulate` (it carries the ground truth).
 
@@ -40,7 +42,7 @@ def accuracy(log, methods, max_frames, json_path, plot_path, config_path, overri
     except ConfigError as exc:
         raise click.BadParameter(str(exc).removeprefix("--methods: "), param_hint="--methods") from None
     show = sys.stderr.isatty()
-    report = evaluate(log, config, methods=names, max_frames=max_frames,
+    report = evaluate(log, config, methods=names, max_frames=max_frames, obstacle_margin_m=obstacle_margin,
                       progress=(lambda n: click.echo(f"\rframe {n}", nl=False, err=True)) if show else None)
     if show:
         click.echo(err=True)

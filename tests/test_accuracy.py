@@ -235,7 +235,7 @@ def test_cli_prints_the_table_and_writes_json_and_plot(tiny_log, tmp_path):
     out_json, out_png = tmp_path / "r.json", tmp_path / "r.png"
     result = CliRunner().invoke(accuracy, [
         str(tiny_log), "--methods", "terrainmap,lowest_point", "--max-frames", "2", "--json", str(out_json),
-        "--plot", str(out_png), "--set", "terrain.control_points_x=15",
+        "--plot", str(out_png), "--set", "terrain.control_points_x=15", "--obstacle-margin", "1",
     ])
     assert result.exit_code == 0, result.output
     for text in ("range 0-10 m", "range 10-20 m", "range all m", "rmse_m", "terrainmap", "lowest_point", "wall time"):
@@ -246,4 +246,5 @@ def test_cli_prints_the_table_and_writes_json_and_plot(tiny_log, tmp_path):
         for key in report["obstacles"]["frames_to_confirmation"]:
             assert key in result.output
     assert report["frames"] == 2 and report["config"]["terrain"]["control_points_x"] == 15
+    assert report["obstacles"]["margin_m"] == 1.0
     assert out_png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
