@@ -132,8 +132,13 @@ class Matched:
     points_vehicle: np.ndarray
     pixels: np.ndarray
     extrinsics: Extrinsics
-    camera: StereoCamera
     timings_ms: dict[str, float]
+
+    @property
+    def camera(self) -> StereoCamera:
+        """The rig's noise geometry in the vehicle frame, from the rectified pinhole and extrinsics."""
+        pinhole = self.stereo.pinhole
+        return StereoCamera.from_rig(pinhole.fx, pinhole.baseline_m, self.extrinsics)
 
 
 def match_frame(frame: StereoFrame, config: Config, state: PipelineState) -> Matched:
@@ -150,9 +155,7 @@ def match_frame(frame: StereoFrame, config: Config, state: PipelineState) -> Mat
         if extrinsics is None:
             extrinsics = state.extrinsics = estimate_extrinsics(points_cam, config.extrinsics)
         points = to_vehicle(points_cam, extrinsics)
-    pinhole = state.matcher.pinhole
-    camera = StereoCamera.from_rig(pinhole.fx, pinhole.baseline_m, extrinsics)
-    return Matched(stereo, points, pixels, extrinsics, camera, watch.ms)
+    return Matched(stereo, points, pixels, extrinsics, watch.ms)
 
 
 def finish_frame(frame: StereoFrame, matched: Matched, config: Config, state: PipelineState) -> FrameResult:
