@@ -228,7 +228,7 @@ class StereoMatcher:
         disparity *= 1.0 / 16.0
         disparity[raw < self.config.min_disparity * 16] = np.nan
         if self.config.min_texture > 0:
-            disparity[_local_variance(grey, self.config.texture_window) < self.config.min_texture**2] = np.nan
+            disparity[_texture_energy(grey, self.config) < self.config.min_texture**2] = np.nan
         return disparity
 
     def compute(self, left: np.ndarray, right: np.ndarray) -> StereoResult:
@@ -294,10 +294,21 @@ def to_vehicle(points_cam: np.ndarray, extrinsics: Extrinsics) -> np.ndarray:
     return cv2.transform(points.reshape(-1, 1, 3), transform.astype(np.float32)).reshape(-1, 3)
 
 
-def _local_variance(grey: np.ndarray, window: int) -> np.ndarray:
-    """Variance of the grey levels over a ``window``×``window`` box around each pixel, float32."""
-    mean = cv2.boxFilter(grey, cv2.CV_32F, (window, window))
-    return cv2.sqrBoxFilter(grey, cv2.CV_32F, (window, window)) - mean * mean
+def _texture_energy(grey: np.ndarray, config: StereoConfig) -> np.ndarray:
+    """Square of the texture measure of ``config.texture_measure`` per pixel (H×W float32, grey
+    levels²), the smallest over the windows within ``config.texture_margin_px`` (a cross-shaped
+    erosion: up, down, left and right)."""
+    box = (config.texture_window, config.texture_window)
+    if config.texture_measure == "x_gradient":
+        gx = cv2.Sobel(grey, cv2.CV_32F, 1, 0, ksize=1)  # I(u+1) − I(u−1)
+        energy = cv2.boxFilter(gx * gx, cv2.CV_32F, box) * 0.25
+    else:
+        mean = cv2.boxFilter(grey, cv2.CV_32F, box)
+        energy = cv2.sqrBoxFilter(grey, cv2.CV_32F, box) - mean * mean
+    if config.texture_margin_px > 0:
+        side = 2 * config.texture_margin_px + 1
+        energy = cv2.erode(energy, cv2.getStructuringElement(cv2.MORPH_CROSS, (side, side)))
+    return energy
 
 
 def to_grey(image: np.ndarray) -> np.ndarray:

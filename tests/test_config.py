@@ -36,6 +36,8 @@ def test_toml_round_trip_and_overrides(tmp_path):
         ("grid.cell_size_m=nan", "cannot use 'nan'"),
         ("grid.stereo_noise_px=-0.5", "grid.stereo_noise_px: must be >= 0"),
         ("tracking.report_misses=4", "tracking.report_misses: must be in 0..tracking.max_misses"),
+        ("stereo.texture_measure=sobel", "stereo.texture_measure: must be variance or x_gradient"),
+        ("stereo.texture_margin_px=-1", "stereo.texture_margin_px: must be >= 0"),
     ],
 )
 def test_bad_values_name_the_field(override, message):

@@ -12,7 +12,7 @@ from conftest import load_kitti
 from terrainmap.config import StereoConfig
 from terrainmap.errors import CalibrationError, InputError
 from terrainmap.extrinsics import extrinsics_from_pose
-from terrainmap.stereo import StereoMatcher, to_vehicle
+from terrainmap.stereo import StereoMatcher, _texture_energy, to_vehicle
 from terrainmap.types import StereoCalibration
 
 
@@ -210,3 +210,46 @@ def test_untextured_regions_give_no_disparity():
     assert np.isfinite(on[inner]).mean() > 0.9
     assert np.isfinite(on[8 : h // 2 - 8]).mean() < 0.05  # noise-only half dropped
     assert np.isfinite(off[8 : h // 2 - 8]).mean() > np.isfinite(on[8 : h // 2 - 8]).mean()
+
+
+def _texture_kept(grey: np.ndarray, **fields) -> np.ndarray:
+    """Which pixels of ``grey`` pass the texture filter under these StereoConfig fields."""
+    config = StereoConfig(**fields)
+    return _texture_energy(grey, config) >= config.min_texture**2
+
+
+def test_x_gradient_ignores_horizontal_edges():
+    """Horizontal stripes (a horizon, a roof line) vary only down the columns: SGBM, matching
+    along rows, cannot lock on to them. The variance test keeps them, the x-gradient test drops
+    them, and both keep texture that varies along the rows."""
+    rng = np.random.default_rng(0)
+    noise = rng.normal(0, 2, (60, 80))
+    stripes = np.where(np.arange(60)[:, None] // 4 % 2 == 0, 100.0, 160.0) + noise
+    texture = cv2.GaussianBlur(rng.integers(0, 255, (60, 80)).astype(np.uint8), (3, 3), 0)
+    for image, variance_keeps, gradient_keeps in ((stripes, 1.0, 0.0), (texture, 1.0, 1.0)):
+        grey = np.clip(image, 0, 255).astype(np.uint8)
+        inner = np.s_[8:-8, 8:-8]
+        assert _texture_kept(grey)[inner].mean() == variance_keeps
+        assert _texture_kept(grey, texture_measure="x_gradient", min_texture=2.0)[inner].mean() == gradient_keeps
+
+
+def test_texture_margin_drops_the_band_beside_a_flat_region():
+    """A window straddling flat sky and texture passes; with a margin, the sky pixels whose
+    neighbouring window lies in the sky drop out, while texture farther in stays."""
+    rng = np.random.default_rng(1)
+    grey = np.clip(rng.normal(128, 2, (80, 80)), 0, 255).astype(np.uint8)  # sky: noise only
+    grey[40:] = cv2.GaussianBlur(rng.integers(0, 255, (40, 80)).astype(np.uint8), (3, 3), 0)
+    plain, margin = _texture_kept(grey), _texture_kept(grey, texture_margin_px=5)
+    band = np.s_[36:40, 10:-10]  # sky rows whose 11×11 window reaches into the texture
+    assert plain[band].all() and not margin[band].any()
+    assert margin[52:-10, 10:-10].all() and not plain[:30].any()
+
+
+def test_open_terrain_preset_loads():
+    """examples/open_terrain.toml, the README's setting for open ground under a flat sky."""
+    from pathlib import Path
+
+    from terrainmap.config import load_config
+
+    stereo = load_config(Path(__file__).parents[1] / "examples" / "open_terrain.toml").stereo
+    assert (stereo.texture_measure, stereo.min_texture, stereo.texture_margin_px) == ("x_gradient", 2.0, 5)
