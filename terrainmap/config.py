@@ -275,7 +275,7 @@ class StereoConfig:
     silhouette or above the horizon lies next to such a window. 0 tests the pixel's own window only.
 
     On open terrain under a flat sky (``terrainmap simulate``'s scenes), ``x_gradient`` with
-    ``min_texture`` 2 and a margin of 5 cut false obstacles within 20 m from 12.6 to 7.6 per
+    ``min_texture`` 2 and a margin of 5 cut false obstacles within 20 m from 12.6 to 7.2 per
     frame (summed over the six scenes) and raised obstacle recall in five of them, but on KITTI
     2015 pair 000005 it keeps 49 % of the ground-truth pixels instead of 71 % (its asphalt has
     little horizontal texture): hence not the default; the README has the figures."""
