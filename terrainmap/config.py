@@ -255,13 +255,14 @@ class StereoConfig:
     max_range_m: float = 40.0
     """Points farther than this (camera depth) are dropped."""
     min_texture: float = 2.75
-    """Disparities are dropped where the left image's local standard deviation (grey levels, over
-    ``texture_window`` pixels) is below this: untextured sky and glare match at random, and the
-    band of sky that SGBM's smoothness drags above a horizon merges distant obstacles into one.
-    0 keeps everything. Sensor noise of σ = 2 grey levels gives local deviations up to ~2.6;
-    KITTI's asphalt 2.5–5 (2.75 keeps 71 % of KITTI 2015 pair 000005's ground-truth pixels, 2.5
-    kept 73 %; on the simulated scenes it lifted obstacle recall within 20 m from 0.31–0.92 to
-    0.50–0.95 together with ``obstacles.min_cell_points`` 3)."""
+    """Disparities are dropped where the left image's local texture (``texture_measure``, by
+    default the standard deviation of the grey levels over ``texture_window`` pixels) is below
+    this: untextured sky and glare match at random, and the band of sky that SGBM's smoothness
+    drags above a horizon merges distant obstacles into one. 0 keeps everything. For the default
+    measure: sensor noise of σ = 2 grey levels gives local deviations up to ~2.6; KITTI's asphalt
+    2.5–5 (2.75 keeps 71 % of KITTI 2015 pair 000005's ground-truth pixels, 2.5 kept 73 %; on the
+    simulated scenes it lifted obstacle recall within 20 m from 0.31–0.92 to 0.50–0.95 together
+    with ``obstacles.min_cell_points`` 3)."""
     texture_window: int = 11
     """Side of the square window of ``min_texture``, pixels (odd)."""
     texture_measure: str = "variance"

@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import dataclasses
+from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 from conftest import load_kitti
 
-from terrainmap.config import StereoConfig
+from terrainmap.config import StereoConfig, load_config
 from terrainmap.errors import CalibrationError, InputError
 from terrainmap.extrinsics import extrinsics_from_pose
 from terrainmap.stereo import StereoMatcher, _texture_energy, to_vehicle
@@ -230,7 +231,9 @@ def test_x_gradient_ignores_horizontal_edges():
         grey = np.clip(image, 0, 255).astype(np.uint8)
         inner = np.s_[8:-8, 8:-8]
         assert _texture_kept(grey)[inner].mean() == variance_keeps
-        assert _texture_kept(grey, texture_measure="x_gradient", min_texture=2.0)[inner].mean() == gradient_keeps
+        assert (
+            _texture_kept(grey, texture_measure="x_gradient", min_texture=2.0)[inner].mean() == gradient_keeps
+        )
 
 
 def test_texture_margin_drops_the_band_beside_a_flat_region():
@@ -247,9 +250,5 @@ def test_texture_margin_drops_the_band_beside_a_flat_region():
 
 def test_open_terrain_preset_loads():
     """examples/open_terrain.toml, the README's setting for open ground under a flat sky."""
-    from pathlib import Path
-
-    from terrainmap.config import load_config
-
     stereo = load_config(Path(__file__).parents[1] / "examples" / "open_terrain.toml").stereo
     assert (stereo.texture_measure, stereo.min_texture, stereo.texture_margin_px) == ("x_gradient", 2.0, 5)
