@@ -248,3 +248,10 @@ def test_cli_prints_the_table_and_writes_json_and_plot(tiny_log, tmp_path):
     assert report["frames"] == 2 and report["config"]["terrain"]["control_points_x"] == 15
     assert report["obstacles"]["margin_m"] == 1.0
     assert out_png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_credited_track_keeps_a_matching_track_and_switches_only_when_it_is_lost():
+    """CLEAR MOT: two tracks on one obstacle do not make switches while the credited one matches."""
+    assert acc.credited_track(None, [7, 9], np.array([1.0, 0.2])) == 9  # first match: the nearest
+    assert acc.credited_track(9, [7, 9], np.array([0.1, 0.8])) == 9  # still matching: kept
+    assert acc.credited_track(9, [7, 4], np.array([0.5, 0.3])) == 4  # lost: the nearest takes over

@@ -34,9 +34,9 @@ layers, point labels and tracked obstacles) and every other method of
   ring radius = half the obstacle's width + margin), per evaluated frame. Bands by detection range.
 
 ``obstacles`` (extra key) holds, per truth obstacle, ``frames_to_confirmation`` (frames from
-first being eligible to first being matched, None if never) and ``id_switches`` (how often the
-track id matched to it — the matching track nearest its centre — changed between frames where it
-was matched).
+first being eligible to first being matched, None if never) and ``id_switches``: how often the
+track credited with it changed between frames where it was matched (:func:`credited_track`: an
+obstacle seen as two tracked clusters does not switch while the credited one keeps matching).
 
 ``common_cells`` (extra key) repeats the elevation metrics over the cells that *every* selected
 method covers, so methods with partial coverage are compared on the same cells.
@@ -100,6 +100,14 @@ def _truth_for(frames: Iterator[TruthFrame], stamp_ns: int, log: Path) -> TruthF
         if truth_frame.stamp_ns > stamp_ns:
             break
     raise InputError(f"{log}: no ground truth for the stereo frame at stamp {stamp_ns}")
+
+
+def credited_track(previous: int | None, ids: list[int], distances: np.ndarray) -> int:
+    """The track credited with a truth obstacle in this frame, among the matching tracks ``ids``
+    at ``distances`` (m) from its centre. As in the CLEAR MOT metrics, the track credited in the
+    last matched frame (``previous``) keeps it while it still matches; otherwise the nearest one
+    takes it over (a new id there is an id switch)."""
+    return previous if previous in ids else ids[int(np.argmin(distances))]
 
 
 class _Evaluation:
@@ -168,11 +176,12 @@ class _Evaluation:
             self.first_eligible.setdefault(key, self.frames)
             if hits.any():
                 self.first_matched.setdefault(key, self.frames)
-                # the matching track nearest to the truth centre; a new id there is an id switch
-                near = np.flatnonzero(hits)[np.argmin(np.hypot(*(positive[hits] - t.center_m[:2]).T))]
-                track = tracks[near].track_id
-                if self.last_track.get(key, track) != track:
-                    self.id_switches[key] += 1
+                matching = np.flatnonzero(hits)
+                previous = self.last_track.get(key)
+                track = credited_track(
+                    previous, [tracks[i].track_id for i in matching], np.hypot(*(positive[matching] - t.center_m[:2]).T)
+                )
+                self.id_switches[key] += previous not in (None, track)
                 self.last_track[key] = track
         false_range = [float(np.hypot(*o.center_m[:2])) for o in confirmed if self._is_false(o, gt, truth_frame)]
         self.scores["terrainmap"].add_obstacles([t.range_m for t in eligible], matched, false_range)
