@@ -5,7 +5,8 @@ we report the median, min and max in milliseconds, and :func:`goals` holds the m
 speed goals. The inputs are synthetic so the figures are comparable anywhere:
 
 - ``grid``, ``surface``, ``labels``, ``obstacles``: a 300k-point cloud over rolling terrain
-  with box obstacles (the size of a 640×480 stereo frame), paper configuration (34 m × 22 m,
+  with box obstacles (the size of a 640×480 stereo frame, its points in the order a camera
+  delivers them: :func:`terrainmap.synthetic.cloud`), paper configuration (34 m × 22 m,
   0.5 m cells, 25×25 control points, degree 3). ``surface`` is the whole iterative estimation
   with the slope and cell-label layers; ``grid`` includes each point's cell index, which
   ``labels`` reuses (as the pipeline does) to label every point.
