@@ -41,8 +41,8 @@ def cloud(n_points: int = 300_000, *, grid: GridConfig | None = None, noise_m: f
     for bx, by, w, h in BOXES:
         inside = (np.abs(x - bx) < w / 2) & (np.abs(y - by) < w / 2)
         z[inside] += rng.uniform(0, h, inside.sum())
-    depression = np.arctan2(1.8, x)
-    row = np.floor((depression - depression.min()) / np.ptp(depression) * 479.999)
+    far, near = np.arctan2(1.8, x1), np.arctan2(1.8, x0)  # depression angles of the area's ends
+    row = np.floor((np.arctan2(1.8, x) - far) / (near - far) * 479.999)
     order = np.lexsort((-y, row))
     return np.column_stack([x, y, z])[order].astype(np.float32)
 
