@@ -364,6 +364,15 @@ class ObstacleConfig:
     at 20 m puts ~100 points in its cells at 640×480, f = 500 px)."""
     negative: bool = True
     """Also extract negative obstacles from points labelled below the terrain."""
+    split_min_length_m: float = 3.0
+    """Clusters at least this long (along their major axis) are split where their points thin
+    out: stereo smear joins a near obstacle to one behind it."""
+    split_gap_fraction: float = 0.05
+    """Where a cluster is split: cell-sized stretches along its major axis holding at most this
+    fraction of its fullest stretch's points. 0 never splits."""
+    split_min_part: float = 0.1
+    """A part of a split cluster is kept only if it holds at least this fraction of the
+    cluster's points (smaller parts are smear and are dropped)."""
 
     def validate(self) -> None:
         _check(self.min_height_m > 0, "obstacles.min_height_m", "must be > 0")
@@ -371,6 +380,9 @@ class ObstacleConfig:
         _check(self.min_points >= 1, "obstacles.min_points", "must be >= 1")
         _check(self.min_cells >= 1, "obstacles.min_cells", "must be >= 1")
         _check(self.min_cell_points >= 1, "obstacles.min_cell_points", "must be >= 1")
+        _check(self.split_min_length_m > 0, "obstacles.split_min_length_m", "must be > 0")
+        _check(0 <= self.split_gap_fraction < 1, "obstacles.split_gap_fraction", "must be in [0, 1)")
+        _check(0 <= self.split_min_part <= 1, "obstacles.split_min_part", "must be in [0, 1]")
 
 
 @dataclass

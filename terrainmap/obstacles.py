@@ -3,9 +3,12 @@
 Points labelled :attr:`Label.OBSTACLE` (above the terrain) and :attr:`Label.BELOW` (below it)
 are clustered separately: each kind is counted per grid cell, cells holding at least
 ``min_cell_points`` such points are joined by 8-connectivity (:func:`scipy.ndimage.label`), and
-every point takes the cluster of its cell. Per-cluster statistics are reduced with
-``np.bincount`` / ``ufunc.at`` over all points at once, so thousands of tiny clusters cost no
-Python loop over points; only the clusters that pass the filters become :class:`Obstacle` objects.
+every point takes the cluster of its cell. Clusters at least ``split_min_length_m`` long are then
+cut where their points thin out along the major axis, and the thin stretches dropped: stereo
+smear joins a near obstacle to one behind it (:func:`_split_at_gaps`). Per-cluster statistics
+are reduced with ``np.bincount`` / ``ufunc.at`` over all points at once, so thousands of tiny
+clusters cost no Python loop over points; only the clusters that pass the filters become
+:class:`Obstacle` objects.
 
 Per cluster (vehicle frame, metres):
 
@@ -134,14 +137,20 @@ def _clusters(
         return []
     cid = cells.ravel()[idx] - 1  # cluster of each point, -1 where its cell has too few points
     keep = cid >= 0
-    points, cid = points[keep], cid[keep]
+    points, cid, idx = points[keep], cid[keep], idx[keep]
+    ncells = np.bincount(cells.ravel(), minlength=n + 1)[1:]
+    if config.split_gap_fraction > 0:
+        cid, split = _split_at_gaps(points, cid, n, grid_config.cell_size_m, config)
+        if split > n:
+            keep = cid >= 0
+            points, cid, idx, n = points[keep], cid[keep], idx[keep], split
+            ncells = np.bincount(np.unique(cid * (m0 * m1) + idx) // (m0 * m1), minlength=n)
     x, y, z = points[:, 0], points[:, 1], points[:, 2]
     height = z - terrain_at(points, elevation, grid_config)
     if kind == "negative":
         height = -height
 
     npts = np.bincount(cid, minlength=n)
-    ncells = np.bincount(cells.ravel(), minlength=n + 1)[1:]
     top = _reduce(np.maximum, height, cid, n, -np.inf)
     ok = (npts >= config.min_points) & (ncells >= config.min_cells) & (top >= min_height)
     if not ok.any():
@@ -174,6 +183,43 @@ def _clusters(
         Obstacle(center_m=c, size_m=sz, yaw_rad=y, height_m=h, point_count=n, range_m=r, kind=kind)
         for c, sz, (y, h, n, r) in zip(centers, sizes, scalars, strict=True)
     ]
+
+
+def _split_at_gaps(
+    points: np.ndarray, cid: np.ndarray, n: int, bin_m: float, config: ObstacleConfig
+) -> tuple[np.ndarray, int]:
+    """Split clusters at least ``split_min_length_m`` long where their points thin out along the
+    major axis, and drop the thin stretches.
+
+    Stereo smears a near obstacle's points along the viewing ray towards one behind it (a person
+    6 m in front of a car at 15–20 m), and cells of a few smeared points join both into one
+    cluster whose centre lies on neither. Along the major axis, in bins of ``bin_m``, a bin with
+    at most ``split_gap_fraction`` of the fullest bin's points is a gap; each stretch between gaps
+    that holds at least ``split_min_part`` of the cluster's points (and ``min_points``) becomes a
+    cluster of its own when there are two or more, and the other points are dropped.
+
+    Returns the cluster of each point (−1: dropped) and the number of clusters (≥ ``n``).
+    """
+    npts = np.bincount(cid, minlength=n)
+    _, u, _ = _principal_axes(points[:, 0], points[:, 1], cid, npts)
+    lo = _reduce(np.minimum, u, cid, n, np.inf)
+    hi = _reduce(np.maximum, u, cid, n, -np.inf)
+    cid = cid.copy()
+    for c in np.flatnonzero(hi - lo >= config.split_min_length_m):
+        members = np.flatnonzero(cid == c)
+        bins = ((u[members] - lo[c]) / bin_m).astype(np.intp)
+        counts = np.bincount(bins)
+        dense = counts > config.split_gap_fraction * counts.max()
+        stretch = np.where(dense, np.cumsum(dense & np.diff(dense, prepend=False)) - 1, -1)[bins]
+        sizes = np.bincount(stretch[stretch >= 0])
+        parts = np.flatnonzero(sizes >= max(config.min_points, config.split_min_part * members.size))
+        if len(parts) < 2:
+            continue
+        new_id = np.full(sizes.size, -1)
+        new_id[parts] = [c, *range(n, n + len(parts) - 1)]
+        n += len(parts) - 1
+        cid[members] = np.where(stretch >= 0, new_id[stretch], -1)
+    return cid, n
 
 
 def _robust_extent(w: np.ndarray, cid: np.ndarray, k: int, npts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -160,11 +160,45 @@ def test_terrain_at_is_exact_on_a_plane():
 
 
 @pytest.mark.parametrize(
-    "field", ["min_height_m", "min_depth_m", "min_points", "min_cells", "min_cell_points"]
+    ("field", "value"),
+    [("min_height_m", 0), ("min_depth_m", 0), ("min_points", 0), ("min_cells", 0), ("min_cell_points", 0),
+     ("split_min_length_m", 0), ("split_gap_fraction", 1.0), ("split_min_part", -0.1)],
 )
-def test_config_rejects_nonsense(field):
+def test_config_rejects_nonsense(field, value):
     with pytest.raises(ConfigError, match=f"obstacles.{field}"):
-        ObstacleConfig(**{field: 0}).validate()
+        ObstacleConfig(**{field: value}).validate()
+
+
+def _smeared_pair(rng):
+    """A person (0.5 m, 1.8 m tall) at 14 m and a car (4 × 1.8 m) 6 m behind it, with as many
+    points as a camera gives each, joined by a thin trail of stereo-smeared points between them
+    (3 per 0.5 m cell, 1.2 m up)."""
+    plane = Plane()
+    person = box_points(plane, (14.0, 3.0), 0.5, 0.5, 1.8)
+    car = box_points(plane, (22.0, 3.0), 4.0, 1.8, 1.5, spacing=0.1)
+    trail_x = np.repeat(np.arange(14.3, 20.0, 0.5), 3) + rng.uniform(-0.2, 0.2, 36)
+    trail = np.column_stack([trail_x, np.full(36, 3.0), np.full(36, 1.2)])
+    return plane, labelled(plane, terrain_points(plane), person, car, trail)
+
+
+def test_smear_between_two_obstacles_is_cut():
+    plane, (points, labels) = _smeared_pair(np.random.default_rng(0))
+    (merged,) = extract_obstacles(points, labels, GRID, plane, ObstacleConfig(split_gap_fraction=0))
+    assert merged.point_count == int((labels == Label.OBSTACLE).sum())  # one cluster, centred on neither:
+    assert min(abs(merged.center_m[0] - 14.0), abs(merged.center_m[0] - 22.0)) > 1.0
+    person, car = extract_obstacles(points, labels, GRID, plane, ObstacleConfig())
+    np.testing.assert_allclose(person.center_m[:2], [14.0, 3.0], atol=0.15)
+    np.testing.assert_allclose(car.center_m[:2], [22.0, 3.0], atol=0.15)
+    assert person.height_m == pytest.approx(1.8, abs=0.01) and car.height_m == pytest.approx(1.5, abs=0.01)
+    assert person.point_count + car.point_count < int((labels == Label.OBSTACLE).sum())  # the trail is dropped
+
+
+def test_long_dense_obstacle_is_not_split():
+    plane = Plane()
+    wall = box_points(plane, (12.0, -2.0), 8.0, 0.6, 1.0)  # evenly dense along its 8 m
+    points, labels = labelled(plane, terrain_points(plane), wall)
+    (found,) = extract_obstacles(points, labels, GRID, plane, ObstacleConfig())
+    assert found.size_m[0] == pytest.approx(8.0, abs=0.06)
 
 
 def test_boxes_found_on_the_real_terrain_estimate():
