@@ -367,9 +367,10 @@ class ObstacleConfig:
     split_min_length_m: float = 3.0
     """Clusters at least this long (along their major axis) are split where their points thin
     out: stereo smear joins a near obstacle to one behind it."""
-    split_gap_fraction: float = 0.05
-    """Where a cluster is split: cell-sized stretches along its major axis holding at most this
-    fraction of its fullest stretch's points. 0 never splits."""
+    split_gap_fraction: float = 0.2
+    """Where a cluster is split: a cell-sized stretch along its major axis is a gap when it holds
+    at most this fraction of the points of the fuller stretches on both sides of it (of the
+    lower of the two peaks). 0 never splits."""
     split_min_part: float = 0.1
     """A part of a split cluster is kept only if it holds at least this fraction of the
     cluster's points (smaller parts are smear and are dropped)."""

@@ -193,8 +193,9 @@ def _split_at_gaps(
 
     Stereo smears a near obstacle's points along the viewing ray towards one behind it (a person
     6 m in front of a car at 15–20 m), and cells of a few smeared points join both into one
-    cluster whose centre lies on neither. Along the major axis, in bins of ``bin_m``, a bin with
-    at most ``split_gap_fraction`` of the fullest bin's points is a gap; each stretch between gaps
+    cluster whose centre lies on neither. Along the major axis, in bins of ``bin_m``, a bin is a
+    gap when it holds at most ``split_gap_fraction`` of the lower of the two peaks around it (the
+    fullest bins before and after it), a valley between two objects; each stretch between gaps
     that holds at least ``split_min_part`` of the cluster's points (and ``min_points``) becomes a
     cluster of its own when there are two or more, and the other points are dropped.
 
@@ -209,7 +210,8 @@ def _split_at_gaps(
         members = np.flatnonzero(cid == c)
         bins = ((u[members] - lo[c]) / bin_m).astype(np.intp)
         counts = np.bincount(bins)
-        dense = counts > config.split_gap_fraction * counts.max()
+        peak = np.minimum(np.maximum.accumulate(counts), np.maximum.accumulate(counts[::-1])[::-1])
+        dense = counts > config.split_gap_fraction * peak  # an end bin is its own peak: never a gap
         stretch = np.where(dense, np.cumsum(dense & np.diff(dense, prepend=False)) - 1, -1)[bins]
         sizes = np.bincount(stretch[stretch >= 0])
         parts = np.flatnonzero(sizes >= max(config.min_points, config.split_min_part * members.size))
