@@ -169,20 +169,24 @@ def test_config_rejects_nonsense(field, value):
         ObstacleConfig(**{field: value}).validate()
 
 
-def _smeared_pair(rng):
+def _smeared_pair(rng, per_cell):
     """A person (0.5 m, 1.8 m tall) at 14 m and a car (4 × 1.8 m) 6 m behind it, with as many
-    points as a camera gives each, joined by a thin trail of stereo-smeared points between them
-    (3 per 0.5 m cell, 1.2 m up)."""
+    points as a camera gives each, joined by a trail of stereo-smeared points between them
+    (``per_cell`` per 0.5 m cell, 1.2 m up)."""
     plane = Plane()
     person = box_points(plane, (14.0, 3.0), 0.5, 0.5, 1.8)
     car = box_points(plane, (22.0, 3.0), 4.0, 1.8, 1.5, spacing=0.1)
-    trail_x = np.repeat(np.arange(14.3, 20.0, 0.5), 3) + rng.uniform(-0.2, 0.2, 36)
-    trail = np.column_stack([trail_x, np.full(36, 3.0), np.full(36, 1.2)])
+    trail_x = np.repeat(np.arange(14.3, 20.0, 0.5), per_cell)
+    trail_x += rng.uniform(-0.2, 0.2, trail_x.size)
+    trail = np.column_stack([trail_x, np.full_like(trail_x, 3.0), np.full_like(trail_x, 1.2)])
     return plane, labelled(plane, terrain_points(plane), person, car, trail)
 
 
-def test_smear_between_two_obstacles_is_cut():
-    plane, (points, labels) = _smeared_pair(np.random.default_rng(0))
+# 3 per cell is a thin trail; 15 is as dense, relative to the person, as the simulated ditch's
+# smear (12–17 % of the person's fullest 0.5 m stretch).
+@pytest.mark.parametrize("per_cell", [3, 15])
+def test_smear_between_two_obstacles_is_cut(per_cell):
+    plane, (points, labels) = _smeared_pair(np.random.default_rng(0), per_cell)
     (merged,) = extract_obstacles(points, labels, GRID, plane, ObstacleConfig(split_gap_fraction=0))
     assert merged.point_count == int((labels == Label.OBSTACLE).sum())  # one cluster, centred on neither:
     assert min(abs(merged.center_m[0] - 14.0), abs(merged.center_m[0] - 22.0)) > 1.0
