@@ -119,11 +119,30 @@ def test_grid_truth_matches_the_truth_pixels(tiny_log):
         assert np.all(np.isfinite(gt.height_m)) and np.all(gt.slope_rad >= 0)
         near = gt.observed & (gt.range_m < 10)
         assert np.degrees(np.median(gt.slope_rad[near])) < 10  # rolling hills
-        boxes = truth_obstacles(frame)
+        boxes = truth_obstacles(frame, truth.calibration)
         assert {b.id for b in boxes} == {o.id for o in frame.obstacles}
+        assert all(b.pixels <= np.count_nonzero(frame.instance == b.id) for b in boxes)
         truck = next(b for b in boxes if b.kind == "truck")
         assert truck.pixels > 100 and truck.contains_xy(truck.center_m[:2] + [0, truck.size_m[1] / 2 + 0.4], 0.5)[0]
         assert not truck.contains_xy(truck.center_m[:2] + [0, truck.size_m[1] / 2 + 0.6], 0.5)[0]
+
+
+def test_obstacle_pixels_count_only_what_both_cameras_see():
+    """A left-image pixel whose disparity (fx·B/Z) exceeds its column has no match in the right image."""
+    from terrainmap.sim.obstacles import ObstacleBox
+    from terrainmap.sim.truth import TruthFrame
+    from terrainmap.types import StereoCalibration
+
+    cal = StereoCalibration(width=64, height=8, fx=50.0, fy=50.0, cx=32.0, cy=4.0, baseline_m=0.3)  # 15 px at 1 m
+    instance = np.zeros((8, 64), np.uint8)
+    instance[:, 0:10] = 1  # at the left edge: out of the right camera's view
+    instance[:, 30:40] = 2
+    depth = np.full((8, 64), 1.0, np.float32)
+    boxes = [ObstacleBox(i, "rock", "box", np.array([5.0, 0, 0.3]), np.ones(3), 0.0, 0.6, np.zeros(3)) for i in (1, 2)]
+    frame = TruthFrame(0, 0, np.eye(3), np.zeros(3), boxes, depth, np.zeros((8, 64), np.uint8), instance)
+    assert [b.pixels for b in truth_obstacles(frame, cal)] == [0, 80]
+    depth[:, 0:10] = 10.0  # 1.5 px of disparity: columns 2–9 are matched
+    assert [b.pixels for b in truth_obstacles(frame, cal)] == [64, 80]
 
 
 # --- evaluate(): a perfect pipeline scores perfectly; schema; errors ---------------------------------------

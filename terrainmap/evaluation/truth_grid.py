@@ -22,6 +22,7 @@ import numpy as np
 from ..config import GridConfig
 from ..grid import cell_centers, cell_index
 from ..sim.truth import Truth, TruthFrame
+from ..types import StereoCalibration
 
 TERRAIN_PIXEL = 1
 """Truth label of terrain pixels (0 sky, 1 terrain, 2 obstacle)."""
@@ -30,8 +31,9 @@ TERRAIN_PIXEL = 1
 @dataclass
 class TruthObstacle:
     """A truth obstacle in the vehicle frame: ``center_m`` (3,), ``size_m`` (3,) box extent along
-    its heading ``yaw_rad`` (about base z), ``height_m`` above the ground, ``pixels`` (instance
-    pixels in the left image) and ``range_m`` (horizontal distance of the centre)."""
+    its heading ``yaw_rad`` (about base z), ``height_m`` above the ground, ``pixels`` (its pixels
+    that both cameras see, :func:`truth_obstacles`) and ``range_m`` (horizontal distance of the
+    centre)."""
 
     id: int
     kind: str
@@ -99,11 +101,18 @@ def observed_cells(truth: Truth, frame: TruthFrame, grid: GridConfig, min_pixels
     return (count >= min_pixels).reshape(m0, m1)
 
 
-def truth_obstacles(frame: TruthFrame) -> list[TruthObstacle]:
-    """The frame's truth obstacles in the vehicle frame, with their visible pixel counts."""
+def truth_obstacles(frame: TruthFrame, calibration: StereoCalibration) -> list[TruthObstacle]:
+    """The frame's truth obstacles in the vehicle frame, with the number of their pixels that both
+    cameras see: left-image pixels whose match in the (rectified) right image, column
+    ``u − fx·B/Z + doffs``, lies inside it. Stereo can give no point for the others (an obstacle
+    at the left edge of the left image that the right camera does not see)."""
     pose = frame.pose_world_base()
     rot, trans = pose[:3, :3], pose[:3, 3]
-    pixels = np.bincount(frame.instance.ravel(), minlength=256)
+    v, u = np.nonzero(frame.instance)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u_right = u - calibration.fx * calibration.baseline_m / frame.depth[v, u] + calibration.doffs
+    both = (u_right >= 0) & (u_right < calibration.width)  # False for NaN
+    pixels = np.bincount(frame.instance[v[both], u[both]], minlength=256)
     out = []
     for box in frame.obstacles:
         heading = rot.T @ np.array([np.cos(box.yaw_rad), np.sin(box.yaw_rad), 0.0])
@@ -127,7 +136,7 @@ def grid_truth(truth: Truth, frame: TruthFrame, grid: GridConfig, *, min_pixels:
         height_m=h[0],
         slope_rad=np.arctan(np.hypot(gx, gy)),
         range_m=np.hypot(x, y),
-        obstacles=truth_obstacles(frame),
+        obstacles=truth_obstacles(frame, truth.calibration),
     )
 
 
