@@ -137,14 +137,15 @@ def _clusters(
         return []
     cid = cells.ravel()[idx] - 1  # cluster of each point, -1 where its cell has too few points
     keep = cid >= 0
-    points, cid, idx = points[keep], cid[keep], idx[keep]
+    points, cid = points[keep], cid[keep]
     ncells = np.bincount(cells.ravel(), minlength=n + 1)[1:]
     if config.split_gap_fraction > 0:
-        cid, split = _split_at_gaps(points, cid, n, grid_config.cell_size_m, config)
-        if split > n:
-            keep = cid >= 0
-            points, cid, idx, n = points[keep], cid[keep], idx[keep], split
-            ncells = np.bincount(np.unique(cid * (m0 * m1) + idx) // (m0 * m1), minlength=n)
+        cut, split = _split_at_gaps(points, cid, n, grid_config.cell_size_m, config)
+        if split > n:  # the parts of a cut cluster may share cells: count each part's from its points
+            kept = cut >= 0
+            cell = idx[keep][kept]
+            points, cid, n = points[kept], cut[kept], split
+            ncells = np.bincount(np.unique(cid * (m0 * m1) + cell) // (m0 * m1), minlength=n)
     x, y, z = points[:, 0], points[:, 1], points[:, 2]
     height = z - terrain_at(points, elevation, grid_config)
     if kind == "negative":
@@ -199,7 +200,8 @@ def _split_at_gaps(
     that holds at least ``split_min_part`` of the cluster's points (and ``min_points``) becomes a
     cluster of its own when there are two or more, and the other points are dropped.
 
-    Returns the cluster of each point (−1: dropped) and the number of clusters (≥ ``n``).
+    Returns the cluster of each point (−1: dropped; a new array) and the number of clusters
+    (``n`` when nothing was cut).
     """
     npts = np.bincount(cid, minlength=n)
     _, u, _ = _principal_axes(points[:, 0], points[:, 1], cid, npts)
