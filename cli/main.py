@@ -9,16 +9,11 @@ from __future__ import annotations
 
 import importlib
 import logging
-import os
 import sys
 
-# The per-frame core runs small matrix products: BLAS threads only contend with the stereo
-# matcher's threads (and stall badly on a busy machine). Set before numpy is imported.
-os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+import click
 
-import click  # noqa: E402
-
-from terrainmap.errors import TerrainmapError  # noqa: E402
+from terrainmap.errors import TerrainmapError  # first terrainmap import: limits OpenBLAS's threads
 
 # command name -> "module:attribute" (modules relative to terrainmap.cli)
 COMMANDS = {

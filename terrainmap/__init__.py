@@ -7,6 +7,14 @@ terrain/obstacle segmentation.
 """
 
 import logging
+import os
+
+# OpenBLAS threads that wait for work spin on the CPU beside OpenCV's stereo matcher. With
+# scipy's OpenBLAS at its default thread count, 6 alternating runs each on the 2-core benchmark
+# machine took 42–58 ms for SGBM on a 640×480 pair (27–41 ms with one thread) and 66–73 ms for
+# the whole frame (43–62 ms). terrainmap's matrices are small enough for one thread. This must
+# run before scipy.linalg loads OpenBLAS, so it is here; a value already in the environment wins.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 from .config import Config, load_config
 from .errors import CalibrationError, ConfigError, FrameError, InputError, TerrainmapError
