@@ -407,6 +407,9 @@ class TrackingConfig:
     """Process noise of the constant-velocity model: white acceleration, m/s²."""
     initial_velocity_std_mps: float = 5.0
     """Standard deviation of the (zero) velocity a new track starts with, m/s."""
+    fragment_radius_m: float = 1.5
+    """An unmatched detection this close (centre to centre, metres) to a confirmed track matched
+    in the same frame is a fragment of that obstacle and starts no track of its own. 0 = off."""
 
     def validate(self) -> None:
         _check(self.confirm_hits >= 1, "tracking.confirm_hits", "must be >= 1")
@@ -419,6 +422,11 @@ class TrackingConfig:
         for name in ("gate_m", "measurement_std_m", "acceleration_std_mps2", "initial_velocity_std_mps"):
             value = getattr(self, name)
             _check(math.isfinite(value) and value > 0, f"tracking.{name}", f"must be > 0, got {value}")
+        _check(
+            math.isfinite(self.fragment_radius_m) and self.fragment_radius_m >= 0,
+            "tracking.fragment_radius_m",
+            f"must be >= 0, got {self.fragment_radius_m}",
+        )
 
 
 @dataclass

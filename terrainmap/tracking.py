@@ -12,7 +12,11 @@ Per frame (:meth:`ObstacleTracker.update`):
 2. associate detections to tracks of the same kind with the Hungarian algorithm
    (:func:`scipy.optimize.linear_sum_assignment`) on the distance between predicted and
    detected centres, pairs farther than ``gate_m`` never matching;
-3. update matched tracks; start a tentative track for every unmatched detection;
+3. update matched tracks; start a tentative track for every unmatched detection but the
+   fragments: one within ``fragment_radius_m`` of a confirmed track of its kind matched in this
+   frame is another cluster of that obstacle (a low mound whose top flickers above the
+   threshold, a person smeared in depth), and a track of its own would take the obstacle over
+   whenever the first cluster is missed;
 4. a track is *confirmed* once it has been matched in ``confirm_hits`` frames (counting the
    first); a tentative track is dropped at its first miss, a confirmed one after more than
    ``max_misses`` consecutive misses, and any track whose predicted centre leaves the grid area
@@ -121,11 +125,10 @@ class ObstacleTracker:
         self._misses[~matched] += 1
         for r, c in zip(rows, cols, strict=True):
             self._shape[r] = (obstacles[c], centers_t[c, 2], obstacles[c].yaw_rad + yaw_v)
+        new = self._not_fragments(np.setdiff1d(np.arange(len(obstacles)), cols), centers_t, obstacles, rows)
         self._drop(
             (~matched) & ((self._hits < self.config.confirm_hits) | (self._misses > self.config.max_misses))
         )
-
-        new = np.setdiff1d(np.arange(len(obstacles)), cols)
         self._spawn([obstacles[i] for i in new], centers_t[new], yaw_v)
         return self._report(rot, trans, yaw_v)
 
@@ -181,6 +184,17 @@ class ObstacleTracker:
         r, c = linear_sum_assignment(np.where(allowed, cost, 10 * self.config.gate_m + 1))
         ok = allowed[r, c]
         return np.concatenate([i[single], rows[r[ok]]]), np.concatenate([j[single], cols[c[ok]]])
+
+    def _not_fragments(self, new: np.ndarray, centers_t: np.ndarray, obstacles: list[Obstacle], rows: np.ndarray):
+        """The unmatched detections ``new`` that lie farther than ``fragment_radius_m`` from
+        every confirmed track of their kind matched in this frame."""
+        radius = self.config.fragment_radius_m
+        rows = rows[self._hits[rows] >= self.config.confirm_hits]
+        if radius <= 0 or not len(new) or not len(rows):
+            return new
+        near = np.hypot(*(centers_t[new, None, :2] - self._x[None, rows, :2]).transpose(2, 0, 1)) <= radius
+        same = np.array([[obstacles[i].kind == self._shape[r][0].kind for r in rows] for i in new])
+        return new[~(near & same).any(1)]
 
     def _correct(self, rows: np.ndarray, z: np.ndarray) -> None:
         """Batched Kalman update of tracks ``rows`` with measured centres ``z`` (k, 2)."""

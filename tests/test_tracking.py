@@ -177,6 +177,19 @@ def test_far_detection_outside_the_gate_starts_a_new_track():
     assert b.track_id != a.track_id and not b.confirmed
 
 
+@pytest.mark.parametrize("radius", [1.5, 0.0])
+def test_fragment_beside_a_confirmed_track_starts_no_track(radius):
+    """A second cluster of an obstacle already tracked (1 m from it) starts no track of its own;
+    one 3 m away does, and so does the fragment with the rule off."""
+    tracker = ObstacleTracker(TrackingConfig(fragment_radius_m=radius))
+    for k in range(2):
+        (track,) = tracker.update([detection(10, 0)], k * DT_NS)
+    out = tracker.update([detection(10, 0), detection(11, 0), detection(13, 0)], 2 * DT_NS)
+    starts = sorted(o.center_m[0] for o in out if o.track_id != track.track_id)
+    assert [o.center_m[0] for o in out if o.track_id == track.track_id] == pytest.approx([10])
+    assert starts == pytest.approx([13] if radius else [11, 13])
+
+
 def test_stamp_going_back_resets_the_tracks():
     tracker = ObstacleTracker(TrackingConfig())
     tracker.update([detection(10, 0)], 5 * DT_NS)
@@ -215,6 +228,8 @@ def test_many_detections_are_tracked_quickly():
 def test_config_rejects_nonsense(field):
     with pytest.raises(ConfigError, match=f"tracking.{field}"):
         TrackingConfig(**{field: 0}).validate()
+    with pytest.raises(ConfigError, match="tracking.fragment_radius_m"):
+        TrackingConfig(fragment_radius_m=-1).validate()
     with pytest.raises(ConfigError, match="tracking.max_misses"):
         TrackingConfig(max_misses=-1).validate()
     with pytest.raises(ConfigError, match="tracking.report_misses"):
