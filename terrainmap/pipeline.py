@@ -166,7 +166,8 @@ def finish_frame(frame: StereoFrame, matched: Matched, config: Config, state: Pi
     terrain = map_points(points, config, watch, matched.camera)
     with watch("obstacles"):
         obstacles, cost = run_obstacle_stage(
-            points, terrain.point_labels, terrain.grid, terrain.layers, frame.stamp_ns, state.tracker, config
+            points, terrain.point_labels, terrain.grid, terrain.layers, frame.stamp_ns, state.tracker, config,
+            vehicle_pose=frame.vehicle_pose,
         )
     return FrameResult(
         index=frame.index,

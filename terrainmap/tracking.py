@@ -83,6 +83,11 @@ class ObstacleTracker:
     def track_count(self) -> int:
         return len(self._ids)
 
+    @property
+    def in_world_frame(self) -> bool:
+        """True when the last update came with a vehicle pose (tracks live in its world frame)."""
+        return bool(self._world)
+
     def update(
         self, obstacles: list[Obstacle], stamp_ns: int, vehicle_pose: np.ndarray | None = None
     ) -> list[Obstacle]:

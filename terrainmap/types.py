@@ -88,6 +88,9 @@ class StereoFrame:
 
     ``left``/``right`` are H×W (mono) or H×W×3 (RGB order) uint8 images of the same size.
     ``extrinsics`` is None when the source has none (the pipeline then estimates them).
+    ``vehicle_pose`` is ``world_from_vehicle`` (4×4, metres) in the log's odometry frame at the
+    pair's stamp, from its dynamic tf (``odom → base_link``), or None; obstacles are then tracked
+    in that frame.
     """
 
     index: int
@@ -99,6 +102,7 @@ class StereoFrame:
     frame_id: str = "camera_optical"
     source: str = ""
     """Human-readable origin (file names or topics), for messages."""
+    vehicle_pose: np.ndarray | None = None
 
 
 @dataclass

@@ -12,7 +12,9 @@ from mcap_ros2.decoder import DecoderFactory
 from mcap_ros2.writer import Writer
 
 from terrainmap.cli.main import cli
+from terrainmap.config import Config
 from terrainmap.errors import ConfigError, InputError
+from terrainmap.pipeline import PipelineState, process_frame
 from terrainmap.ros2defs import SCHEMAS
 from terrainmap.sim import SimConfig, open_truth, simulate
 from terrainmap.sim.messages import image_array
@@ -89,6 +91,23 @@ def test_terrain_sources_read_the_simulated_logs_with_true_extrinsics(mcap_log, 
         truth = open_truth(path)
         np.testing.assert_allclose(frame.extrinsics.rotation, truth.extrinsics.rotation, atol=1e-9)
         np.testing.assert_allclose(frame.extrinsics.translation, [0, 0, 1.8], atol=1e-9)
+
+
+def test_mcap_log_frames_carry_the_vehicle_pose_and_obstacles_are_tracked_over_ground(mcap_log, folder_log):
+    """The log's dynamic tf (odom → base_link) gives each pair its vehicle pose, and the pipeline
+    then tracks obstacles in the odometry frame; the folder layout has no odometry."""
+    with open_source(mcap_log) as source:
+        frames = list(source.frames())
+    truth = list(open_truth(mcap_log).frames())
+    for frame, true in zip(frames, truth, strict=True):
+        np.testing.assert_allclose(frame.vehicle_pose, true.pose_world_base(), atol=1e-6)
+    assert np.linalg.norm(frames[-1].vehicle_pose[:3, 3] - frames[0].vehicle_pose[:3, 3]) > 0.5
+    config = Config()
+    state = PipelineState(config)
+    process_frame(frames[0], config, state)
+    assert state.tracker.in_world_frame
+    with open_source(folder_log) as source:
+        assert next(iter(source.frames())).vehicle_pose is None
 
 
 def test_mcap_and_folder_truth_agree_and_stream_in_stamp_order(mcap_log, folder_log):

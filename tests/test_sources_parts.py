@@ -6,7 +6,7 @@ import pytest
 from terrainmap.errors import InputError
 from terrainmap.sources.images import decode_raw
 from terrainmap.sources.pairing import StereoPairer
-from terrainmap.sources.tf import TransformTree, quaternion_to_matrix
+from terrainmap.sources.tf import TransformTree, VehiclePoses, quaternion_to_matrix
 from terrainmap.sources.topics import calibration_topic, side_tokens, stereo_topics
 
 IMAGE = "sensor_msgs/msg/Image"
@@ -79,6 +79,29 @@ def test_transform_tree_composes_up_to_the_vehicle_frame():
     rootless = TransformTree()
     rootless.add("world", "cam", [1, 2, 3], [0, 0, 0, 1])
     assert rootless.extrinsics("cam").vehicle_frame_id == "world"
+
+
+def test_vehicle_poses_interpolate_and_keep_to_one_odometry_frame():
+    yaw90 = [0, 0, np.sin(np.pi / 4), np.cos(np.pi / 4)]
+    poses = VehiclePoses(tolerance_ns=50)
+    assert poses.at(100) is None and poses.newest_ns is None
+    poses.add(100, "/odom", "/base_link", [0, 0, 0], [0, 0, 0, 1])
+    poses.add(200, "odom", "base_link", [1, 2, 0], yaw90)
+    poses.add(150, "odom", "base_link", [9, 9, 9], [0, 0, 0, 1])  # older than the newest: ignored
+    poses.add(300, "map", "base_link", [5, 5, 5], [0, 0, 0, 1])  # another odometry frame: ignored
+    poses.add(300, "base_link", "camera", [5, 5, 5], [0, 0, 0, 1])  # not a vehicle pose
+    assert poses.parent == "odom" and poses.newest_ns == 200
+    early, late = poses.at(125), poses.at(175)
+    np.testing.assert_allclose(early[:3, 3], [0.25, 0.5, 0])
+    np.testing.assert_allclose(early[:3, :3], np.eye(3))  # the nearer pose's rotation
+    np.testing.assert_allclose(late[:3, :3], quaternion_to_matrix(yaw90), atol=1e-12)
+    np.testing.assert_allclose(poses.at(250)[:3, 3], [1, 2, 0])  # within the tolerance of the last
+    np.testing.assert_allclose(poses.at(50)[:3, 3], [0, 0, 0])
+    assert poses.at(251) is None and poses.at(49) is None
+    bounded = VehiclePoses(horizon_ns=1000)
+    for k in range(100):
+        bounded.add(100 * k, "odom", "base_link", [k, 0, 0], [0, 0, 0, 1])
+    assert len(bounded._stamps) == 11 and bounded.at(9850)[0, 3] == pytest.approx(98.5)
 
 
 def test_decode_raw_handles_row_padding_and_big_endian():

@@ -4,13 +4,16 @@ Images: ROS 2/1 ``sensor_msgs/msg/Image`` and ``CompressedImage``, Foxglove ``Ra
 ``CompressedImage``. Calibration: ``sensor_msgs/msg/CameraInfo`` or ``foxglove.CameraCalibration``
 matched to each image topic by namespace (or a calibration file). Extrinsics: the tf tree
 (``tf2_msgs/msg/TFMessage``, ``foxglove.FrameTransform(s)``) from ``base_link`` (else
-``base_footprint``, else the root) to the left image's frame.
+``base_footprint``, else the root) to the left image's frame. Vehicle poses: the dynamic tf
+from an odometry frame to ``base_link`` / ``base_footprint`` (:class:`~terrainmap.sources.tf.VehiclePoses`),
+looked up at each pair's stamp (``StereoFrame.vehicle_pose``), so obstacles are tracked over ground.
 
 Calibration, the first left image (for its frame id) and the transforms are read at open, each
 through the topic index, so they are found whatever part of the log ``frames()`` selects. Then
-``frames()`` streams the two image topics once, pairs them by header stamp
-(:class:`~terrainmap.sources.pairing.StereoPairer`, bounded buffers) and decodes images only for
-the pairs it yields: memory stays bounded for a log of any length.
+``frames()`` streams the two image topics (and the dynamic tf) once, pairs them by header stamp
+(:class:`~terrainmap.sources.pairing.StereoPairer`, bounded buffers; with odometry a pair waits up
+to ``POSE_WAIT_NS`` of log time for the pose after its stamp) and decodes images only for the
+pairs it yields: memory stays bounded for a log of any length.
 """
 
 from __future__ import annotations
@@ -18,6 +21,7 @@ from __future__ import annotations
 import itertools
 import logging
 from abc import abstractmethod
+from collections import deque
 from collections.abc import Iterator
 from functools import partial
 from pathlib import Path
@@ -30,13 +34,17 @@ from .base import PairRef, Source, describe_extrinsics
 from .images import stereo_pair
 from .pairing import StereoPairer
 from .readers import McapLog, Ros1Bag
-from .tf import TransformTree
+from .tf import TransformTree, VehiclePoses
 from .topics import calibration_topic, stereo_topics
 
 logger = logging.getLogger(__name__)
 
 MAX_DYNAMIC_TF_MESSAGES = 1000
 """How many non-static tf messages are read at most while looking for the camera's parent frames."""
+
+POSE_WAIT_NS = 1_000_000_000
+"""How long (log stamps) a stereo pair waits for the vehicle pose after its stamp before it is
+yielded with the poses known by then."""
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 ROS1_MAGIC = b"#ROSBAG V2.0"
@@ -79,6 +87,7 @@ class LogSource(Source):
         self.calibration_error: CalibrationError | None = None
         self.calibration: StereoCalibration | None = override[0] if override else self._log_calibration()
         self.extrinsics: Extrinsics | None = (override[1] if override else None) or self._tf_extrinsics()
+        self.odometry_topics = [t for t in self._tf_topics() if "static" not in t]
 
     @abstractmethod
     def _open_reader(self) -> McapLog | Ros1Bag:
@@ -115,8 +124,11 @@ class LogSource(Source):
             self.calibration_error = exc
             return None
 
+    def _tf_topics(self) -> list[str]:
+        return sorted(t for t, kind in self.reader.types.items() if kind in msgs.TF_TYPES)
+
     def _tf_extrinsics(self) -> Extrinsics | None:
-        tf_topics = sorted(t for t, kind in self.reader.types.items() if kind in msgs.TF_TYPES)
+        tf_topics = self._tf_topics()
         static = [t for t in tf_topics if "static" in t]
         dynamic = [t for t in tf_topics if t not in static]
         tree = TransformTree()
@@ -140,17 +152,35 @@ class LogSource(Source):
         if self.calibration is None:
             raise self.calibration_error
         pairer = StereoPairer(self.pair_tolerance_ns)
+        poses = VehiclePoses()
+        pending: deque = deque()  # pairs waiting for the pose after their stamp
         index = 0
-        for topic, _, msg in self.reader.messages([self.left_topic, self.right_topic]):
-            pair = pairer.push(0 if topic == self.left_topic else 1, msgs.stamp_ns(msg), msg)
-            if pair is not None:
-                yield PairRef(index, pair[0], partial(self._load, index, *pair))
-                index += 1
+        for topic, _, msg in self.reader.messages([self.left_topic, self.right_topic, *self.odometry_topics]):
+            if topic in self.odometry_topics:
+                for transform in msgs.stamped_transforms(msg, self.reader.types[topic]):
+                    poses.add(*transform)
+            else:
+                pair = pairer.push(0 if topic == self.left_topic else 1, msgs.stamp_ns(msg), msg)
+                if pair is not None:
+                    pending.append((index, *pair))
+                    index += 1
+            if not pending:
+                continue
+            # With odometry, a pair waits for a pose at or after its stamp, or until it is a second old.
+            newest = max(poses.newest_ns or 0, pending[-1][1] - POSE_WAIT_NS) if self.odometry_topics else pending[-1][1]
+            while pending and pending[0][1] <= newest:
+                yield self._pair_ref(pending.popleft(), poses)
+        while pending:
+            yield self._pair_ref(pending.popleft(), poses)
         if pairer.dropped:
             logger.info("%s: %d image messages had no partner within %.1f ms", self.path, pairer.dropped,
                         self.pair_tolerance_ns / 1e6)
 
-    def _load(self, index: int, stamp_ns: int, left_msg, right_msg) -> StereoFrame:
+    def _pair_ref(self, pair: tuple, poses: VehiclePoses) -> PairRef:
+        index, stamp_ns = pair[:2]
+        return PairRef(index, stamp_ns, partial(self._load, *pair, vehicle_pose=poses.at(stamp_ns)))
+
+    def _load(self, index: int, stamp_ns: int, left_msg, right_msg, *, vehicle_pose=None) -> StereoFrame:
         types = self.reader.types
         left = msgs.image_array(left_msg, types[self.left_topic], self.left_topic)
         right = msgs.image_array(right_msg, types[self.right_topic], self.right_topic)
@@ -164,6 +194,7 @@ class LogSource(Source):
             extrinsics=self.extrinsics,
             frame_id=msgs.frame_id(left_msg),
             source=f"{self.path} {self.left_topic} + {self.right_topic}",
+            vehicle_pose=vehicle_pose,
         )
 
     def describe(self) -> dict:
@@ -182,6 +213,7 @@ class LogSource(Source):
             "calibration_topics": list(self.calibration_topics),
             "calibration": calib_io.summary(self.calibration) or f"missing: {self.calibration_error}",
             "extrinsics": describe_extrinsics(self.extrinsics),
+            "odometry_topics": self.odometry_topics,
         }
 
 

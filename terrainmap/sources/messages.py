@@ -117,3 +117,10 @@ def transforms(msg, msg_type: str) -> Iterator[tuple[str, str, list[float], list
     for t in msg.transforms if msg_type == "foxglove.FrameTransforms" else [msg]:
         tr, q = t.translation, t.rotation
         yield t.parent_frame_id, t.child_frame_id, [tr.x, tr.y, tr.z], [q.x, q.y, q.z, q.w]
+
+
+def stamped_transforms(msg, msg_type: str) -> Iterator[tuple[int, str, str, list[float], list[float]]]:
+    """(stamp ns, parent, child, translation xyz, quaternion xyzw) of each transform in a TF message."""
+    items = [msg] if msg_type == "foxglove.FrameTransform" else msg.transforms
+    for item, transform in zip(items, transforms(msg, msg_type), strict=True):
+        yield (stamp_ns(item), *transform)

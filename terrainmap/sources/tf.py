@@ -78,3 +78,52 @@ class TransformTree:
             camera_frame_id=chain[0],
             vehicle_frame_id=target,
         )
+
+
+class VehiclePoses:
+    """Recent poses of the vehicle (``base_link`` / ``base_footprint``) in an odometry frame,
+    from the dynamic tf (``odom → base_link``), looked up at image stamps.
+
+    ``at(stamp)`` interpolates the translation linearly between the two poses around the stamp
+    and takes the rotation of the nearer one (at 10 Hz a vehicle turns a degree or two between
+    poses); a stamp outside the known poses gets the nearest one if it lies within
+    ``tolerance_ns``, else None. The first odometry frame seen is kept (later parents are
+    ignored), and poses older than ``horizon_ns`` before the newest are forgotten, so memory
+    stays bounded.
+    """
+
+    def __init__(self, tolerance_ns: int = 100_000_000, horizon_ns: int = 2_000_000_000):
+        self.tolerance_ns, self.horizon_ns = tolerance_ns, horizon_ns
+        self.parent: str | None = None
+        self._stamps: list[int] = []
+        self._poses: list[np.ndarray] = []
+
+    @property
+    def newest_ns(self) -> int | None:
+        return self._stamps[-1] if self._stamps else None
+
+    def add(self, stamp_ns: int, parent: str, child: str, translation, quaternion_xyzw) -> None:
+        """Record one transform; only ``odometry frame → vehicle frame`` ones are kept."""
+        parent, child = parent.lstrip("/"), child.lstrip("/")
+        if child not in VEHICLE_FRAMES or parent in VEHICLE_FRAMES or parent != (self.parent or parent):
+            return
+        if self._stamps and stamp_ns <= self._stamps[-1]:
+            return  # out of order or repeated: poses are kept in time order
+        self.parent = parent
+        self._stamps.append(int(stamp_ns))
+        self._poses.append(homogeneous(quaternion_to_matrix(quaternion_xyzw), translation))
+        old = next(i for i, s in enumerate(self._stamps) if s >= stamp_ns - self.horizon_ns)
+        del self._stamps[:old], self._poses[:old]
+
+    def at(self, stamp_ns: int) -> np.ndarray | None:
+        """``world_from_vehicle`` (4×4) at ``stamp_ns``, or None (see the class docstring)."""
+        stamps = self._stamps
+        k = next((i for i, s in enumerate(stamps) if s >= stamp_ns), len(stamps))
+        if 0 < k < len(stamps):
+            t0, t1 = stamps[k - 1], stamps[k]
+            a = (stamp_ns - t0) / (t1 - t0)
+            pose = (self._poses[k - 1] if a < 0.5 else self._poses[k]).copy()
+            pose[:3, 3] = (1 - a) * self._poses[k - 1][:3, 3] + a * self._poses[k][:3, 3]
+            return pose
+        near = [i for i in (k - 1, k) if 0 <= i < len(stamps) and abs(stamps[i] - stamp_ns) <= self.tolerance_ns]
+        return self._poses[near[0]].copy() if near else None
