@@ -103,6 +103,8 @@ class StereoFrame:
     source: str = ""
     """Human-readable origin (file names or topics), for messages."""
     vehicle_pose: np.ndarray | None = None
+    odometry_frame_id: str = "odom"
+    """The frame ``vehicle_pose`` is given in (the parent of the vehicle frame in the log's tf)."""
 
 
 @dataclass

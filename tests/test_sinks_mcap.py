@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import tomllib
@@ -11,6 +12,7 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 from mcap_protobuf.decoder import DecoderFactory as ProtobufDecoderFactory
+from mcap_ros2.decoder import DecoderFactory as Ros2DecoderFactory
 from scipy.spatial.transform import Rotation
 
 import terrainmap
@@ -232,6 +234,32 @@ def test_estimated_extrinsics_go_on_tf_every_frame(tmp_path):
     write_frames(path, "foxglove", [make_frame(i, source="estimated") for i in range(3)])
     topics = read_messages(path, ProtobufDecoderFactory())
     assert "/tf_static" not in topics and len(topics["/tf"]) == 3
+
+
+@pytest.mark.parametrize("flavor", ["foxglove", "ros2"])
+def test_vehicle_pose_goes_on_tf_as_odometry_to_base_link(tmp_path, flavor):
+    """Frames with a vehicle pose also write ``odom → base_link`` on /tf, read back equal."""
+    yaw = Rotation.from_euler("z", 30, degrees=True)
+    frames = []
+    for i in range(3):
+        frame, result = make_frame(i)
+        pose = np.eye(4)
+        pose[:3, :3], pose[:3, 3] = yaw.as_matrix(), [10.0 + i, -2.0, 0.5]
+        frames.append((dataclasses.replace(frame, vehicle_pose=pose, odometry_frame_id="map"), result))
+    path = tmp_path / f"odom_{flavor}.mcap"
+    write_frames(path, flavor, frames)
+    factory = ProtobufDecoderFactory() if flavor == "foxglove" else Ros2DecoderFactory()
+    tf = read_messages(path, factory)["/tf"]
+    assert [t for t, _, _ in tf] == [f.stamp_ns for f, _ in frames]
+    for i, (_, _, msg) in enumerate(tf):
+        (t,) = msg.transforms
+        if flavor == "foxglove":
+            parent, child, xyz, q = t.parent_frame_id, t.child_frame_id, t.translation, t.rotation
+        else:
+            parent, child, xyz, q = t.header.frame_id, t.child_frame_id, t.transform.translation, t.transform.rotation
+        assert (parent, child) == ("map", "base_link")
+        np.testing.assert_allclose([xyz.x, xyz.y, xyz.z], [10.0 + i, -2.0, 0.5])
+        np.testing.assert_allclose(np.abs(np.dot([q.x, q.y, q.z, q.w], yaw.as_quat())), 1.0, atol=1e-12)
 
 
 def test_grid_without_cost_layer(tmp_path):

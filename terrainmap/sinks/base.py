@@ -148,6 +148,16 @@ def camera_transform(extrinsics: Extrinsics) -> tuple[str, str, tuple, tuple]:
     )
 
 
+def vehicle_transform(frame: StereoFrame, extrinsics: Extrinsics) -> tuple[str, str, tuple, tuple] | None:
+    """``(parent, child, translation_m, rotation (x, y, z, w))`` of the vehicle frame in the log's
+    odometry frame at this frame's stamp, or None when the source gave no vehicle pose."""
+    if frame.vehicle_pose is None:
+        return None
+    T = np.asarray(frame.vehicle_pose, float)
+    translation = tuple(float(v) for v in T[:3, 3])
+    return frame.odometry_frame_id, extrinsics.vehicle_frame_id, translation, quaternion_from_matrix(T[:3, :3])
+
+
 def grid_layers(result: FrameResult) -> dict[str, np.ndarray]:
     """The grid layers to write, in :data:`GRID_LAYERS` order, as (m0, m1) float32 / uint8 arrays.
 

@@ -12,7 +12,9 @@ publish time and message timestamp):
 - ``/terrainmap/points`` ``foxglove.PointCloud``: x, y, z float32 and uint8 ``label``.
 - ``/terrainmap/obstacles`` ``foxglove.SceneUpdate``: deletes all previous entities, then one
   entity per obstacle with a cube (coloured by kind) and a text ``"<id> <kind> <height> m"``.
-- ``/tf`` and ``/tf_static`` ``foxglove.FrameTransforms``: ``base_link`` → camera frame.
+- ``/tf`` and ``/tf_static`` ``foxglove.FrameTransforms``: ``base_link`` → camera frame, and on
+  ``/tf`` each frame's ``odom → base_link`` where the source gave the vehicle pose (so Foxglove
+  can show the drive in the odometry frame).
 - metadata record ``terrainmap``: version, config (TOML), extrinsics (JSON), source...
 """
 
@@ -52,6 +54,7 @@ from .base import (
     obstacle_rgba,
     obstacle_text,
     points_record,
+    vehicle_transform,
     yaw_quaternion,
 )
 
@@ -172,13 +175,13 @@ def obstacles_message(result: FrameResult) -> SceneUpdate:
     )
 
 
-def transforms_message(result: FrameResult) -> FrameTransforms:
-    """``foxglove.FrameTransforms`` with the camera pose in ``base_link``."""
-    parent, child, (x, y, z), (qx, qy, qz, qw) = camera_transform(result.extrinsics)
+def transforms_message(stamp_ns: int, transform: tuple[str, str, tuple, tuple]) -> FrameTransforms:
+    """``foxglove.FrameTransforms`` with one ``(parent, child, translation, rotation xyzw)``."""
+    parent, child, (x, y, z), (qx, qy, qz, qw) = transform
     return FrameTransforms(
         transforms=[
             FrameTransform(
-                timestamp=_timestamp(result.stamp_ns),
+                timestamp=_timestamp(stamp_ns),
                 parent_frame_id=parent,
                 child_frame_id=child,
                 translation=Vector3(x=x, y=y, z=z),
@@ -224,7 +227,10 @@ class FoxgloveMcapSink(McapSink):
         t = frame.stamp_ns
         tf_topic = self._tf_topic(result)
         if tf_topic:
-            self._log(tf_topic, transforms_message(result), t)
+            self._log(tf_topic, transforms_message(t, camera_transform(result.extrinsics)), t)
+        odometry = vehicle_transform(frame, result.extrinsics)
+        if odometry:
+            self._log("/tf", transforms_message(t, odometry), t)
         self._log("/terrainmap/grid", grid_message(result), t)
         self._writer.write_encoded("/terrainmap/points", PointCloud, encode_points(result), t)
         self._log("/terrainmap/obstacles", obstacles_message(result), t)

@@ -12,7 +12,8 @@ Topics, all in frame ``base_link`` and stamped with the source image's ``stamp_n
 - ``/terrainmap/points`` ``sensor_msgs/msg/PointCloud2``: x, y, z FLOAT32 (7), label UINT8 (2).
 - ``/terrainmap/obstacles`` ``visualization_msgs/msg/MarkerArray``: a DELETEALL marker, then per
   obstacle a CUBE (namespace ``obstacles``) and a TEXT_VIEW_FACING label (``obstacle_labels``).
-- ``/tf`` and ``/tf_static`` ``tf2_msgs/msg/TFMessage``: ``base_link`` → camera frame.
+- ``/tf`` and ``/tf_static`` ``tf2_msgs/msg/TFMessage``: ``base_link`` → camera frame, and on
+  ``/tf`` each frame's ``odom → base_link`` where the source gave the vehicle pose.
 - metadata record ``terrainmap``: version, config (TOML), extrinsics (JSON), source...
 """
 
@@ -48,6 +49,7 @@ from .base import (
     obstacle_rgba,
     obstacle_text,
     points_record,
+    vehicle_transform,
     yaw_quaternion,
 )
 from .cdr import encode_grid_map, point_cloud2_head_tail
@@ -124,10 +126,9 @@ def marker_array_message(result: FrameResult) -> dict:
     return {"markers": markers}
 
 
-def tf_message(result: FrameResult) -> dict:
-    """TFMessage dict with the camera pose in ``base_link``."""
-    parent, child, translation, rotation = camera_transform(result.extrinsics)
-    return {"transforms": [transform_stamped(result.stamp_ns, parent, child, translation, rotation)]}
+def tf_message(stamp_ns: int, transform: tuple[str, str, tuple, tuple]) -> dict:
+    """TFMessage dict with one ``(parent, child, translation, rotation xyzw)``."""
+    return {"transforms": [transform_stamped(stamp_ns, *transform)]}
 
 
 class _Writer(Writer):
@@ -172,7 +173,10 @@ class Ros2McapSink(McapSink):
         t = frame.stamp_ns
         tf_topic = self._tf_topic(result)
         if tf_topic:
-            self._log(tf_topic, "tf2_msgs/msg/TFMessage", tf_message(result), t)
+            self._log(tf_topic, "tf2_msgs/msg/TFMessage", tf_message(t, camera_transform(result.extrinsics)), t)
+        odometry = vehicle_transform(frame, result.extrinsics)
+        if odometry:
+            self._log("/tf", "tf2_msgs/msg/TFMessage", tf_message(t, odometry), t)
         grid_schema = self._schema("grid_map_msgs/msg/GridMap")
         self._writer.write_encoded("/terrainmap/grid_map", grid_schema, encode_grid_map(grid_map_message(result)), t)
         cloud_schema = self._schema("sensor_msgs/msg/PointCloud2")

@@ -178,9 +178,10 @@ class LogSource(Source):
 
     def _pair_ref(self, pair: tuple, poses: VehiclePoses) -> PairRef:
         index, stamp_ns = pair[:2]
-        return PairRef(index, stamp_ns, partial(self._load, *pair, vehicle_pose=poses.at(stamp_ns)))
+        pose = poses.at(stamp_ns)
+        return PairRef(index, stamp_ns, partial(self._load, *pair, pose=(pose, poses.parent)))
 
-    def _load(self, index: int, stamp_ns: int, left_msg, right_msg, *, vehicle_pose=None) -> StereoFrame:
+    def _load(self, index: int, stamp_ns: int, left_msg, right_msg, *, pose=(None, None)) -> StereoFrame:
         types = self.reader.types
         left = msgs.image_array(left_msg, types[self.left_topic], self.left_topic)
         right = msgs.image_array(right_msg, types[self.right_topic], self.right_topic)
@@ -194,7 +195,8 @@ class LogSource(Source):
             extrinsics=self.extrinsics,
             frame_id=msgs.frame_id(left_msg),
             source=f"{self.path} {self.left_topic} + {self.right_topic}",
-            vehicle_pose=vehicle_pose,
+            vehicle_pose=pose[0],
+            odometry_frame_id=pose[1] or "odom",
         )
 
     def describe(self) -> dict:
