@@ -403,8 +403,10 @@ class TrackingConfig:
     """Association gate: maximum distance between predicted track and detection, metres."""
     measurement_std_m: float = 0.2
     """Standard deviation of a detected obstacle centre (x and y), metres."""
-    acceleration_std_mps2: float = 2.0
-    """Process noise of the constant-velocity model: white acceleration, m/s²."""
+    acceleration_std_mps2: float = 1.0
+    """Process noise of the constant-velocity model: white acceleration, m/s². With tracks in the
+    odometry frame, where most obstacles stand still, 1 (was 2) confirmed more true obstacles
+    and fewer false ones on the simulated drives."""
     initial_velocity_std_mps: float = 5.0
     """Standard deviation of the (zero) velocity a new track starts with, m/s."""
     fragment_radius_m: float = 1.5
