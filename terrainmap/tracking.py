@@ -198,7 +198,7 @@ class ObstacleTracker:
         if radius <= 0 or not len(new) or not len(rows):
             return new
         near = np.hypot(*(centers_t[new, None, :2] - self._x[None, rows, :2]).transpose(2, 0, 1)) <= radius
-        same = np.array([[obstacles[i].kind == self._shape[r][0].kind for r in rows] for i in new])
+        same = np.array([obstacles[i].kind for i in new])[:, None] == np.array([self._shape[r][0].kind for r in rows])
         return new[~(near & same).any(1)]
 
     def _correct(self, rows: np.ndarray, z: np.ndarray) -> None:
