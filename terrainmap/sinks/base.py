@@ -121,20 +121,23 @@ class McapSink:
             record["extrinsics"] = json.dumps(self._extrinsics.to_dict())
         return {**record, **self._metadata}
 
-    def _tf_topic(self, result: FrameResult) -> str | None:
-        """Topic for this frame's camera transform, or None when it need not be written again.
+    def _transforms(self, frame: StereoFrame, result: FrameResult) -> list[tuple[str, tuple]]:
+        """``(topic, transform)`` pairs to write for this frame (transforms as :func:`camera_transform`).
 
         Estimated extrinsics may change every frame and go on ``/tf``; fixed ones (from tf, a
-        calibration file or the defaults) go on ``/tf_static`` when first seen or changed.
+        calibration file or the defaults) go on ``/tf_static`` when first seen or changed. The
+        vehicle's pose in the odometry frame, where the source gave one, goes on ``/tf``.
         """
-        ext = result.extrinsics
-        if ext.source == "estimated":
-            return "/tf"
-        key = camera_transform(ext)
-        if key == self._last_static:
-            return None
-        self._last_static = key
-        return "/tf_static"
+        out = []
+        camera = camera_transform(result.extrinsics)
+        if result.extrinsics.source == "estimated":
+            out.append(("/tf", camera))
+        elif camera != self._last_static:
+            self._last_static = camera
+            out.append(("/tf_static", camera))
+        if frame.vehicle_pose is not None:
+            out.append(("/tf", vehicle_transform(frame, result.extrinsics)))
+        return out
 
 
 def camera_transform(extrinsics: Extrinsics) -> tuple[str, str, tuple, tuple]:
@@ -148,11 +151,9 @@ def camera_transform(extrinsics: Extrinsics) -> tuple[str, str, tuple, tuple]:
     )
 
 
-def vehicle_transform(frame: StereoFrame, extrinsics: Extrinsics) -> tuple[str, str, tuple, tuple] | None:
+def vehicle_transform(frame: StereoFrame, extrinsics: Extrinsics) -> tuple[str, str, tuple, tuple]:
     """``(parent, child, translation_m, rotation (x, y, z, w))`` of the vehicle frame in the log's
-    odometry frame at this frame's stamp, or None when the source gave no vehicle pose."""
-    if frame.vehicle_pose is None:
-        return None
+    odometry frame at this frame's stamp (``frame.vehicle_pose`` must be given)."""
     T = np.asarray(frame.vehicle_pose, float)
     translation = tuple(float(v) for v in T[:3, 3])
     return frame.odometry_frame_id, extrinsics.vehicle_frame_id, translation, quaternion_from_matrix(T[:3, :3])

@@ -49,12 +49,10 @@ from .base import (
     POINT_DTYPE,
     VEHICLE_FRAME,
     McapSink,
-    camera_transform,
     grid_layers,
     obstacle_rgba,
     obstacle_text,
     points_record,
-    vehicle_transform,
     yaw_quaternion,
 )
 
@@ -225,12 +223,8 @@ class FoxgloveMcapSink(McapSink):
 
     def _write_frame(self, frame: StereoFrame, result: FrameResult) -> None:
         t = frame.stamp_ns
-        tf_topic = self._tf_topic(result)
-        if tf_topic:
-            self._log(tf_topic, transforms_message(t, camera_transform(result.extrinsics)), t)
-        odometry = vehicle_transform(frame, result.extrinsics)
-        if odometry:
-            self._log("/tf", transforms_message(t, odometry), t)
+        for topic, transform in self._transforms(frame, result):
+            self._log(topic, transforms_message(t, transform), t)
         self._log("/terrainmap/grid", grid_message(result), t)
         self._writer.write_encoded("/terrainmap/points", PointCloud, encode_points(result), t)
         self._log("/terrainmap/obstacles", obstacles_message(result), t)

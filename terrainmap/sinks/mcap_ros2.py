@@ -44,12 +44,10 @@ from .base import (
     POINT_DTYPE,
     VEHICLE_FRAME,
     McapSink,
-    camera_transform,
     grid_layers,
     obstacle_rgba,
     obstacle_text,
     points_record,
-    vehicle_transform,
     yaw_quaternion,
 )
 from .cdr import encode_grid_map, point_cloud2_head_tail
@@ -171,12 +169,8 @@ class Ros2McapSink(McapSink):
 
     def _write_frame(self, frame: StereoFrame, result: FrameResult) -> None:
         t = frame.stamp_ns
-        tf_topic = self._tf_topic(result)
-        if tf_topic:
-            self._log(tf_topic, "tf2_msgs/msg/TFMessage", tf_message(t, camera_transform(result.extrinsics)), t)
-        odometry = vehicle_transform(frame, result.extrinsics)
-        if odometry:
-            self._log("/tf", "tf2_msgs/msg/TFMessage", tf_message(t, odometry), t)
+        for topic, transform in self._transforms(frame, result):
+            self._log(topic, "tf2_msgs/msg/TFMessage", tf_message(t, transform), t)
         grid_schema = self._schema("grid_map_msgs/msg/GridMap")
         self._writer.write_encoded("/terrainmap/grid_map", grid_schema, encode_grid_map(grid_map_message(result)), t)
         cloud_schema = self._schema("sensor_msgs/msg/PointCloud2")

@@ -87,7 +87,7 @@ class LogSource(Source):
         self.calibration_error: CalibrationError | None = None
         self.calibration: StereoCalibration | None = override[0] if override else self._log_calibration()
         self.extrinsics: Extrinsics | None = (override[1] if override else None) or self._tf_extrinsics()
-        self.odometry_topics = [t for t in self._tf_topics() if "static" not in t]
+        self.odometry_topics = self._tf_topics()[1]
 
     @abstractmethod
     def _open_reader(self) -> McapLog | Ros1Bag:
@@ -124,13 +124,13 @@ class LogSource(Source):
             self.calibration_error = exc
             return None
 
-    def _tf_topics(self) -> list[str]:
-        return sorted(t for t, kind in self.reader.types.items() if kind in msgs.TF_TYPES)
+    def _tf_topics(self) -> tuple[list[str], list[str]]:
+        """The log's (static, dynamic) tf topics, told apart by name."""
+        tf_topics = sorted(t for t, kind in self.reader.types.items() if kind in msgs.TF_TYPES)
+        return [t for t in tf_topics if "static" in t], [t for t in tf_topics if "static" not in t]
 
     def _tf_extrinsics(self) -> Extrinsics | None:
-        tf_topics = self._tf_topics()
-        static = [t for t in tf_topics if "static" in t]
-        dynamic = [t for t in tf_topics if t not in static]
+        static, dynamic = self._tf_topics()
         tree = TransformTree()
         for topics, limit in ((static, None), (dynamic, MAX_DYNAMIC_TF_MESSAGES)):
             if not topics or tree.resolves(self.frame_id):
@@ -138,7 +138,7 @@ class LogSource(Source):
             stream = self.reader.messages(topics)
             try:
                 for topic, _, msg in itertools.islice(stream, limit):
-                    for transform in msgs.transforms(msg, self.reader.types[topic]):
+                    for _, *transform in msgs.transforms(msg, self.reader.types[topic]):
                         tree.add(*transform)
                     if limit and tree.resolves(self.frame_id):
                         break
@@ -157,7 +157,7 @@ class LogSource(Source):
         index = 0
         for topic, _, msg in self.reader.messages([self.left_topic, self.right_topic, *self.odometry_topics]):
             if topic in self.odometry_topics:
-                for transform in msgs.stamped_transforms(msg, self.reader.types[topic]):
+                for transform in msgs.transforms(msg, self.reader.types[topic]):
                     poses.add(*transform)
             else:
                 pair = pairer.push(0 if topic == self.left_topic else 1, msgs.stamp_ns(msg), msg)
@@ -178,10 +178,12 @@ class LogSource(Source):
 
     def _pair_ref(self, pair: tuple, poses: VehiclePoses) -> PairRef:
         index, stamp_ns = pair[:2]
-        pose = poses.at(stamp_ns)
-        return PairRef(index, stamp_ns, partial(self._load, *pair, pose=(pose, poses.parent)))
+        load = partial(self._load, *pair, vehicle_pose=poses.at(stamp_ns), odometry_frame_id=poses.parent or "odom")
+        return PairRef(index, stamp_ns, load)
 
-    def _load(self, index: int, stamp_ns: int, left_msg, right_msg, *, pose=(None, None)) -> StereoFrame:
+    def _load(
+        self, index: int, stamp_ns: int, left_msg, right_msg, *, vehicle_pose=None, odometry_frame_id="odom"
+    ) -> StereoFrame:
         types = self.reader.types
         left = msgs.image_array(left_msg, types[self.left_topic], self.left_topic)
         right = msgs.image_array(right_msg, types[self.right_topic], self.right_topic)
@@ -195,8 +197,8 @@ class LogSource(Source):
             extrinsics=self.extrinsics,
             frame_id=msgs.frame_id(left_msg),
             source=f"{self.path} {self.left_topic} + {self.right_topic}",
-            vehicle_pose=pose[0],
-            odometry_frame_id=pose[1] or "odom",
+            vehicle_pose=vehicle_pose,
+            odometry_frame_id=odometry_frame_id,
         )
 
     def describe(self) -> dict:

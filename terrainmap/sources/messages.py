@@ -107,20 +107,13 @@ def calibration_from_infos(
     )
 
 
-def transforms(msg, msg_type: str) -> Iterator[tuple[str, str, list[float], list[float]]]:
-    """(parent, child, translation xyz, quaternion xyzw) of each transform in a TF message."""
+def transforms(msg, msg_type: str) -> Iterator[tuple[int, str, str, list[float], list[float]]]:
+    """(stamp ns, parent, child, translation xyz, quaternion xyzw) of each transform in a TF message."""
     if msg_type == "tf2_msgs/msg/TFMessage":
         for t in msg.transforms:
             tr, q = t.transform.translation, t.transform.rotation
-            yield t.header.frame_id, t.child_frame_id, [tr.x, tr.y, tr.z], [q.x, q.y, q.z, q.w]
+            yield stamp_ns(t), t.header.frame_id, t.child_frame_id, [tr.x, tr.y, tr.z], [q.x, q.y, q.z, q.w]
         return
     for t in msg.transforms if msg_type == "foxglove.FrameTransforms" else [msg]:
         tr, q = t.translation, t.rotation
-        yield t.parent_frame_id, t.child_frame_id, [tr.x, tr.y, tr.z], [q.x, q.y, q.z, q.w]
-
-
-def stamped_transforms(msg, msg_type: str) -> Iterator[tuple[int, str, str, list[float], list[float]]]:
-    """(stamp ns, parent, child, translation xyz, quaternion xyzw) of each transform in a TF message."""
-    items = [msg] if msg_type == "foxglove.FrameTransform" else msg.transforms
-    for item, transform in zip(items, transforms(msg, msg_type), strict=True):
-        yield (stamp_ns(item), *transform)
+        yield stamp_ns(t), t.parent_frame_id, t.child_frame_id, [tr.x, tr.y, tr.z], [q.x, q.y, q.z, q.w]

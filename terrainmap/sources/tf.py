@@ -7,6 +7,8 @@ mount is static, and only the edges between the camera and the vehicle frame mat
 
 from __future__ import annotations
 
+from bisect import bisect_left
+
 import numpy as np
 
 from ..types import Extrinsics
@@ -112,13 +114,13 @@ class VehiclePoses:
         self.parent = parent
         self._stamps.append(int(stamp_ns))
         self._poses.append(homogeneous(quaternion_to_matrix(quaternion_xyzw), translation))
-        old = next(i for i, s in enumerate(self._stamps) if s >= stamp_ns - self.horizon_ns)
+        old = bisect_left(self._stamps, stamp_ns - self.horizon_ns)
         del self._stamps[:old], self._poses[:old]
 
     def at(self, stamp_ns: int) -> np.ndarray | None:
         """``world_from_vehicle`` (4×4) at ``stamp_ns``, or None (see the class docstring)."""
         stamps = self._stamps
-        k = next((i for i, s in enumerate(stamps) if s >= stamp_ns), len(stamps))
+        k = bisect_left(stamps, stamp_ns)  # the first pose at or after the stamp
         if 0 < k < len(stamps):
             t0, t1 = stamps[k - 1], stamps[k]
             a = (stamp_ns - t0) / (t1 - t0)
