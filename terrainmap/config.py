@@ -127,6 +127,9 @@ class TerrainConfig:
     trust_below: bool = True
     """Samples more than the equalization band below the surface keep the maximum weight: every
     visible point lies on or above the terrain (see decision 5 in :mod:`terrainmap.terrain`)."""
+    trust_below_px: float = 3.0
+    """Where the stereo rig is known, such a sample must also lie deeper below the surface than a
+    disparity error of this many pixels moves it (0: the band alone)."""
     epsilon_m: float = 0.005
     """Stop early when no valid sample moved more than this in the last equalization."""
     smoothness: float = 1e-3
@@ -158,6 +161,7 @@ class TerrainConfig:
         _check(0 < self.control_weight_min <= 1, "terrain.control_weight_min", "must be in (0, 1]")
         _check(self.equalize_tolerance_m >= 0, "terrain.equalize_tolerance_m", "must be >= 0")
         _check(self.equalize_tolerance_per_m >= 0, "terrain.equalize_tolerance_per_m", "must be >= 0")
+        _check(self.trust_below_px >= 0, "terrain.trust_below_px", "must be >= 0")
         _check(self.epsilon_m > 0, "terrain.epsilon_m", "must be > 0")
         _check(self.smoothness > 0, "terrain.smoothness", "must be > 0")
         _check(0 <= self.filled_weight <= 1, "terrain.filled_weight", "must be in [0, 1]")

@@ -38,6 +38,9 @@ class HeightGrid:
     ``z_top`` (float64, m): ``mean z + σ``, the upper counterpart of eq. 1, used to label cells
     that hold something standing up; equals ``z`` where not observed.
     ``count`` (int64): points per cell. ``observed = count > 0``; ``valid`` = observed or filled.
+    ``height_per_px`` (float64, m/px, or None without a stereo rig): the height change a disparity
+    error of one pixel makes at each cell's centre and mean height
+    (:meth:`~terrainmap.types.StereoCamera.height_per_px`, level ground).
     """
 
     z: np.ndarray
@@ -46,6 +49,7 @@ class HeightGrid:
     observed: np.ndarray
     valid: np.ndarray
     config: GridConfig
+    height_per_px: np.ndarray | None = None
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -141,10 +145,12 @@ def quantize(
     n = np.maximum(count, 1)
     mean = s1 / n
     variance = np.maximum(s2 / n - mean * mean, 0.0)
-    if camera is not None and config.stereo_noise_px > 0:
+    per_px = None
+    if camera is not None:
         xs, ys = cell_centers(config)
-        noise = config.stereo_noise_px * camera.height_per_px(xs[:, None], ys[None, :], mean.reshape(m0, m1), 0.0, 0.0)
-        variance = np.maximum(variance - noise.ravel() ** 2, 0.0)
+        per_px = camera.height_per_px(xs[:, None], ys[None, :], mean.reshape(m0, m1), 0.0, 0.0)
+        noise = config.stereo_noise_px * per_px.ravel()
+        variance = np.maximum(variance - noise**2, 0.0)
     sigma = np.sqrt(variance)
     zc = mean - config.sigma_factor * sigma
     if config.sigma_factor > 0:  # the mean never lies below the minimum: skip the costly ufunc.at
@@ -153,7 +159,9 @@ def quantize(
         zc = np.maximum(zmin.reshape(_LANES, -1).min(0)[:ncell], zc)
     zc = np.where(observed, zc, 0.0)
     ztop = np.where(observed, mean + sigma, 0.0)
-    return _fill(zc.reshape(m0, m1), ztop.reshape(m0, m1), count.reshape(m0, m1), config)
+    grid = _fill(zc.reshape(m0, m1), ztop.reshape(m0, m1), count.reshape(m0, m1), config)
+    grid.height_per_px = per_px
+    return grid
 
 
 _LANES = 4

@@ -65,6 +65,9 @@ def test_stereo_noise_no_longer_pulls_eq1_below_the_ground():
     assert np.all(paper.z < -0.06)  # eq. 1: about σ_s of the noise (8–9 cm at 14–16 m) below
     assert np.all(np.abs(aware.z) < 0.02)
     np.testing.assert_array_equal(quantize(pts, _FAR).z, paper.z)  # no rig: the paper's eq. 1
+    # The height a pixel of disparity moves level ground: depth · camera height / (f·B), 15 m → 0.18 m
+    np.testing.assert_allclose(paper.height_per_px, 1.8 * np.array([[14.5] * 2, [15.5] * 2]) / 150, rtol=0.02)
+    assert quantize(pts, _FAR).height_per_px is None
 
 
 def test_stereo_noise_discount_keeps_obstacles_out_of_the_sample():

@@ -56,6 +56,23 @@ def test_noise_alone_leaves_little_bias():
     assert abs(float(np.mean(est.surface.on_grid(xs, ys) - truth))) < 0.015
 
 
+@pytest.mark.parametrize("seed", [0, 1])
+def test_stereo_noise_below_the_surface_does_not_hold_it_down(seed):
+    """Level ground seen by a stereo rig (camera 1.8 m up, f·B = 150 px·m, 0.5 px disparity noise):
+    the height noise grows with range. Trusting every sample below the fixed band sinks the surface
+    at 10–20 m; with the band at least ``trust_below_px`` pixels of disparity error it does not."""
+    grid, truth = grid_samples(outlier_fraction=0.0, empty_fraction=0.0, noise_m=1.0, seed=seed)
+    xs, ys = cell_centers(grid.config)
+    r = np.hypot(xs[:, None], ys[None, :])
+    grid.height_per_px = 1.8 * r / 150
+    grid.z = truth + (grid.z - truth) * 0.5 * grid.height_per_px
+    far = (r > 10) & (r < 20)
+    bias = {px: float(np.mean((estimate_terrain(grid, TerrainConfig(trust_below_px=px)).elevation - truth)[far]))
+            for px in (0.0, 3.0)}
+    assert bias[0.0] < -0.03
+    assert abs(bias[3.0]) < 0.015
+
+
 @given(
     dz=st.lists(st.floats(-5, 5, allow_nan=False), min_size=1, max_size=50),
     th=st.floats(0.01, 1.0),
