@@ -159,9 +159,7 @@ def quantize(
         zc = np.maximum(zmin.reshape(_LANES, -1).min(0)[:ncell], zc)
     zc = np.where(observed, zc, 0.0)
     ztop = np.where(observed, mean + sigma, 0.0)
-    grid = _fill(zc.reshape(m0, m1), ztop.reshape(m0, m1), count.reshape(m0, m1), config)
-    grid.height_per_px = per_px
-    return grid
+    return _fill(zc.reshape(m0, m1), ztop.reshape(m0, m1), count.reshape(m0, m1), config, per_px)
 
 
 _LANES = 4
@@ -185,7 +183,9 @@ def _pow2(n: int) -> int:
 _NEIGHBOURS = np.array([[1, 1, 1], [1, 0, 1], [1, 1, 1]], dtype=np.float64)
 
 
-def _fill(z: np.ndarray, ztop: np.ndarray, count: np.ndarray, config: GridConfig) -> HeightGrid:
+def _fill(
+    z: np.ndarray, ztop: np.ndarray, count: np.ndarray, config: GridConfig, height_per_px: np.ndarray | None = None
+) -> HeightGrid:
     """Fill empty cells with the mean of their observed 8-neighbours; the rest stay INVALID (Z=0)."""
     observed = count > 0
     valid = observed.copy()
@@ -197,4 +197,4 @@ def _fill(z: np.ndarray, ztop: np.ndarray, count: np.ndarray, config: GridConfig
         z = np.where(fill, nsum / np.maximum(ncount, 1), z)
         ztop = np.where(fill, z, ztop)
         valid |= fill
-    return HeightGrid(z=z, z_top=ztop, count=count, observed=observed, valid=valid, config=config)
+    return HeightGrid(z, ztop, count, observed, valid, config, height_per_px)

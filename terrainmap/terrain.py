@@ -39,7 +39,7 @@ property it keeps:
    Within the band, weights stay symmetric so the surface does not sink into the stereo noise.
    Where the grid knows the stereo rig, "clearly below" also means deeper than a disparity error
    of ``trust_below_px`` pixels moves a point there (:attr:`HeightGrid.height_per_px`): that
-   grows with depth², and a fixed band let far stereo noise hold the surface 10–20 cm under the
+   grows with range, and a fixed band let far stereo noise hold the surface 10–20 cm under the
    terrain at 10–20 m. On KITTI 000005 trusting samples below keeps 67 % of the parked cars'
    points labelled obstacle (61 % without), where the surface would otherwise climb the
    occluded kerb strips.
