@@ -86,8 +86,8 @@ class LogSource(Source):
         self.calibration_topics: tuple[str | None, str | None] = (None, None)
         self.calibration_error: CalibrationError | None = None
         self.calibration: StereoCalibration | None = override[0] if override else self._log_calibration()
+        self._static_tf_topics, self.odometry_topics = self._tf_topics()
         self.extrinsics: Extrinsics | None = (override[1] if override else None) or self._tf_extrinsics()
-        self.odometry_topics = self._tf_topics()[1]
 
     @abstractmethod
     def _open_reader(self) -> McapLog | Ros1Bag:
@@ -130,9 +130,8 @@ class LogSource(Source):
         return [t for t in tf_topics if "static" in t], [t for t in tf_topics if "static" not in t]
 
     def _tf_extrinsics(self) -> Extrinsics | None:
-        static, dynamic = self._tf_topics()
         tree = TransformTree()
-        for topics, limit in ((static, None), (dynamic, MAX_DYNAMIC_TF_MESSAGES)):
+        for topics, limit in ((self._static_tf_topics, None), (self.odometry_topics, MAX_DYNAMIC_TF_MESSAGES)):
             if not topics or tree.resolves(self.frame_id):
                 continue
             stream = self.reader.messages(topics)
