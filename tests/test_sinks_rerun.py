@@ -16,9 +16,10 @@ from terrainmap.sinks.rerun_recording import RerunSink
 from terrainmap.sources import open_source
 
 ENTITIES = {
-    "/world/points", "/world/camera/image", "/world/camera/image/labels", "/depth", "/world/grid/samples",
-    "/world/grid/equalized", "/world/terrain/slope", "/world/terrain/elevation", "/world/terrain/cost",
-    "/world/obstacles", "/timings/surface", "/stats/fit/iterations",
+    "/world/vehicle", "/world/vehicle/points", "/world/vehicle/camera/image", "/world/vehicle/camera/image/labels",
+    "/depth", "/world/vehicle/grid/samples", "/world/vehicle/grid/equalized", "/world/vehicle/terrain/slope",
+    "/world/vehicle/terrain/elevation", "/world/vehicle/terrain/cost", "/world/vehicle/obstacles",
+    "/timings/surface", "/stats/fit/iterations",
 }
 
 
@@ -58,6 +59,27 @@ def test_process_writes_a_verified_recording_with_every_stage(log, tmp_path):
     assert all(rows[e] == 3 for e in ENTITIES)  # one row per frame on the frame timeline
 
 
+def test_vehicle_pose_places_the_vehicle_frame_in_the_odometry_frame(log, tmp_path):
+    """The simulated log's odometry (odom → base_link on /tf) becomes the per-frame transform of
+    ``world/vehicle``, under which every computed layer is logged."""
+    import numpy as np
+
+    rrd = tmp_path / "pose.rrd"
+    with open_source(log) as source:
+        frames = list(source.frames())
+    with open_source(log) as source:
+        runner.run(source.frames(), Config(), [RerunSink(rrd, config=Config())])
+    chunks = [c for c in RrdReader(str(rrd)).store().stream().to_chunks() if str(c.entity_path) == "/world/vehicle"]
+    batches = [c.to_record_batch() for c in chunks if not c.is_static]
+    translations = [row[0] for b in batches for row in b.column("Transform3D:translation").to_pylist()]
+    rotations = [row[0] for b in batches for row in b.column("Transform3D:mat3x3").to_pylist()]
+    assert len(translations) == len(frames) == 3
+    for frame, t, m in zip(frames, translations, rotations):
+        np.testing.assert_allclose(t, frame.vehicle_pose[:3, 3], atol=1e-6)
+        np.testing.assert_allclose(np.reshape(m, (3, 3)).T, frame.vehicle_pose[:3, :3], atol=1e-6)  # column-major
+    assert len({tuple(t) for t in translations}) == 3  # the vehicle moves
+
+
 def test_recording_is_complete_when_the_run_fails_part_way(log, tmp_path):
     with open_source(log) as source:
         frames = list(source.frames())
@@ -72,7 +94,7 @@ def test_recording_is_complete_when_the_run_fails_part_way(log, tmp_path):
         runner.run(broken(), Config(), [sink])
     sink.close()  # closing twice is harmless
     _verify(rrd)
-    assert _rows(rrd)["/world/points"] == 2
+    assert _rows(rrd)["/world/vehicle/points"] == 2
 
 
 def test_points_are_subsampled_for_display(log, tmp_path):
@@ -82,7 +104,7 @@ def test_points_are_subsampled_for_display(log, tmp_path):
     with open_source(log) as source:
         runner.run(source.frames(max_frames=1), config, [RerunSink(rrd, config=config)])
     reader = RrdReader(str(rrd))
-    points = [c for c in reader.store().stream().to_chunks() if str(c.entity_path) == "/world/points"]
+    points = [c for c in reader.store().stream().to_chunks() if str(c.entity_path) == "/world/vehicle/points"]
     batch = points[0].to_record_batch()
     column = next(name for name in batch.schema.names if name.endswith("positions"))
     assert len(batch.column(column)[0]) <= 1000
@@ -106,7 +128,7 @@ def test_camera_and_depth_use_the_rectified_pinhole(log, tmp_path):
     with RerunSink(rrd, config=config) as sink:
         sink.write(frame, result)
     batches = [(str(c.entity_path), c.to_record_batch()) for c in RrdReader(str(rrd)).store().stream().to_chunks()]
-    pinhole = next(b for path, b in batches if path == "/world/camera" and "Pinhole:image_from_camera" in b.schema.names)
+    pinhole = next(b for path, b in batches if path == "/world/vehicle/camera" and "Pinhole:image_from_camera" in b.schema.names)
     assert pinhole.column("Pinhole:image_from_camera")[0].as_py()[0][0] == 2 * frame.calibration.fx
     depth_image = next(b for path, b in batches if path == "/depth")
     depth = np.frombuffer(bytes(depth_image.column("DepthImage:buffer")[0].as_py()[0]), np.float32)

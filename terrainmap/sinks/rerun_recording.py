@@ -5,21 +5,27 @@ One explicit :class:`rerun.RecordingStream` saved to the ``.rrd`` with a default
 slope, grid samples before and after equalization, obstacle boxes), the left image with the
 labels drawn on it, the depth image, and plots of per-stage times and fit statistics.
 
-Entity tree (vehicle frame ``world`` = ``base_link``, z up)::
+Entity tree (``world`` is the log's odometry frame where the source gives the vehicle's pose,
+else the vehicle frame itself; z up)::
 
     world                         ViewCoordinates RIGHT_HAND_Z_UP (static)
-    world/camera                  Transform3D (camera pose) + Pinhole (static); image, labels
-    world/points                  Points3D, class ids = Label (AnnotationContext on world, static)
-    world/grid/samples            grid samples before equalization (eq. 1, valid cells)
-    world/grid/equalized          samples after the last equalization
-    world/terrain/slope           Mesh3D over the valid cells' centres, coloured by slope (0–30°)
-    world/terrain/elevation       the same mesh coloured by elevation (hidden in the blueprint)
-    world/terrain/cost            the same mesh coloured by traversability cost (hidden)
-    world/obstacles               Boxes3D with "id kind" labels
+    world/vehicle                 Transform3D: the vehicle frame (base_link) in the odometry frame,
+                                  per frame (only where the source gives the pose; else identity)
+    world/vehicle/camera          Transform3D (camera pose) + Pinhole (static); image, labels
+    world/vehicle/points          Points3D, class ids = Label (AnnotationContext on world, static)
+    world/vehicle/grid/samples    grid samples before equalization (eq. 1, valid cells)
+    world/vehicle/grid/equalized  samples after the last equalization
+    world/vehicle/terrain/slope   Mesh3D over the valid cells' centres, coloured by slope (0–30°)
+    world/vehicle/terrain/elevation  the same mesh coloured by elevation (hidden in the blueprint)
+    world/vehicle/terrain/cost    the same mesh coloured by traversability cost (hidden)
+    world/vehicle/obstacles       Boxes3D with "id kind" labels
     depth                         DepthImage (metres, from the disparity)
     timings/<stage>               Scalars, ms
     stats/fit/<name>              Scalars: iterations, mean_error_m
     stats/counts/<name>           Scalars: points, cells, obstacles
+
+Everything the pipeline computes is logged in the vehicle frame, as computed; the per-frame
+vehicle transform places it in the odometry frame, so the 3D view follows the drive.
 
 Timelines: ``frame`` (sequence, the frame index) and ``stamp`` (the source image's time).
 Written for rerun-sdk 0.41 (pinned); the files open in the Rerun viewer 0.41.
@@ -45,6 +51,8 @@ LABEL_COLORS = {
     Label.BELOW: (0, 130, 200),
 }
 SLOPE_RANGE_RAD = (0.0, np.radians(30.0))
+VEHICLE = "world/vehicle"
+"""Entity of the vehicle frame; everything computed per frame is logged under it."""
 
 
 def blueprint() -> rrb.Blueprint:
@@ -54,10 +62,10 @@ def blueprint() -> rrb.Blueprint:
             rrb.Spatial3DView(
                 name="terrain",
                 origin="/world",
-                contents=["+ /world/**", "- /world/terrain/elevation", "- /world/terrain/cost"],
+                contents=["+ /world/**", f"- /{VEHICLE}/terrain/elevation", f"- /{VEHICLE}/terrain/cost"],
             ),
             rrb.Vertical(
-                rrb.Spatial2DView(name="left image and labels", origin="/world/camera"),
+                rrb.Spatial2DView(name="left image and labels", origin=f"/{VEHICLE}/camera"),
                 rrb.Spatial2DView(name="depth", origin="/depth"),
                 rrb.TimeSeriesView(name="stage times (ms)", origin="/timings"),
                 rrb.TimeSeriesView(name="fit: iterations, mean error (m)", origin="/stats/fit"),
@@ -116,6 +124,9 @@ class RerunSink:
             self._log_static(_camera_model(frame, result))
         rec.set_time("frame", sequence=frame.index)
         rec.set_time("stamp", timestamp=np.datetime64(frame.stamp_ns, "ns"))
+        if frame.vehicle_pose is not None:
+            pose = np.asarray(frame.vehicle_pose, float)
+            rec.log(VEHICLE, rr.Transform3D(translation=pose[:3, 3], mat3x3=pose[:3, :3]))
         self._log_camera(frame, result)
         self._log_points(result)
         self._log_terrain(result)
@@ -133,7 +144,7 @@ class RerunSink:
         context = rr.AnnotationContext([(int(k), k.name.lower(), c) for k, c in LABEL_COLORS.items()])
         rec.log("world", context, static=True)
         rec.log(
-            "world/camera",
+            f"{VEHICLE}/camera",
             rr.Pinhole(focal_length=[pinhole.fx, pinhole.fy], principal_point=[pinhole.cx, pinhole.cy],
                        width=pinhole.width, height=pinhole.height,
                        camera_xyz=rr.ViewCoordinates.RDF, image_plane_distance=1.0),
@@ -146,14 +157,14 @@ class RerunSink:
         ext = result.extrinsics
         pose = (tuple(np.ravel(ext.translation)), tuple(np.ravel(ext.rotation)))
         if pose != self._pose:  # static: logged once, again only if the pose changes
-            rec.log("world/camera", rr.Transform3D(translation=np.asarray(ext.translation, float),
+            rec.log(f"{VEHICLE}/camera", rr.Transform3D(translation=np.asarray(ext.translation, float),
                                                    mat3x3=np.asarray(ext.rotation, float)), static=True)
             self._pose = pose
         if result.image is not None:
-            rec.log("world/camera/image", rr.Image(result.image))
+            rec.log(f"{VEHICLE}/camera/image", rr.Image(result.image))
             labels = np.zeros(result.image.shape[:2], np.uint8)
             labels[result.pixels[:, 1], result.pixels[:, 0]] = result.point_labels
-            rec.log("world/camera/image/labels", rr.SegmentationImage(labels, opacity=0.45))
+            rec.log(f"{VEHICLE}/camera/image/labels", rr.SegmentationImage(labels, opacity=0.45))
         if result.disparity is not None:
             c = _camera_model(frame, result)
             with np.errstate(divide="ignore", invalid="ignore"):
@@ -164,7 +175,7 @@ class RerunSink:
     def _log_points(self, result: FrameResult) -> None:
         n = len(result.points_vehicle)
         step = max(1, -(-n // self._config.rerun.max_points))
-        self._rec.log("world/points", rr.Points3D(result.points_vehicle[::step],
+        self._rec.log(f"{VEHICLE}/points", rr.Points3D(result.points_vehicle[::step],
                                                   class_ids=result.point_labels[::step], radii=0.03))
 
     def _log_terrain(self, result: FrameResult) -> None:
@@ -174,7 +185,7 @@ class RerunSink:
         X, Y = np.meshgrid(xs, ys, indexing="ij")
         valid = grid.valid
         for name, z in (("samples", grid.z), ("equalized", result.terrain.samples)):
-            rec.log(f"world/grid/{name}", rr.Points3D(np.column_stack([X[valid], Y[valid], z[valid]]), radii=0.06,
+            rec.log(f"{VEHICLE}/grid/{name}", rr.Points3D(np.column_stack([X[valid], Y[valid], z[valid]]), radii=0.06,
                                                       colors=(255, 255, 255) if name == "samples" else (255, 200, 0)))
         layers = result.layers
         vertices = np.column_stack([X.ravel(), Y.ravel(), layers["elevation"].ravel()]).astype(np.float32)
@@ -189,17 +200,17 @@ class RerunSink:
         if "cost" in layers:
             colorings["cost"] = _colormap(layers["cost"].ravel(), 0.0, 1.0)
         for name, colors in colorings.items():
-            rec.log(f"world/terrain/{name}", rr.Mesh3D(vertex_positions=vertices, triangle_indices=triangles,
+            rec.log(f"{VEHICLE}/terrain/{name}", rr.Mesh3D(vertex_positions=vertices, triangle_indices=triangles,
                                                       vertex_colors=colors))
 
     def _log_obstacles(self, result: FrameResult) -> None:
         obstacles = [o for o in result.obstacles if o.confirmed]
         if not obstacles:
-            self._rec.log("world/obstacles", rr.Clear(recursive=False))
+            self._rec.log(f"{VEHICLE}/obstacles", rr.Clear(recursive=False))
             return
         yaw = np.array([o.yaw_rad for o in obstacles])
         self._rec.log(
-            "world/obstacles",
+            f"{VEHICLE}/obstacles",
             rr.Boxes3D(
                 centers=np.array([o.center_m for o in obstacles]),
                 half_sizes=np.array([o.size_m for o in obstacles]) / 2,
