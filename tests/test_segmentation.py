@@ -97,7 +97,8 @@ def test_height_per_px_is_the_height_change_of_a_disparity_error(x, y, gx, gy, z
 
 
 def test_stereo_thresholds_grow_where_disparity_noise_lifts_points():
-    config, grid = SegmentationConfig(disparity_tolerance_px=1.0), GridConfig()
+    config, grid = SegmentationConfig(), GridConfig()  # the default: 1 px
+    assert config.disparity_tolerance_px == 1.0
     flat = np.zeros(grid.shape)
     fixed = thresholds(grid, config)
     above, below = thresholds(grid, config, CAMERA, flat, flat, flat)
@@ -109,5 +110,5 @@ def test_stereo_thresholds_grow_where_disparity_noise_lifts_points():
     # ground rising at 0.3 towards the camera: 20 × |−1.8 − 0.3 × 20| / 150 ≈ 1.0 m
     rising = thresholds(grid, config, CAMERA, flat, np.full(grid.shape, 0.3), flat)[0]
     assert 0.9 < rising[ix, iy] < 1.2
-    off = SegmentationConfig()  # the default: fixed thresholds
+    off = SegmentationConfig(disparity_tolerance_px=0.0)  # the paper's fixed thresholds
     assert np.array_equal(thresholds(grid, off, CAMERA, flat, flat, flat)[0], fixed[0])
