@@ -110,5 +110,5 @@ def test_stereo_thresholds_grow_where_disparity_noise_lifts_points():
     # ground rising at 0.3 towards the camera: 20 × |−1.8 − 0.3 × 20| / 150 ≈ 1.0 m
     rising = thresholds(grid, config, CAMERA, flat, np.full(grid.shape, 0.3), flat)[0]
     assert 0.9 < rising[ix, iy] < 1.2
-    off = SegmentationConfig(disparity_tolerance_px=0.0)  # the paper's fixed thresholds
+    off = SegmentationConfig(disparity_tolerance_px=0.0)  # thresholds that grow with range only
     assert np.array_equal(thresholds(grid, off, CAMERA, flat, flat, flat)[0], fixed[0])
