@@ -157,8 +157,9 @@ class RerunSink:
         ext = result.extrinsics
         pose = (tuple(np.ravel(ext.translation)), tuple(np.ravel(ext.rotation)))
         if pose != self._pose:  # static: logged once, again only if the pose changes
-            rec.log(f"{VEHICLE}/camera", rr.Transform3D(translation=np.asarray(ext.translation, float),
-                                                   mat3x3=np.asarray(ext.rotation, float)), static=True)
+            transform = rr.Transform3D(translation=np.asarray(ext.translation, float),
+                                       mat3x3=np.asarray(ext.rotation, float))
+            rec.log(f"{VEHICLE}/camera", transform, static=True)
             self._pose = pose
         if result.image is not None:
             rec.log(f"{VEHICLE}/camera/image", rr.Image(result.image))
@@ -175,8 +176,8 @@ class RerunSink:
     def _log_points(self, result: FrameResult) -> None:
         n = len(result.points_vehicle)
         step = max(1, -(-n // self._config.rerun.max_points))
-        self._rec.log(f"{VEHICLE}/points", rr.Points3D(result.points_vehicle[::step],
-                                                  class_ids=result.point_labels[::step], radii=0.03))
+        points = rr.Points3D(result.points_vehicle[::step], class_ids=result.point_labels[::step], radii=0.03)
+        self._rec.log(f"{VEHICLE}/points", points)
 
     def _log_terrain(self, result: FrameResult) -> None:
         rec = self._rec
@@ -185,8 +186,9 @@ class RerunSink:
         X, Y = np.meshgrid(xs, ys, indexing="ij")
         valid = grid.valid
         for name, z in (("samples", grid.z), ("equalized", result.terrain.samples)):
-            rec.log(f"{VEHICLE}/grid/{name}", rr.Points3D(np.column_stack([X[valid], Y[valid], z[valid]]), radii=0.06,
-                                                      colors=(255, 255, 255) if name == "samples" else (255, 200, 0)))
+            color = (255, 255, 255) if name == "samples" else (255, 200, 0)
+            samples = rr.Points3D(np.column_stack([X[valid], Y[valid], z[valid]]), radii=0.06, colors=color)
+            rec.log(f"{VEHICLE}/grid/{name}", samples)
         layers = result.layers
         vertices = np.column_stack([X.ravel(), Y.ravel(), layers["elevation"].ravel()]).astype(np.float32)
         if grid.shape != self._mesh_key:  # the full triangle list depends on the grid shape only
@@ -200,8 +202,8 @@ class RerunSink:
         if "cost" in layers:
             colorings["cost"] = _colormap(layers["cost"].ravel(), 0.0, 1.0)
         for name, colors in colorings.items():
-            rec.log(f"{VEHICLE}/terrain/{name}", rr.Mesh3D(vertex_positions=vertices, triangle_indices=triangles,
-                                                      vertex_colors=colors))
+            mesh = rr.Mesh3D(vertex_positions=vertices, triangle_indices=triangles, vertex_colors=colors)
+            rec.log(f"{VEHICLE}/terrain/{name}", mesh)
 
     def _log_obstacles(self, result: FrameResult) -> None:
         obstacles = [o for o in result.obstacles if o.confirmed]
