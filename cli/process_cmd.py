@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import signal
 import sys
 from pathlib import Path
 
@@ -39,9 +40,7 @@ def process(log, output, flavor, compression, rrd, overwrite, source_opts, confi
 
     config = load_config(config_path, overrides)
     output = output or default_output(log)
-    for path in (output, rrd):
-        if path is not None and path.exists() and not overwrite:
-            raise click.UsageError(f"{path} exists; pass --overwrite to replace it")
+    _check_outputs(log, output, rrd, overwrite)
     with source_opts.open(str(log)) as source:
         frames = source.frames(**source_opts.frames_kwargs())
         sinks = [open_mcap_sink(output, flavor, config=config, metadata={"source": str(log)}, compression=compression)]
@@ -54,14 +53,38 @@ def process(log, output, flavor, compression, rrd, overwrite, source_opts, confi
                 sinks[0].close()
                 raise
         show = _progress if sys.stderr.isatty() else None
+        terminate = signal.signal(signal.SIGTERM, _interrupt)  # a killed run still finalises its outputs
         try:
             summary = runner.run(frames, config, sinks, on_frame=show)
         finally:
+            signal.signal(signal.SIGTERM, terminate)
             if show:
                 click.echo(err=True)
     _report(summary, [output] + ([rrd] if rrd else []))
     if summary.frames_done == 0:
-        raise click.ClickException(f"no frame of {log} could be processed ({_reasons(summary)})")
+        failed = click.ClickException(f"no frame of {log} could be processed ({_reasons(summary)})")
+        failed.exit_code = 2
+        raise failed
+
+
+def _check_outputs(log: Path, output: Path, rrd: Path | None, overwrite: bool) -> None:
+    """Outputs must not replace the input (or a file inside an input folder) nor each other, nor
+    replace an existing file without ``--overwrite``."""
+    source = log.resolve()
+    for option, path in (("-o/--output", output), ("--rrd", rrd)):
+        if path is None:
+            continue
+        target = path.resolve()
+        if target == source or source in target.parents:
+            raise click.UsageError(f"{option} {path} would overwrite the input {log}")
+        if path.exists() and not overwrite:
+            raise click.UsageError(f"{path} exists; pass --overwrite to replace it")
+    if rrd is not None and rrd.resolve() == output.resolve():
+        raise click.UsageError(f"--rrd and -o/--output are the same file {output}")
+
+
+def _interrupt(signum, frame) -> None:
+    raise KeyboardInterrupt  # the runner closes every sink on its way out
 
 
 def _progress(summary, frame, result) -> None:

@@ -27,6 +27,10 @@ def _check(ok: bool, name: str, message: str) -> None:
         raise ConfigError(f"{name}: {message}")
 
 
+MAX_CELLS_PER_AXIS = 2000
+"""Upper bound on m0 and m1 (a 1 km square at 0.5 m): beyond it a grid is a typo, not a map."""
+
+
 @dataclass
 class GridConfig:
     """The 2.5D grid over the area of interest (paper Sec. IV), vehicle frame.
@@ -70,6 +74,11 @@ class GridConfig:
             _check(math.isfinite(value) and value > 0, f"grid.{name}", f"must be > 0, got {value}")
         for name in ("length_m", "width_m"):
             cells = getattr(self, name) / self.cell_size_m
+            _check(
+                cells <= MAX_CELLS_PER_AXIS,
+                f"grid.{name}",
+                f"gives {cells:.3g} cells of {self.cell_size_m} m; at most {MAX_CELLS_PER_AXIS} per axis",
+            )
             _check(
                 abs(cells - round(cells)) < 1e-6,
                 f"grid.{name}",
@@ -301,9 +310,13 @@ class StereoConfig:
             "stereo.p2_per_pixel",
             f"must exceed stereo.p1_per_pixel >= 0, got P1 {self.p1_per_pixel}, P2 {self.p2_per_pixel}",
         )
+        _check(self.num_disparities <= 1024, "stereo.num_disparities", "must be at most 1024")
+        _check(abs(self.min_disparity) <= 1024, "stereo.min_disparity", "must be in -1024..1024")
+        _check(self.p2_per_pixel <= 10_000, "stereo.p2_per_pixel", "must be at most 10000")
+        _check(self.disp12_max_diff <= 1024, "stereo.disp12_max_diff", "must be at most 1024 (< 0 disables)")
         _check(1 <= self.pre_filter_cap <= 63, "stereo.pre_filter_cap", "must be in 1..63")
         for name in ("uniqueness_ratio", "speckle_window_size", "speckle_range"):
-            _check(getattr(self, name) >= 0, f"stereo.{name}", "must be >= 0")
+            _check(0 <= getattr(self, name) <= 10_000, f"stereo.{name}", "must be in 0..10000")
         _check(
             self.mode in ("sgbm", "hh", "sgbm_3way", "hh4"),
             "stereo.mode",
@@ -311,13 +324,17 @@ class StereoConfig:
         )
         _check(0 < self.min_range_m < self.max_range_m, "stereo.min_range_m", "must be in (0, max_range_m)")
         _check(self.min_texture >= 0, "stereo.min_texture", "must be >= 0")
-        _check(self.texture_window % 2 == 1 and self.texture_window >= 3, "stereo.texture_window", "must be odd and >= 3")
+        _check(
+            self.texture_window % 2 == 1 and 3 <= self.texture_window <= 101,
+            "stereo.texture_window",
+            "must be odd and in 3..101",
+        )
         _check(
             self.texture_measure in ("variance", "x_gradient"),
             "stereo.texture_measure",
             f"must be variance or x_gradient, got {self.texture_measure!r}",
         )
-        _check(self.texture_margin_px >= 0, "stereo.texture_margin_px", "must be >= 0")
+        _check(0 <= self.texture_margin_px <= 100, "stereo.texture_margin_px", "must be in 0..100")
 
 
 @dataclass

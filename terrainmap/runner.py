@@ -24,7 +24,7 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 from .config import Config
-from .errors import FrameError
+from .errors import FrameError, InputError
 from .pipeline import Matched, PipelineState, finish_frame, match_frame
 from .sinks.base import Sink
 from .types import Extrinsics, FrameResult, StereoFrame
@@ -32,6 +32,7 @@ from .types import Extrinsics, FrameResult, StereoFrame
 log = logging.getLogger(__name__)
 
 _RESERVOIR = 4096  # per-stage time samples kept for the medians
+_MAX_STAMP_NS = 2**63 - 1
 
 
 @dataclass
@@ -122,6 +123,9 @@ def _matched_ahead(
         frame = next(source, None)
         if frame is None:
             return None
+        if not 0 <= frame.stamp_ns <= _MAX_STAMP_NS:  # MCAP and ROS stamps are unsigned 64-bit
+            raise InputError(f"{frame.source or 'input'}: frame {frame.index} has stamp {frame.stamp_ns} ns, "
+                             "outside 1970–2262 (0 to 2^63 − 1 ns)")
         try:
             return frame, match_frame(frame, config, state)
         except FrameError as exc:

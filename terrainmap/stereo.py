@@ -191,6 +191,13 @@ class StereoMatcher:
         check_calibration(calibration)
         self.calibration = calibration
         self.config = config or StereoConfig()
+        n = disparity_range(self.config, calibration.width)
+        if not (0 < self.config.min_disparity + n < calibration.width and n < calibration.width):
+            raise CalibrationError(  # OpenCV would crash or search nothing that gives depth
+                f"images {calibration.width} px wide cannot be matched over disparities "
+                f"{self.config.min_disparity}..{self.config.min_disparity + n} px (stereo.min_disparity, "
+                "stereo.num_disparities): the range must hold positive disparities and be narrower than the images"
+            )
         self.sgbm = create_sgbm(self.config, calibration.width)
         """The bare ``cv2.StereoSGBM`` (``sgbm.compute(grey_left, grey_right)`` is "SGBM alone")."""
         if calibration.rectified:

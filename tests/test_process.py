@@ -151,3 +151,63 @@ def test_overlapped_runner_gives_the_sequential_results(tmp_path):
         np.testing.assert_array_equal(got.point_labels, want.point_labels)
         np.testing.assert_array_equal(got.layers["elevation"], want.layers["elevation"])
         assert [o.track_id for o in got.obstacles] == [o.track_id for o in want.obstacles]
+
+
+@pytest.fixture(scope="module")
+def small_log(tmp_path_factory):
+    from terrainmap.sim import SimConfig, simulate
+
+    path = tmp_path_factory.mktemp("small") / "sim.mcap"
+    simulate(path, SimConfig(scene="flat", frames=2, seed=1, width=320, height=240, focal_px=250.0))
+    return path
+
+
+def test_outputs_never_replace_the_input_or_each_other(small_log, tmp_path):
+    log = tmp_path / "in.mcap"
+    shutil.copy(small_log, log)
+    before = log.read_bytes()
+    for extra in (["-o", str(log)], ["-o", str(tmp_path / "." / "in.mcap")], ["--rrd", str(log)]):
+        result = CliRunner().invoke(cli, ["process", str(log), "--overwrite", *extra])
+        assert result.exit_code == 2 and "would overwrite the input" in result.output, extra
+    same = str(tmp_path / "o.mcap")
+    result = CliRunner().invoke(cli, ["process", str(log), "-o", same, "--rrd", same])
+    assert result.exit_code == 2 and "same file" in result.output
+    assert log.read_bytes() == before
+
+
+def test_a_terminated_run_still_finalises_its_output(small_log, tmp_path):
+    """SIGTERM (a supervisor stopping the job) ends the run like Ctrl-C: the MCAP is readable."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    log = tmp_path / "long.mcap"
+    from terrainmap.sim import SimConfig, simulate
+
+    simulate(log, SimConfig(scene="flat", frames=40, seed=1, width=320, height=240, focal_px=250.0))
+    out = tmp_path / "o.mcap"
+    code = "from terrainmap.cli.main import main; main()"
+    proc = subprocess.Popen([sys.executable, "-c", code, "process", str(log), "-o", str(out)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    deadline = time.monotonic() + 60
+    while not (out.exists() and out.stat().st_size > 0) and time.monotonic() < deadline and proc.poll() is None:
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGTERM)
+    proc.communicate(timeout=60)
+    with open(out, "rb") as stream:
+        assert make_reader(stream).get_summary() is not None  # finished: summary and index written
+
+
+def test_a_stamp_outside_the_mcap_range_ends_the_run_with_the_output_readable(small_log, tmp_path):
+    import dataclasses
+
+    from terrainmap.errors import InputError
+
+    with open_source(small_log) as source:
+        first, second = list(source.frames())
+    out = tmp_path / "o.mcap"
+    sink = open_mcap_sink(out, "foxglove", config=Config())
+    with pytest.raises(InputError, match="frame 1 has stamp -5 ns"):
+        runner.run([first, dataclasses.replace(second, stamp_ns=-5)], Config(), [sink])
+    assert len(_grids(out)) == 1  # the good frame, finalised

@@ -188,6 +188,14 @@ def test_bad_images_are_rejected():
         matcher.reproject(np.zeros((10, 10), np.float32))
 
 
+@pytest.mark.parametrize("width, changes", [(15, {}), (640, {"num_disparities": 640}), (640, {"min_disparity": -96})])
+def test_a_disparity_range_the_images_cannot_hold_is_rejected(width, changes):
+    """OpenCV crashes (or searches only disparities without depth) otherwise."""
+    calibration = dataclasses.replace(GOOD, width=width, cx=width / 2)
+    with pytest.raises(CalibrationError, match="cannot be matched over disparities"):
+        StereoMatcher(calibration, StereoConfig(**changes))
+
+
 def test_same_setup_recognises_equal_calibration():
     matcher = StereoMatcher(GOOD)
     assert matcher.same_setup(dataclasses.replace(GOOD), StereoConfig())
