@@ -3,18 +3,18 @@
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import click
 
 from terrainmap.config import load_config
 
-from .options import config_options
+from .options import config_options, output_file, write_text
 
 
 @click.command()
 @click.option("--runs", type=click.IntRange(1, 10_000), default=30, show_default=True, help="Timed runs per stage.")
-@click.option("--json", "json_path", type=click.Path(dir_okay=False), help="Write {stage: {median_ms, ...}} here.")
+@click.option("--json", "json_path", type=click.Path(dir_okay=False), callback=output_file(),
+              help="Write {stage: {median_ms, ...}} here.")
 @config_options
 def bench(runs: int, json_path: str | None, config_path: str | None, overrides: tuple[str, ...]) -> None:
     """Time each pipeline stage at the paper configuration on synthetic input."""
@@ -30,4 +30,4 @@ def bench(runs: int, json_path: str | None, config_path: str | None, overrides: 
     for what, value, limit in lib.goals(results):
         click.echo(f"{what}: {value:.2f} ({'meets' if value <= limit else 'MISSES'} the goal of at most {limit:g})")
     if json_path:
-        Path(json_path).write_text(json.dumps(results, indent=2) + "\n")
+        write_text(json_path, json.dumps(results, indent=2) + "\n")

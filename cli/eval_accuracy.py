@@ -10,7 +10,7 @@ import click
 
 from terrainmap.config import load_config
 
-from .options import config_options
+from .options import PLOT_SUFFIXES, Finite, config_options, output_file, write_text
 
 
 @click.command("accuracy")
@@ -18,10 +18,11 @@ from .options import config_options
 @click.option("--methods", default=None, metavar="NAME,...",
               help="Comma-separated methods (default: every available one: terrainmap and the baselines).")
 @click.option("--max-frames", type=click.IntRange(min=1), default=None, help="Evaluate at most this many frames.")
-@click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), help="Write the report as JSON.")
-@click.option("--plot", "plot_path", type=click.Path(dir_okay=False, path_type=Path),
-              help="Draw elevation RMSE against range for each method to this PNG.")
-@click.option("--obstacle-margin", type=click.FloatRange(min=0), default=0.5, show_default=True,
+@click.option("--json", "json_path", type=click.Path(dir_okay=False), callback=output_file(),
+              help="Write the report as JSON.")
+@click.option("--plot", "plot_path", type=click.Path(dir_okay=False), callback=output_file(*PLOT_SUFFIXES),
+              help="Draw elevation RMSE against range for each method to this image (.png, .pdf or .svg).")
+@click.option("--obstacle-margin", type=Finite(min=0), default=0.5, show_default=True,
               help="A track matches a true obstacle when its centre lies in the true footprint grown by this, m.")
 @config_options
 def accuracy(log, methods, max_frames, json_path, plot_path, obstacle_margin, config_path, overrides):
@@ -49,6 +50,6 @@ def accuracy(log, methods, max_frames, json_path, plot_path, obstacle_margin, co
     click.echo(format_table(report))
     click.echo(f"\nwall time {report['seconds']['wall']:.1f} s")
     if json_path:
-        json_path.write_text(json.dumps(report, indent=2) + "\n")
+        write_text(json_path, json.dumps(report, indent=2) + "\n")
     if plot_path:
         plot_rmse_vs_range(report, plot_path)

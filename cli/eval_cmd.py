@@ -3,24 +3,36 @@
 from __future__ import annotations
 
 import csv
+import io
 import json
-from pathlib import Path
+import math
 
 import click
 
 from terrainmap.config import load_config
 
-from .options import config_options
+from .options import PLOT_SUFFIXES, Finite, config_options, output_file, write_text
 
 
-def _floats(text: str) -> list[float]:
-    try:
-        values = [float(v) for v in text.split(",") if v.strip()]
-    except ValueError:
-        raise click.BadParameter(f"expected comma-separated numbers, got {text!r}") from None
-    if not values:
-        raise click.BadParameter("expected at least one number")
-    return values
+def _numbers(*, positive: bool = True, whole: bool = False, count: int | None = None):
+    """A click callback parsing a comma-separated list of finite numbers (positive, whole,
+    exactly ``count`` of them, as asked)."""
+
+    def parse(ctx: click.Context, param: click.Parameter, text: str) -> list[float]:
+        try:
+            values = [float(v) for v in text.split(",") if v.strip()]
+        except ValueError:
+            raise click.BadParameter(f"expected comma-separated numbers, got {text!r}") from None
+        kind = " ".join(w for w, on in (("positive", positive), ("whole", whole)) if on)
+        if not values or not all(
+            math.isfinite(v) and (v > 0 or not positive) and (v == int(v) or not whole) for v in values
+        ):
+            raise click.BadParameter(f"expected comma-separated {kind} numbers, got {text!r}".replace("  ", " "))
+        if count is not None and len(values) != count:
+            raise click.BadParameter(f"expected {count} numbers, got {text!r}")
+        return values
+
+    return parse
 
 
 @click.group("eval")
@@ -29,17 +41,22 @@ def eval_group() -> None:
 
 
 @eval_group.command("artificial-obstacle")
-@click.option("--length", "length_m", type=float, default=22.0, show_default=True, help="Area length along x, m.")
-@click.option("--width", "width_m", type=float, default=22.0, show_default=True, help="Area width along y, m.")
-@click.option("--cell", "cell_m", type=float, default=0.5, show_default=True, help="Cell size, m.")
+@click.option("--length", "length_m", type=Finite(min=0, min_open=True), default=22.0, show_default=True,
+              help="Area length along x, m.")
+@click.option("--width", "width_m", type=Finite(min=0, min_open=True), default=22.0, show_default=True,
+              help="Area width along y, m.")
+@click.option("--cell", "cell_m", type=Finite(min=0, min_open=True), default=0.5, show_default=True, help="Cell size, m.")
 @click.option("--degree", type=int, default=3, show_default=True, help="Spline degree.")
-@click.option("--nets", default="5,25", show_default=True, help="Control points per axis, comma-separated.")
-@click.option("--widths", default="0.8,2,4,6,8,10,12", show_default=True, help="Obstacle widths, m.")
-@click.option("--heights", default="0.5,1,1.5,2,2.5,3", show_default=True, help="Obstacle heights, m.")
-@click.option("--position", default="11.0,0.0", show_default=True, help="Obstacle centre x,y in the area, m.")
-@click.option("--json", "json_path", type=click.Path(dir_okay=False), help="Write results as JSON.")
-@click.option("--csv", "csv_path", type=click.Path(dir_okay=False), help="Write results as CSV.")
-@click.option("--plot", "plot_path", type=click.Path(dir_okay=False), help="Draw Fig. 6 to this PNG.")
+@click.option("--nets", default="5,25", show_default=True, callback=_numbers(whole=True),
+              help="Control points per axis, comma-separated.")
+@click.option("--widths", default="0.8,2,4,6,8,10,12", show_default=True, callback=_numbers(), help="Obstacle widths, m.")
+@click.option("--heights", default="0.5,1,1.5,2,2.5,3", show_default=True, callback=_numbers(), help="Obstacle heights, m.")
+@click.option("--position", default="11.0,0.0", show_default=True, callback=_numbers(positive=False, count=2),
+              help="Obstacle centre x,y in the area, m.")
+@click.option("--json", "json_path", type=click.Path(dir_okay=False), callback=output_file(), help="Write results as JSON.")
+@click.option("--csv", "csv_path", type=click.Path(dir_okay=False), callback=output_file(), help="Write results as CSV.")
+@click.option("--plot", "plot_path", type=click.Path(dir_okay=False), callback=output_file(*PLOT_SUFFIXES),
+              help="Draw Fig. 6 to this image (.png, .pdf or .svg).")
 @click.option("--base", "base_log", type=click.Path(exists=True), help="Take the base scene from a frame of this log "
               "or folder (its stereo points, vehicle frame) instead of a flat plane; the area is then the config's grid.")
 @click.option("--frame", "frame_index", type=click.IntRange(min=0), default=0, show_default=True,
@@ -67,22 +84,20 @@ def artificial_obstacle(
     grid.validate()
     terrain = config.terrain
     terrain.degree = degree
-    pos = _floats(position)
-    if len(pos) != 2:
-        raise click.BadParameter("expected x,y", param_hint="--position")
-    net_list = [int(n) for n in _floats(nets)]
+    net_list = [int(n) for n in nets]
     terrain.start_control_points = min([terrain.start_control_points, *net_list])
-    scenarios = ao.grid_of_scenarios(net_list, _floats(widths), _floats(heights))
-    results = ao.run(scenarios, grid=grid, terrain=terrain, position_xy=(pos[0], pos[1]), base_points=base_points)
+    scenarios = ao.grid_of_scenarios(net_list, widths, heights)
+    results = ao.run(scenarios, grid=grid, terrain=terrain, position_xy=tuple(position), base_points=base_points)
     _print_table(results)
     rows = [r.to_dict() for r in results]
     if json_path:
-        Path(json_path).write_text(json.dumps(rows, indent=2) + "\n")
+        write_text(json_path, json.dumps(rows, indent=2) + "\n")
     if csv_path:
-        with open(csv_path, "w", newline="") as fh:
-            writer = csv.DictWriter(fh, fieldnames=list(rows[0]))
-            writer.writeheader()
-            writer.writerows(rows)
+        table = io.StringIO(newline="")
+        writer = csv.DictWriter(table, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+        write_text(csv_path, table.getvalue())
     if plot_path:
         ao.plot(results, plot_path)
 
@@ -98,10 +113,10 @@ def _print_table(results) -> None:
 
 
 @eval_group.command("robustness")
-@click.option("--noise", "noise_m", type=float, default=0.03, show_default=True, help="Sample noise σ, m.")
+@click.option("--noise", "noise_m", type=Finite(min=0), default=0.03, show_default=True, help="Sample noise σ, m.")
 @click.option("--outliers", "outlier_fraction", type=click.FloatRange(0, 1), default=0.1, show_default=True,
               help="Fraction of samples raised by a gross error.")
-@click.option("--outlier-max", "outlier_max_m", type=float, default=2.0, show_default=True,
+@click.option("--outlier-max", "outlier_max_m", type=Finite(min=0), default=2.0, show_default=True,
               help="Largest gross error above the ground, m.")
 @click.option("--empty", "empty_fraction", type=click.FloatRange(0, 0.95), default=0.3, show_default=True,
               help="Fraction of empty cells.")

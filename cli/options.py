@@ -2,9 +2,57 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
+from pathlib import Path
 
 import click
+
+PLOT_SUFFIXES = (".png", ".pdf", ".svg")
+
+
+class Finite(click.FloatRange):
+    """A float option that must also be finite: click's FloatRange lets nan and inf through."""
+
+    name = "finite float"
+
+    def convert(self, value, param, ctx):
+        number = super().convert(value, param, ctx)
+        if not math.isfinite(number):
+            self.fail(f"{value!r} is not a finite number", param, ctx)
+        return number
+
+
+class Failed(click.ClickException):
+    """A command that could not do its job, for a reason the message gives: exit code 2, like
+    the library's errors (click's own exceptions exit with 1)."""
+
+    exit_code = 2
+
+
+def write_text(path: Path, text: str) -> None:
+    """Write an output file; a failure (disk full, permissions) is one line naming the file."""
+    try:
+        Path(path).write_text(text)
+    except OSError as exc:
+        raise Failed(f"cannot write {path}: {exc.strerror or exc}") from exc
+
+
+def output_file(*suffixes: str) -> Callable:
+    """A click callback for an output file option: its folder must exist (checked before any work
+    is done) and, where ``suffixes`` are given, its name must end in one of them. Gives a Path."""
+
+    def check(ctx: click.Context, param: click.Parameter, value) -> Path | None:
+        if value is None:
+            return None
+        path = Path(value)
+        if not path.parent.is_dir():
+            raise click.BadParameter(f"folder {path.parent} does not exist")
+        if suffixes and path.suffix.lower() not in suffixes:
+            raise click.BadParameter(f"{path} must end in {', '.join(suffixes)}")
+        return path
+
+    return check
 
 
 def config_options(func: Callable) -> Callable:

@@ -10,7 +10,7 @@ import click
 
 from terrainmap.config import load_config
 
-from .options import config_options
+from .options import Failed, config_options
 from .source_options import source_options
 
 
@@ -62,9 +62,7 @@ def process(log, output, flavor, compression, rrd, overwrite, source_opts, confi
                 click.echo(err=True)
     _report(summary, [output] + ([rrd] if rrd else []))
     if summary.frames_done == 0:
-        failed = click.ClickException(f"no frame of {log} could be processed ({_reasons(summary)})")
-        failed.exit_code = 2
-        raise failed
+        raise Failed(f"no frame of {log} could be processed ({_reasons(summary)})")
 
 
 def _check_outputs(log: Path, output: Path, rrd: Path | None, overwrite: bool) -> None:

@@ -41,10 +41,14 @@ def simulate(out: Path, fmt: str | None, overwrite: bool, **options) -> None:
     from terrainmap.sim import simulate as run
 
     fmt = fmt or ("mcap" if out.suffix.lower() == ".mcap" else "folder")
+    if not out.parent.is_dir():
+        raise click.UsageError(f"folder {out.parent} does not exist")
     if out.exists() and not overwrite and (out.is_file() or any(out.iterdir())):
         raise click.UsageError(f"{out} exists; pass --overwrite to replace it")
     if fmt == "mcap" and out.is_dir():
         raise click.UsageError(f"{out} is a folder; an MCAP output must be a file")
+    if fmt == "folder" and out.is_file():
+        raise click.UsageError(f"{out} is a file; a folder output must be a folder")
     config = SimConfig(format=fmt, **options)
     with click.progressbar(length=config.frames, label=f"simulate {config.scene}", file=sys.stderr) as bar:
         summary = run(out, config, progress=lambda _: bar.update(1))

@@ -22,6 +22,8 @@ from dataclasses import dataclass
 
 import click
 
+from .options import Finite
+
 _OPEN_NAMES = ("left_topic", "right_topic", "calibration", "pair_tolerance_ms")
 _FRAME_NAMES = ("start", "end", "every", "max_frames")
 
@@ -70,7 +72,7 @@ def _collect(func: Callable, names: tuple[str, ...]) -> Callable:
 
 def _add_open_options(func: Callable) -> Callable:
     func = click.option(
-        "--pair-tolerance-ms", type=click.FloatRange(min=0), default=10.0, show_default=True,
+        "--pair-tolerance-ms", type=Finite(min=0), default=10.0, show_default=True,
         help="Largest stamp difference of a left/right image pair in a log, milliseconds.",
     )(func)
     func = click.option(
@@ -89,9 +91,9 @@ def open_options(func: Callable) -> Callable:
 def source_options(func: Callable) -> Callable:
     """:func:`open_options` plus ``--start``, ``--end``, ``--every``, ``--max-frames`` → ``source_opts``."""
     func = _collect(func, _OPEN_NAMES + _FRAME_NAMES)
-    func = click.option("--max-frames", type=click.IntRange(min=0), default=None, help="Process at most this many frames.")(func)
+    func = click.option("--max-frames", type=click.IntRange(min=1), default=None, help="Process at most this many frames.")(func)
     func = click.option("--every", type=click.IntRange(min=1), default=1, show_default=True,
                         help="Keep every N-th stereo pair.")(func)
-    func = click.option("--end", type=float, default=None, help="End, seconds after the first stereo pair.")(func)
-    func = click.option("--start", type=float, default=None, help="Start, seconds after the first stereo pair.")(func)
+    func = click.option("--end", type=Finite(), default=None, help="End, seconds after the first stereo pair.")(func)
+    func = click.option("--start", type=Finite(), default=None, help="Start, seconds after the first stereo pair.")(func)
     return _add_open_options(func)

@@ -274,3 +274,19 @@ def test_credited_track_keeps_a_matching_track_and_switches_only_when_it_is_lost
     assert acc.credited_track(None, [7, 9], np.array([1.0, 0.2])) == 9  # first match: the nearest
     assert acc.credited_track(9, [7, 9], np.array([0.1, 0.8])) == 9  # still matching: kept
     assert acc.credited_track(9, [7, 4], np.array([0.5, 0.3])) == 4  # lost: the nearest takes over
+
+
+@pytest.mark.parametrize(
+    "damaged, content",
+    [("scene.json", b"\xff\xfe garbage"), ("scene.json", b"{}"), ("terrain.npz", b"garbage"), ("000000.npz", b"x")],
+)
+def test_damaged_truth_files_are_named(tmp_path, damaged, content):
+    from terrainmap.errors import InputError
+    from terrainmap.sim import SimConfig, open_truth, simulate
+
+    log = tmp_path / "log"
+    simulate(log, SimConfig(scene="flat", frames=1, seed=1, width=64, height=48, format="folder"))
+    (log / "truth" / damaged).write_bytes(content)
+    with pytest.raises(InputError, match=f"truth/{damaged}: damaged ground truth"):
+        with open_truth(log) as truth:
+            list(truth.frames())

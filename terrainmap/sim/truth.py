@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -104,15 +105,10 @@ def _open_folder(path: Path) -> Truth:
     missing = [n for n in ("scene.json", "terrain.npz") if not (truth_dir / n).is_file()]
     if missing:
         raise InputError(f"{path}: no ground truth (missing truth/{', truth/'.join(missing)})")
-    with np.load(truth_dir / "terrain.npz") as data:
-        terrain = Heightfield(
-            data["elevation"], float(data["x_min_m"]), float(data["y_min_m"]), float(data["resolution_m"])
-        )
-    description = json.loads((truth_dir / "scene.json").read_text())
 
     def frames(truth: Truth) -> Iterator[TruthFrame]:
         for index, file in enumerate(sorted(truth_dir.glob("[0-9]*.npz"))):
-            with np.load(file) as d:
+            with _damaged(file), np.load(file) as d:
                 boxes = [
                     ObstacleBox(int(i), str(k), str(s), c, z, float(y), float(h), v)
                     for i, k, s, c, z, y, h, v in zip(
@@ -126,7 +122,12 @@ def _open_folder(path: Path) -> Truth:
                     d["depth"], d["label"], d["instance"],
                 )
 
-    return Truth(path, terrain, description, frames)
+    with _damaged(truth_dir / "terrain.npz"), np.load(truth_dir / "terrain.npz") as data:
+        terrain = Heightfield(
+            data["elevation"], float(data["x_min_m"]), float(data["y_min_m"]), float(data["resolution_m"])
+        )
+    with _damaged(truth_dir / "scene.json"):
+        return Truth(path, terrain, _description((truth_dir / "scene.json").read_text()), frames)
 
 
 def _mcap_reader(file):
@@ -154,7 +155,27 @@ def _open_mcap(path: Path) -> Truth:
         raise
     except Exception as exc:  # mcap raises many kinds of errors on damaged or foreign files
         raise InputError(f"{path}: cannot read as an MCAP log ({exc})") from exc
-    return Truth(path, terrain, json.loads(meta["scene"]), _mcap_frames)
+    with _damaged(path):
+        return Truth(path, terrain, _description(meta["scene"]), _mcap_frames)
+
+
+@contextmanager
+def _damaged(path: Path):
+    """Turn the errors of reading a damaged truth file into one InputError naming it."""
+    try:
+        yield
+    except InputError:
+        raise
+    except (OSError, ValueError, KeyError, TypeError) as exc:  # npz and json raise these on garbage
+        raise InputError(f"{path}: damaged ground truth ({type(exc).__name__}: {exc})") from exc
+
+
+def _description(text: str) -> dict:
+    """The scene description JSON that ``terrainmap simulate`` stores (it holds the SimConfig)."""
+    description = json.loads(text)
+    if not isinstance(description, dict) or not isinstance(description.get("config"), dict):
+        raise ValueError("the scene description has no 'config' table")
+    return description
 
 
 def _mcap_frames(truth: Truth) -> Iterator[TruthFrame]:

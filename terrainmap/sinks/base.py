@@ -102,9 +102,12 @@ class McapSink:
             return
         self._closed = True
         try:
-            self._finish(self._metadata_record())
-        finally:
-            self._stream.close()
+            try:
+                self._finish(self._metadata_record())
+            finally:
+                self._stream.close()
+        except OSError as exc:  # disk full, device gone: the summary could not be written
+            raise InputError(f"cannot finish MCAP output {self.path}: {exc.strerror or exc}") from exc
         log.info("wrote %d frames to %s", self.frames_written, self.path)
 
     def __enter__(self):

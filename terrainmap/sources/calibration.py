@@ -106,14 +106,18 @@ def kitti_calibration(path: Path, keys: tuple[str, str] | None = None) -> Stereo
     candidates = [keys] if keys else [("P_rect_02", "P_rect_03"), ("P2", "P3")]
     for left_key, right_key in candidates:
         if left_key in values and right_key in values:
+            size_key = f"S_rect_{left_key[-2:]}"
             try:
                 P_left, P_right = _numbers(values[left_key]), _numbers(values[right_key])
-                size = _numbers(values.get(f"S_rect_{left_key[-2:]}", "0 0"))
             except ValueError:
                 raise CalibrationError(f"{path}: {left_key}/{right_key} are not numbers") from None
+            try:
+                size = _numbers(values.get(size_key, "0 0"))
+                width, height = (int(v) for v in size[:2]) if size.size >= 2 else (0, 0)
+            except (ValueError, OverflowError):
+                raise CalibrationError(f"{path}: {size_key} must be the image width and height in pixels") from None
             if P_left.size != 12 or P_right.size != 12:
                 raise CalibrationError(f"{path}: {left_key} and {right_key} must have 12 values each")
-            width, height = (int(v) for v in size[:2]) if size.size >= 2 else (0, 0)
             return from_projections(P_left, P_right, source=str(path), width=width, height=height)
     wanted = " or ".join("/".join(k) for k in candidates)
     raise CalibrationError(f"{path}: no {wanted} projection matrices in this KITTI calibration file")
@@ -138,8 +142,10 @@ def middlebury_calibration(path: Path) -> StereoCalibration:
         )
     except KeyError as exc:
         raise CalibrationError(f"{path}: Middlebury calibration lacks {exc.args[0]!r}") from None
-    except ValueError:
-        raise CalibrationError(f"{path}: cam0 must be a 3×3 matrix and baseline/doffs numbers") from None
+    except (ValueError, OverflowError):
+        raise CalibrationError(
+            f"{path}: cam0 must be a 3×3 matrix, baseline and doffs numbers, width and height whole pixels"
+        ) from None
     return check_calibration(calib)
 
 
@@ -188,16 +194,21 @@ def terrainmap_calibration(path: Path) -> tuple[StereoCalibration, Extrinsics | 
         raise CalibrationError(f"{path}: missing calibration keys: {', '.join(missing)}")
     try:
         numbers = {key: float(data[key]) for key in (*_REQUIRED, "doffs") if key in data}
+        numbers.update({key: int(numbers[key]) for key in ("width", "height")})
         cx_right = None if data.get("cx_right") is None else float(data["cx_right"])
-    except (TypeError, ValueError):
-        raise CalibrationError(f"{path}: width, height, fx, fy, cx, cy, baseline_m must be numbers") from None
-    rectified = bool(data.get("rectified", True))
+    except (TypeError, ValueError, OverflowError):
+        raise CalibrationError(
+            f"{path}: width, height (whole pixels), fx, fy, cx, cy, baseline_m must be numbers"
+        ) from None
+    rectified = data.get("rectified", True)
+    if not isinstance(rectified, bool):
+        raise CalibrationError(f"{path}: rectified must be true or false, got {rectified!r}")
     extra = {} if rectified else {
         key: _array(data, key, (3, 3) if key in ("K_left", "K_right", "R") else (3,) if key == "T" else None, path)
         for key in _UNRECTIFIED
     }
     calib = StereoCalibration(
-        **{key: int(v) if key in ("width", "height") else v for key, v in numbers.items()},
+        **numbers,
         cx_right=cx_right,
         rectified=rectified,
         source=str(path),

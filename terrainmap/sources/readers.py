@@ -122,9 +122,10 @@ def mcap_files(path: Path) -> list[Path]:
     if metadata.is_file():
         try:
             info = yaml.safe_load(metadata.read_text())["rosbag2_bagfile_information"]
-            names = list(info.get("relative_file_paths") or [])
-        except (OSError, yaml.YAMLError, KeyError, TypeError) as exc:
+            names = [str(name) for name in info.get("relative_file_paths") or []]
+        except (OSError, ValueError, yaml.YAMLError, KeyError, TypeError, AttributeError) as exc:
             logger.warning("%s: unreadable (%s); using the .mcap files in the folder", metadata, _reason(exc))
+            names = []
     files = [path / n for n in names if (path / n).suffix == ".mcap" and (path / n).is_file()]
     return files or sorted(path.glob("*.mcap"))
 
