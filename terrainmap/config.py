@@ -174,6 +174,7 @@ class TerrainConfig:
         _check(self.epsilon_m > 0, "terrain.epsilon_m", "must be > 0")
         _check(self.smoothness > 0, "terrain.smoothness", "must be > 0")
         _check(0 <= self.filled_weight <= 1, "terrain.filled_weight", "must be in [0, 1]")
+        _check(self.min_valid_cells >= 0, "terrain.min_valid_cells", "must be >= 0")
         if grid is not None:
             m0, m1 = grid.shape
             for name, n, m, axis in (
@@ -360,7 +361,7 @@ class ExtrinsicsConfig:
     def validate(self) -> None:
         _check(self.near_range_m > 0, "extrinsics.near_range_m", "must be > 0")
         _check(self.inlier_threshold_m > 0, "extrinsics.inlier_threshold_m", "must be > 0")
-        _check(self.iterations >= 1, "extrinsics.iterations", "must be >= 1")
+        _check(1 <= self.iterations <= 100_000, "extrinsics.iterations", "must be in 1..100000")
         _check(0 < self.min_inlier_fraction < 1, "extrinsics.min_inlier_fraction", "must be in (0, 1)")
         _check(self.min_points >= 3, "extrinsics.min_points", "must be >= 3")
         _check(0 < self.max_tilt_deg < 90, "extrinsics.max_tilt_deg", "must be in (0, 90)")

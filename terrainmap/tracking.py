@@ -282,7 +282,8 @@ def _pose(vehicle_pose: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
         return np.eye(3), np.zeros(3)
     T = np.asarray(vehicle_pose, float)
     if T.shape != (4, 4) or not np.isfinite(T).all():
-        raise InputError(f"tracking: vehicle_pose must be a finite 4×4 matrix, got shape {T.shape}")
+        what = f"shape {T.shape}" if T.shape != (4, 4) else "non-finite values"
+        raise InputError(f"tracking: vehicle_pose must be a finite 4×4 matrix, got {what}")
     return T[:3, :3], T[:3, 3]
 
 

@@ -81,6 +81,13 @@ def test_transform_tree_composes_up_to_the_vehicle_frame():
     assert rootless.extrinsics("cam").vehicle_frame_id == "world"
 
 
+def test_broken_static_transforms_are_skipped():
+    tree = TransformTree()
+    tree.add("base_link", "camera", [0, 0, 1.5], [0, 0, 0, 0])  # zero quaternion: no rotation at all
+    tree.add("base_link", "lidar", [np.nan, 0, 1.5], [0, 0, 0, 1])
+    assert len(tree) == 0
+
+
 def test_vehicle_poses_interpolate_and_keep_to_one_odometry_frame():
     yaw90 = [0, 0, np.sin(np.pi / 4), np.cos(np.pi / 4)]
     poses = VehiclePoses(tolerance_ns=50)
@@ -90,6 +97,8 @@ def test_vehicle_poses_interpolate_and_keep_to_one_odometry_frame():
     poses.add(150, "odom", "base_link", [9, 9, 9], [0, 0, 0, 1])  # older than the newest: ignored
     poses.add(300, "map", "base_link", [5, 5, 5], [0, 0, 0, 1])  # another odometry frame: ignored
     poses.add(300, "base_link", "camera", [5, 5, 5], [0, 0, 0, 1])  # not a vehicle pose
+    poses.add(310, "odom", "base_link", [np.nan, 0, 0], [0, 0, 0, 1])  # broken: skipped
+    poses.add(320, "odom", "base_link", [0, 0, 0], [0, 0, 0, 0])
     assert poses.parent == "odom" and poses.newest_ns == 200
     early, late = poses.at(125), poses.at(175)
     np.testing.assert_allclose(early[:3, 3], [0.25, 0.5, 0])

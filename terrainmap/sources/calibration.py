@@ -35,7 +35,7 @@ import yaml
 from ..errors import CalibrationError
 from ..stereo import check_calibration as stereo_check
 from ..types import Extrinsics, StereoCalibration
-from .tf import quaternion_to_matrix
+from .tf import quaternion_to_matrix, usable
 
 _REQUIRED = ("width", "height", "fx", "fy", "cx", "cy", "baseline_m")
 _UNRECTIFIED = ("K_left", "K_right", "dist_left", "dist_right", "R", "T")
@@ -164,8 +164,13 @@ def extrinsics_from_dict(data: dict, path: Path) -> Extrinsics:
     if not isinstance(data, dict):
         raise CalibrationError(f"{path}: 'extrinsics' must be a table with translation_m and rotation")
     translation = _array({"translation_m": data.get("translation_m", [0, 0, 0])}, "translation_m", (3,), path)
+    if not np.isfinite(translation).all() or np.abs(translation).max() > 1e3:
+        raise CalibrationError(f"{path}: extrinsics translation_m must be finite metres, got {translation.tolist()}")
     if "quaternion_xyzw" in data:
-        rotation = quaternion_to_matrix(_array(data, "quaternion_xyzw", (4,), path))
+        quaternion = _array(data, "quaternion_xyzw", (4,), path)
+        if not usable(translation, quaternion):
+            raise CalibrationError(f"{path}: extrinsics quaternion_xyzw must be finite and non-zero")
+        rotation = quaternion_to_matrix(quaternion)
     else:
         rotation = _array(data, "rotation", (3, 3), path)
     if not np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-3) or np.linalg.det(rotation) < 0:

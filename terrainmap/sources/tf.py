@@ -16,6 +16,13 @@ from ..types import Extrinsics
 VEHICLE_FRAMES = ("base_link", "base_footprint")
 
 
+def usable(translation, quaternion_xyzw) -> bool:
+    """Whether a transform is finite with a quaternion that is not (near) zero: logs do carry
+    broken ones, which are skipped rather than turned into a rotation."""
+    q = np.asarray(quaternion_xyzw, float)
+    return bool(np.isfinite(translation).all() and np.isfinite(q).all() and np.linalg.norm(q) > 1e-6)
+
+
 def quaternion_to_matrix(q_xyzw) -> np.ndarray:
     """3×3 rotation matrix of a quaternion given as (x, y, z, w); normalised first."""
     x, y, z, w = np.asarray(q_xyzw, float) / (np.linalg.norm(q_xyzw) or 1.0)
@@ -47,7 +54,7 @@ class TransformTree:
     def add(self, parent: str, child: str, translation, quaternion_xyzw) -> None:
         """Record ``child``'s pose in ``parent`` (leading '/' of ROS 1 frame ids is dropped)."""
         parent, child = parent.lstrip("/"), child.lstrip("/")
-        if child and parent and child != parent and child not in self._parent:
+        if child and parent and child != parent and child not in self._parent and usable(translation, quaternion_xyzw):
             self._parent[child] = (parent, homogeneous(quaternion_to_matrix(quaternion_xyzw), translation))
 
     def chain(self, frame: str) -> list[str]:
@@ -109,8 +116,8 @@ class VehiclePoses:
         parent, child = parent.lstrip("/"), child.lstrip("/")
         if child not in VEHICLE_FRAMES or parent in VEHICLE_FRAMES or parent != (self.parent or parent):
             return
-        if self._stamps and stamp_ns <= self._stamps[-1]:
-            return  # out of order or repeated: poses are kept in time order
+        if self._stamps and stamp_ns <= self._stamps[-1] or not usable(translation, quaternion_xyzw):
+            return  # out of order or repeated (poses are kept in time order), or broken
         self.parent = parent
         self._stamps.append(int(stamp_ns))
         self._poses.append(homogeneous(quaternion_to_matrix(quaternion_xyzw), translation))
