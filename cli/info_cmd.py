@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 
 import click
 
@@ -46,4 +47,15 @@ def info(log: str, source_opts: SourceOptions, as_json: bool) -> None:
     stereo pair, calibration and extrinsics."""
     with source_opts.open(log) as source:
         description = source.describe()
-    click.echo(json.dumps(description, indent=2) if as_json else format_description(description))
+    click.echo(json.dumps(_json_safe(description), indent=2) if as_json else format_description(description))
+
+
+def _json_safe(value):
+    """NaN and infinities (a broken calibration) as null: JSON has no such numbers."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {key: _json_safe(v) for key, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_json_safe(v) for v in value]
+    return value

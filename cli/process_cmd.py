@@ -95,7 +95,10 @@ def _progress(summary, frame, result) -> None:
 
 
 def _reasons(summary) -> str:
-    return ", ".join(f"{reason} ×{n}" for reason, n in summary.failures.most_common()) or "no frames selected"
+    return ", ".join(f"{reason} ×{n}" for reason, n in summary.failures.most_common()) or (
+        "no stereo pair selected: check --start/--end, and that the left and right stamps agree "
+        "within --pair-tolerance-ms"
+    )
 
 
 def _report(summary, outputs) -> None:

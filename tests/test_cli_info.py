@@ -83,3 +83,9 @@ def test_source_options_collect_into_open_and_frames_kwargs():
     assert seen["open"] == {"left_topic": "/a/left", "right_topic": None, "calibration": None, "pair_tolerance_ns": 4_000_000}
     assert seen["frames"] == {"start_s": 2.5, "end_s": None, "every": 3, "max_frames": 7}
     assert CliRunner().invoke(cmd, ["--every", "0"]).exit_code == 2
+
+
+def test_json_output_has_no_nan():
+    from terrainmap.cli.info_cmd import _json_safe
+
+    assert _json_safe({"fx": float("nan"), "P": [1.0, float("inf")], "name": "x"}) == {"fx": None, "P": [1.0, None], "name": "x"}

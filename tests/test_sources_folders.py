@@ -95,6 +95,24 @@ def test_calibration_toml_extrinsics_and_unrectified(tmp_path):
     np.testing.assert_allclose(ext.rotation, [[0, 0, 1], [-1, 0, 0], [0, -1, 0]], atol=1e-12)
 
 
+@pytest.mark.parametrize(
+    "old, new, message",
+    [
+        ("K_left = [[500, 0, 4]", "K_left = [[nan, 0, 4]", "'K_left' must be a list of finite numbers"),
+        ("quaternion_xyzw = [-0.5, 0.5, -0.5, 0.5]", "quaternion_xyzw = [0, 0, 0, 0]", "must not be zero"),
+        ("translation_m = [0.5, 0.0, 1.5]", "translation_m = [nan, 0.0, 1.5]", "'translation_m' must be a list of finite"),
+        ("translation_m = [0.5, 0.0, 1.5]", "translation_m = [0.5, 0.0, 1e30]", "translation_m must be within 1 km"),
+        ("rectified = false", 'rectified = "false"', "rectified must be true or false"),
+    ],
+)
+def test_nonsense_in_a_calibration_file_is_named(tmp_path, old, new, message):
+    test_calibration_toml_extrinsics_and_unrectified(tmp_path)  # writes a valid calibration.toml
+    path = next(tmp_path.rglob("calibration.toml"))
+    path.write_text(path.read_text().replace(old, new))
+    with pytest.raises(CalibrationError, match=message):
+        next(open_source(path.parent).frames())
+
+
 def kitti_stereo(root: Path, left="image_2", right="image_3", calib_dir="calib_cam_to_cam", names=("000000_10", "000000_11")):
     for i, name in enumerate(names):
         write(root / left / f"{name}.png", image(i))

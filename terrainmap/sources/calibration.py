@@ -152,11 +152,14 @@ def middlebury_calibration(path: Path) -> StereoCalibration:
 def _array(data: dict, key: str, shape: tuple[int, ...] | None, path: Path) -> np.ndarray:
     try:
         value = np.asarray(data[key], float)
-        return value.reshape(shape) if shape else value.ravel()
+        value = value.reshape(shape) if shape else value.ravel()
+        if not np.isfinite(value).all():
+            raise ValueError
+        return value
     except KeyError:
         raise CalibrationError(f"{path}: rectified is false, so {key!r} is required") from None
     except (TypeError, ValueError):
-        raise CalibrationError(f"{path}: {key!r} must be a numeric list of shape {shape or '(n,)'}") from None
+        raise CalibrationError(f"{path}: {key!r} must be a list of finite numbers of shape {shape or '(n,)'}") from None
 
 
 def extrinsics_from_dict(data: dict, path: Path) -> Extrinsics:
@@ -164,12 +167,12 @@ def extrinsics_from_dict(data: dict, path: Path) -> Extrinsics:
     if not isinstance(data, dict):
         raise CalibrationError(f"{path}: 'extrinsics' must be a table with translation_m and rotation")
     translation = _array({"translation_m": data.get("translation_m", [0, 0, 0])}, "translation_m", (3,), path)
-    if not np.isfinite(translation).all() or np.abs(translation).max() > 1e3:
-        raise CalibrationError(f"{path}: extrinsics translation_m must be finite metres, got {translation.tolist()}")
+    if np.abs(translation).max() > 1e3:
+        raise CalibrationError(f"{path}: extrinsics translation_m must be within 1 km, got {translation.tolist()}")
     if "quaternion_xyzw" in data:
         quaternion = _array(data, "quaternion_xyzw", (4,), path)
         if not usable(translation, quaternion):
-            raise CalibrationError(f"{path}: extrinsics quaternion_xyzw must be finite and non-zero")
+            raise CalibrationError(f"{path}: extrinsics quaternion_xyzw must not be zero")
         rotation = quaternion_to_matrix(quaternion)
     else:
         rotation = _array(data, "rotation", (3, 3), path)
