@@ -23,11 +23,11 @@ def _numbers(*, positive: bool = True, whole: bool = False, count: int | None = 
             values = [float(v) for v in text.split(",") if v.strip()]
         except ValueError:
             raise click.BadParameter(f"expected comma-separated numbers, got {text!r}") from None
-        kind = " ".join(w for w, on in (("positive", positive), ("whole", whole)) if on)
         if not values or not all(
             math.isfinite(v) and (v > 0 or not positive) and (v == int(v) or not whole) for v in values
         ):
-            raise click.BadParameter(f"expected comma-separated {kind} numbers, got {text!r}".replace("  ", " "))
+            kind = [w for w, on in (("finite", True), ("positive", positive), ("whole", whole)) if on]
+            raise click.BadParameter(f"expected {' '.join(['comma-separated', *kind, 'numbers'])}, got {text!r}")
         if count is not None and len(values) != count:
             raise click.BadParameter(f"expected {count} numbers, got {text!r}")
         return values

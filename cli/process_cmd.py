@@ -73,8 +73,10 @@ def _check_outputs(log: Path, output: Path, rrd: Path | None, overwrite: bool) -
         if path is None:
             continue
         target = path.resolve()
-        if target == source or source in target.parents:
+        if target == source:
             raise click.UsageError(f"{option} {path} would overwrite the input {log}")
+        if source in target.parents:
+            raise click.UsageError(f"{option} {path} lies inside the input folder {log}; write it elsewhere")
         if path.exists() and not overwrite:
             raise click.UsageError(f"{path} exists; pass --overwrite to replace it")
     if rrd is not None and rrd.resolve() == output.resolve():

@@ -169,6 +169,11 @@ def test_outputs_never_replace_the_input_or_each_other(small_log, tmp_path):
     for extra in (["-o", str(log)], ["-o", str(tmp_path / "." / "in.mcap")], ["--rrd", str(log)]):
         result = CliRunner().invoke(cli, ["process", str(log), "--overwrite", *extra])
         assert result.exit_code == 2 and "would overwrite the input" in result.output, extra
+    folder = tmp_path / "bag"
+    folder.mkdir()
+    shutil.copy(small_log, folder / "bag_0.mcap")
+    result = CliRunner().invoke(cli, ["process", str(folder), "-o", str(folder / "bag_0.mcap"), "--overwrite"])
+    assert result.exit_code == 2 and "inside the input folder" in result.output
     same = str(tmp_path / "o.mcap")
     result = CliRunner().invoke(cli, ["process", str(log), "-o", same, "--rrd", same])
     assert result.exit_code == 2 and "same file" in result.output
