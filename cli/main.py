@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import importlib
 import logging
+import os
 import sys
 
 import click
@@ -50,6 +51,8 @@ class LazyGroup(click.Group):
 def cli(ctx: click.Context, verbose: bool) -> None:
     """terrainmap: terrain maps from stereo camera logs (Broggi et al., rational B-splines)."""
     ctx.obj = {"verbose": verbose}
+    if not verbose:  # OpenCV's own log lines (e.g. "[ERROR] ... IHDR" on a corrupt PNG) would add to
+        os.environ.setdefault("OPENCV_LOG_LEVEL", "SILENT")  # the one-line error; read at its import
     logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
 
 

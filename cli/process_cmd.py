@@ -77,6 +77,8 @@ def _check_outputs(log: Path, output: Path, rrd: Path | None, overwrite: bool) -
             raise click.UsageError(f"{option} {path} would overwrite the input {log}")
         if source in target.parents:
             raise click.UsageError(f"{option} {path} lies inside the input folder {log}; write it elsewhere")
+        if not target.parent.is_dir():
+            raise click.UsageError(f"{option} {path}: folder {path.parent} does not exist")
         if path.exists() and not overwrite:
             raise click.UsageError(f"{path} exists; pass --overwrite to replace it")
     if rrd is not None and rrd.resolve() == output.resolve():

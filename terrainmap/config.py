@@ -540,6 +540,8 @@ def _coerce(section: str, name: str, current: Any, value: Any) -> Any:
             if not isinstance(value, bool):
                 raise ValueError
             return value
+        if isinstance(value, bool):  # TOML true/false is no number (bool is an int in Python)
+            raise ValueError
         if isinstance(current, int):
             if isinstance(value, float) and not value.is_integer():
                 raise ValueError

@@ -50,6 +50,13 @@ def test_bad_values_name_the_field(override, message):
         load_config(overrides=[override])
 
 
+def test_a_toml_boolean_is_no_number(tmp_path):
+    path = tmp_path / "c.toml"
+    path.write_text("[terrain]\ndegree = true\n")
+    with pytest.raises(ConfigError, match="terrain.degree: cannot use True as a int"):
+        load_config(path)
+
+
 def test_bad_files(tmp_path):
     with pytest.raises(ConfigError, match="does not exist"):
         load_config(tmp_path / "missing.toml")

@@ -243,6 +243,7 @@ def test_calibration_override_replaces_the_folder_calibration(tmp_path):
         (lambda r: (r / "calibration.yaml").write_text("width: 8\n"), CalibrationError, "missing calibration keys: height"),
         (lambda r: (r / "calibration.yaml").write_text(CALIB_YAML.replace("width: 8", "width: 9")), CalibrationError, "9×6"),
         (lambda r: write(r / "right" / "000000.png", image(0, (7, 8, 3))), InputError, "differ in size.*8×6.*8×7"),
+        (lambda r: write(r / "right" / "000000.png", image(0, (6, 8), np.uint16)), InputError, "differ in bit depth"),
         (lambda r: (r / "left" / "000000.png").write_bytes(b"not a png"), InputError, "000000.png: cannot read the image"),
         (lambda r: (r / "timestamps.txt").write_text("12\nabc\n"), InputError, "timestamps.txt"),
     ],
@@ -265,3 +266,9 @@ def test_unknown_and_missing_paths(tmp_path):
     (tmp_path / "right").mkdir()
     with pytest.raises(InputError, match="no left/right image pairs"):
         open_source(tmp_path)
+
+
+def test_topics_given_for_an_image_folder_are_an_error(tmp_path):
+    root = generic_folder(tmp_path, n=1)
+    with pytest.raises(ConfigError, match="--left-topic/--right-topic: .* is an image folder"):
+        open_source(root, left_topic="/camera/left")

@@ -29,7 +29,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from ..errors import InputError
+from ..errors import ConfigError, InputError
 from .base import Source
 from .folder import GenericFolder
 from .kitti import KittiOdometryFolder, KittiRawFolder, KittiStereoFolder
@@ -82,7 +82,7 @@ def open_source(
     path : str or Path
         A log file, rosbag2 directory or image folder.
     left_topic, right_topic : str, optional
-        Image topics of a log (default: guessed by type and name). Ignored for folders.
+        Image topics of a log (default: guessed by type and name); an error for image folders.
     calibration : str or Path, optional
         Calibration file (YAML/TOML, KITTI or Middlebury text) overriding the source's own.
     pair_tolerance_ns : int
@@ -92,4 +92,6 @@ def open_source(
     if issubclass(cls, (McapSource, Ros1BagSource)):
         return cls(path, left_topic=left_topic, right_topic=right_topic, calibration=calibration,
                    pair_tolerance_ns=pair_tolerance_ns)
+    if left_topic or right_topic:
+        raise ConfigError(f"--left-topic/--right-topic: {path} is an image folder, not a log with topics")
     return cls(path, calibration=calibration)

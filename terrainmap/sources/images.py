@@ -99,13 +99,17 @@ def stereo_pair(
     """Make a left/right pair the pipeline can use: same size, same channels, uint8.
 
     16-bit images are scaled to 8 bit with one factor for both (255 / the pair's maximum).
-    A colour image paired with a mono one is converted to mono. Different sizes raise
-    :class:`InputError` naming both images and their sizes.
+    A colour image paired with a mono one is converted to mono. Different sizes or bit depths
+    raise :class:`InputError` naming both images.
     """
     if left.shape[:2] != right.shape[:2]:
         raise InputError(
             f"left and right images differ in size: {left_name} is {left.shape[1]}×{left.shape[0]}, "
             f"{right_name} is {right.shape[1]}×{right.shape[0]}"
+        )
+    if left.dtype != right.dtype:
+        raise InputError(
+            f"left and right images differ in bit depth: {left_name} is {left.dtype}, {right_name} is {right.dtype}"
         )
     if left.ndim != right.ndim:
         left, right = (cv2.cvtColor(im, cv2.COLOR_RGB2GRAY) if im.ndim == 3 else im for im in (left, right))

@@ -126,7 +126,9 @@ def mcap_files(path: Path) -> list[Path]:
         except (OSError, ValueError, yaml.YAMLError, KeyError, TypeError, AttributeError) as exc:
             logger.warning("%s: unreadable (%s); using the .mcap files in the folder", metadata, _reason(exc))
             names = []
-    files = [path / n for n in names if (path / n).suffix == ".mcap" and (path / n).is_file()]
+    inside = path.resolve()
+    files = [path / n for n in names if (path / n).suffix == ".mcap" and (path / n).is_file()
+             and inside in (path / n).resolve().parents]  # a rosbag2 folder holds its own files
     return files or sorted(path.glob("*.mcap"))
 
 
