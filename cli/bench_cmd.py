@@ -8,7 +8,7 @@ import click
 
 from terrainmap.config import load_config
 
-from .options import config_options, output_file, write_text
+from .options import config_options, output_file, refuse_overwriting_inputs, write_text
 
 
 @click.command()
@@ -20,6 +20,7 @@ def bench(runs: int, json_path: str | None, config_path: str | None, overrides: 
     """Time each pipeline stage at the paper configuration on synthetic input."""
     from terrainmap import bench as lib
 
+    refuse_overwriting_inputs({"--json": json_path}, [config_path])
     config = load_config(config_path, overrides)
     env = lib.environment()
     click.echo("machine: " + ", ".join(f"{k}={v}" for k, v in env.items()))

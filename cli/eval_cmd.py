@@ -11,7 +11,7 @@ import click
 
 from terrainmap.config import load_config
 
-from .options import PLOT_SUFFIXES, Finite, config_options, output_file, write_text
+from .options import PLOT_SUFFIXES, Finite, config_options, output_file, refuse_overwriting_inputs, write_text
 
 
 def _numbers(*, positive: bool = True, whole: bool = False, count: int | None = None):
@@ -76,6 +76,7 @@ def artificial_obstacle(
     from terrainmap.config import GridConfig
     from terrainmap.evaluation import artificial_obstacle as ao
 
+    refuse_overwriting_inputs({"--json": json_path, "--csv": csv_path, "--plot": plot_path}, [base_log, config_path])
     config = load_config(config_path, overrides)
     if base_log:
         grid, base_points = config.grid, ao.points_from_log(base_log, config, frame_index)
@@ -113,12 +114,12 @@ def _print_table(results) -> None:
 
 
 @eval_group.command("robustness")
-@click.option("--noise", "noise_m", type=Finite(min=0), default=0.03, show_default=True, help="Sample noise σ, m.")
-@click.option("--outliers", "outlier_fraction", type=click.FloatRange(0, 1), default=0.1, show_default=True,
+@click.option("--noise", "noise_m", type=Finite(0, 10), default=0.03, show_default=True, help="Sample noise σ, m.")
+@click.option("--outliers", "outlier_fraction", type=Finite(0, 1), default=0.1, show_default=True,
               help="Fraction of samples raised by a gross error.")
-@click.option("--outlier-max", "outlier_max_m", type=Finite(min=0), default=2.0, show_default=True,
+@click.option("--outlier-max", "outlier_max_m", type=Finite(0, 100), default=2.0, show_default=True,
               help="Largest gross error above the ground, m.")
-@click.option("--empty", "empty_fraction", type=click.FloatRange(0, 0.95), default=0.3, show_default=True,
+@click.option("--empty", "empty_fraction", type=Finite(0, 0.95), default=0.3, show_default=True,
               help="Fraction of empty cells.")
 @click.option("--seeds", type=click.IntRange(1, 1000), default=5, show_default=True)
 @config_options

@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+import os
+import signal
+from collections.abc import Callable, Iterable
 from pathlib import Path
 
 import click
@@ -15,6 +17,9 @@ class Finite(click.FloatRange):
     """A float option that must also be finite: click's FloatRange lets nan and inf through."""
 
     name = "finite float"
+
+    def _describe_range(self) -> str:
+        return "finite" if self.min is None and self.max is None else super()._describe_range()
 
     def convert(self, value, param, ctx):
         number = super().convert(value, param, ctx)
@@ -28,6 +33,47 @@ class Failed(click.ClickException):
     the library's errors (click's own exceptions exit with 1)."""
 
     exit_code = 2
+
+
+class GracefulStop:
+    """While active, SIGINT (Ctrl-C) and SIGTERM only ask the run to stop: :meth:`check`, called
+    between frames, then raises KeyboardInterrupt, so that no output is cut in the middle of a
+    write and every file is finalised. A second signal interrupts at once."""
+
+    def __init__(self) -> None:
+        self.requested = False
+
+    def _handle(self, signum, frame) -> None:
+        if self.requested:
+            raise KeyboardInterrupt
+        self.requested = True
+
+    def check(self, *_) -> None:
+        if self.requested:
+            raise KeyboardInterrupt
+
+    def __enter__(self):
+        self._previous = {s: signal.signal(s, self._handle) for s in (signal.SIGINT, signal.SIGTERM)}
+        return self
+
+    def __exit__(self, *exc_info) -> None:
+        for s, handler in self._previous.items():
+            signal.signal(s, handler)
+
+
+def refuse_overwriting_inputs(outputs: dict[str, Path | None], inputs: Iterable[str | Path | None]) -> None:
+    """Raise a UsageError when an output (option name → path) is an input file (also through a
+    link) or lies inside an input folder: a report must never replace the data it reports on."""
+    for option, path in outputs.items():
+        if path is None:
+            continue
+        target = Path(path).resolve()
+        for source in (Path(p) for p in inputs if p is not None):
+            same = target.exists() and source.exists() and os.path.samefile(target, source)
+            if same or target == source.resolve():
+                raise click.UsageError(f"{option} {path} would overwrite the input {source}")
+            if source.is_dir() and source.resolve() in target.parents:
+                raise click.UsageError(f"{option} {path} lies inside the input folder {source}; write it elsewhere")
 
 
 def write_text(path: Path, text: str) -> None:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import signal
 import sys
 from pathlib import Path
 
@@ -10,7 +9,7 @@ import click
 
 from terrainmap.config import load_config
 
-from .options import Failed, config_options
+from .options import Failed, GracefulStop, config_options, refuse_overwriting_inputs
 from .source_options import source_options
 
 
@@ -40,8 +39,15 @@ def process(log, output, flavor, compression, rrd, overwrite, source_opts, confi
 
     config = load_config(config_path, overrides)
     output = output or default_output(log)
-    _check_outputs(log, output, rrd, overwrite)
-    with source_opts.open(str(log)) as source:
+    _check_outputs(log, output, rrd, overwrite, [source_opts.calibration, config_path])
+    show = sys.stderr.isatty()
+
+    def on_frame(summary, frame, result) -> None:
+        if show:
+            _progress(summary, frame, result)
+        stop.check()  # between frames: a signal never cuts an output in the middle of a write
+
+    with GracefulStop() as stop, source_opts.open(str(log)) as source:
         frames = source.frames(**source_opts.frames_kwargs())
         sinks = [open_mcap_sink(output, flavor, config=config, metadata={"source": str(log)}, compression=compression)]
         if rrd is not None:
@@ -52,12 +58,9 @@ def process(log, output, flavor, compression, rrd, overwrite, source_opts, confi
             except BaseException:
                 sinks[0].close()
                 raise
-        show = _progress if sys.stderr.isatty() else None
-        terminate = signal.signal(signal.SIGTERM, _interrupt)  # a killed run still finalises its outputs
         try:
-            summary = runner.run(frames, config, sinks, on_frame=show)
+            summary = runner.run(frames, config, sinks, on_frame=on_frame)
         finally:
-            signal.signal(signal.SIGTERM, terminate)
             if show:
                 click.echo(err=True)
     _report(summary, [output] + ([rrd] if rrd else []))
@@ -65,28 +68,19 @@ def process(log, output, flavor, compression, rrd, overwrite, source_opts, confi
         raise Failed(f"no frame of {log} could be processed ({_reasons(summary)})")
 
 
-def _check_outputs(log: Path, output: Path, rrd: Path | None, overwrite: bool) -> None:
-    """Outputs must not replace the input (or a file inside an input folder) nor each other, nor
-    replace an existing file without ``--overwrite``."""
-    source = log.resolve()
+def _check_outputs(log: Path, output: Path, rrd: Path | None, overwrite: bool, inputs: list) -> None:
+    """Outputs must not replace an input (the log, a file inside a log folder, the calibration or
+    config file) nor each other, nor replace an existing file without ``--overwrite``."""
+    refuse_overwriting_inputs({"-o/--output": output, "--rrd": rrd}, [log, *inputs])
     for option, path in (("-o/--output", output), ("--rrd", rrd)):
         if path is None:
             continue
-        target = path.resolve()
-        if target == source:
-            raise click.UsageError(f"{option} {path} would overwrite the input {log}")
-        if source in target.parents:
-            raise click.UsageError(f"{option} {path} lies inside the input folder {log}; write it elsewhere")
-        if not target.parent.is_dir():
+        if not path.resolve().parent.is_dir():
             raise click.UsageError(f"{option} {path}: folder {path.parent} does not exist")
         if path.exists() and not overwrite:
             raise click.UsageError(f"{path} exists; pass --overwrite to replace it")
     if rrd is not None and rrd.resolve() == output.resolve():
         raise click.UsageError(f"--rrd and -o/--output are the same file {output}")
-
-
-def _interrupt(signum, frame) -> None:
-    raise KeyboardInterrupt  # the runner closes every sink on its way out
 
 
 def _progress(summary, frame, result) -> None:

@@ -9,6 +9,8 @@ import click
 
 from terrainmap.sim.scenes import SCENES
 
+from .options import GracefulStop
+
 
 @click.command()
 @click.argument("out", type=click.Path(path_type=Path))
@@ -50,8 +52,13 @@ def simulate(out: Path, fmt: str | None, overwrite: bool, **options) -> None:
     if fmt == "folder" and out.is_file():
         raise click.UsageError(f"{out} is a file; a folder output must be a folder")
     config = SimConfig(format=fmt, **options)
-    with click.progressbar(length=config.frames, label=f"simulate {config.scene}", file=sys.stderr) as bar:
-        summary = run(out, config, progress=lambda _: bar.update(1))
+    def progress(_) -> None:
+        bar.update(1)
+        stop.check()  # between frames: the log written so far is finalised
+
+    with GracefulStop() as stop, click.progressbar(length=config.frames, label=f"simulate {config.scene}",
+                                                   file=sys.stderr) as bar:
+        summary = run(out, config, progress=progress)
     click.echo(
         f"wrote {summary['frames']} frames ({config.width}×{config.height}, scene {config.scene}, seed {config.seed}) "
         f"to {summary['path']}: {summary['bytes'] / 1e6:.1f} MB in {summary['seconds']:.1f} s"

@@ -556,7 +556,8 @@ def _coerce(section: str, name: str, current: Any, value: Any) -> Any:
             return type(current)(_coerce(section, name, current[0], v) for v in items)
         return str(value)
     except (TypeError, ValueError):
-        raise ConfigError(f"{key}: cannot use {value!r} as a {type(current).__name__}") from None
+        kind = {bool: "true or false", int: "an integer", float: "a number"}.get(type(current), type(current).__name__)
+        raise ConfigError(f"{key}: cannot use {value!r}, expected {kind}") from None
 
 
 def apply_values(config: Config, values: dict[str, Any], source: str = "config") -> Config:

@@ -73,9 +73,18 @@ def cell_centers(config: GridConfig) -> tuple[np.ndarray, np.ndarray]:
     return config.x_min_m + (np.arange(m0) + 0.5) * c, config.y_min_m + (np.arange(m1) + 0.5) * c
 
 
+def as_points(points) -> np.ndarray:
+    """``points`` as an N×3 array of real numbers (vehicle frame, m), or :class:`InputError`."""
+    array = np.asarray(points)
+    if array.ndim != 2 or array.shape[1] != 3 or array.dtype.kind not in "fiu":
+        raise InputError(f"points must be an N×3 array of real numbers, got shape {array.shape} of {array.dtype}")
+    return array
+
+
 def cell_index(points: np.ndarray, config: GridConfig) -> np.ndarray:
     """Flat cell index ``ix·m1 + iy`` of each point (N,), or ``m0·m1`` for points outside the
     area, outside ``[z_min_m, z_max_m]`` or not finite. ``points`` is N×3 (vehicle frame, m)."""
+    points = as_points(points)
     m0, m1 = config.shape
     dtype = points.dtype.type if points.dtype in (np.float32, np.float64) else np.float64
     inv = dtype(1.0 / config.cell_size_m)
@@ -123,9 +132,7 @@ def quantize(
     FrameError
         (reason ``no_points_in_area``) no finite point lies in the area of interest.
     """
-    points_vehicle = np.asarray(points_vehicle)
-    if points_vehicle.ndim != 2 or points_vehicle.shape[1] != 3:
-        raise InputError(f"points must be an N×3 array, got shape {points_vehicle.shape}")
+    points_vehicle = as_points(points_vehicle)
     m0, m1 = config.shape
     ncell = m0 * m1
     idx = cell_index(points_vehicle, config) if index is None else index
@@ -155,7 +162,8 @@ def quantize(
     zc = mean - config.sigma_factor * sigma
     if config.sigma_factor > 0:  # the mean never lies below the minimum: skip the costly ufunc.at
         zmin = np.full(_LANES * (ncell + 1), np.inf)
-        np.minimum.at(zmin, lanes, z)
+        with np.errstate(invalid="ignore"):  # NaN z (non-finite points) only reach the trash bin
+            np.minimum.at(zmin, lanes, z)
         zc = np.maximum(zmin.reshape(_LANES, -1).min(0)[:ncell], zc)
     zc = np.where(observed, zc, 0.0)
     ztop = np.where(observed, mean + sigma, 0.0)

@@ -85,9 +85,9 @@ def run(
     draws its progress line there. Sinks are closed when the run ends, however it ends.
     """
     summary = RunSummary()
-    state = PipelineState(config)
     start = time.perf_counter()
     try:
+        state = PipelineState(config)
         for frame, matched in _matched_ahead(frames, config, state):
             try:
                 if isinstance(matched, FrameError):

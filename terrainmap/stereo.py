@@ -86,9 +86,10 @@ def check_calibration(calibration: StereoCalibration, *, size_known: bool = True
     ):
         if not (math.isfinite(value) and value > 0):
             raise CalibrationError(f"{name}: {field} must be > 0, got {value}")
-    for field in ("cx", "cy", "doffs"):
-        if not math.isfinite(getattr(calibration, field)):
-            raise CalibrationError(f"{name}: {field} is not finite")
+    for field in ("cx", "cy", "doffs", "cx_right"):
+        value = getattr(calibration, field)
+        if value is not None and not (math.isfinite(value) and abs(value) < 1e6):
+            raise CalibrationError(f"{name}: {field} must be a finite number of pixels, got {value}")
     unknown = not size_known and calibration.width == 0 and calibration.height == 0
     if not unknown and (calibration.width <= 0 or calibration.height <= 0):
         raise CalibrationError(

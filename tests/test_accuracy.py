@@ -290,3 +290,18 @@ def test_damaged_truth_files_are_named(tmp_path, damaged, content):
     with pytest.raises(InputError, match=f"truth/{damaged}: damaged ground truth"):
         with open_truth(log) as truth:
             list(truth.frames())
+
+
+def test_truth_arrays_that_do_not_fit_are_named(tmp_path):
+    from terrainmap.errors import InputError
+    from terrainmap.sim import SimConfig, open_truth, simulate
+
+    log = tmp_path / "log"
+    simulate(log, SimConfig(scene="flat", frames=1, seed=1, width=64, height=48, format="folder"))
+    frame = log / "truth" / "000000.npz"
+    with np.load(frame) as data:
+        arrays = dict(data)
+    np.savez(frame, **{**arrays, "depth": np.zeros((10, 10), np.float32)})
+    with pytest.raises(InputError, match="000000.npz: damaged ground truth .*differ in size"):
+        with open_truth(log) as truth:
+            list(truth.frames())

@@ -53,7 +53,7 @@ def test_bad_values_name_the_field(override, message):
 def test_a_toml_boolean_is_no_number(tmp_path):
     path = tmp_path / "c.toml"
     path.write_text("[terrain]\ndegree = true\n")
-    with pytest.raises(ConfigError, match="terrain.degree: cannot use True as a int"):
+    with pytest.raises(ConfigError, match="terrain.degree: cannot use True, expected an integer"):
         load_config(path)
 
 

@@ -174,6 +174,15 @@ def test_outputs_never_replace_the_input_or_each_other(small_log, tmp_path):
     shutil.copy(small_log, folder / "bag_0.mcap")
     result = CliRunner().invoke(cli, ["process", str(folder), "-o", str(folder / "bag_0.mcap"), "--overwrite"])
     assert result.exit_code == 2 and "inside the input folder" in result.output
+    (tmp_path / "hard.mcap").hardlink_to(log)
+    result = CliRunner().invoke(cli, ["process", str(log), "-o", str(tmp_path / "hard.mcap"), "--overwrite"])
+    assert result.exit_code == 2 and "would overwrite the input" in result.output  # a hard link too
+    config = tmp_path / "my.toml"
+    config.write_text("[terrain]\ndegree = 3\n")
+    result = CliRunner().invoke(cli, ["process", str(log), "--config", str(config), "-o", str(config), "--overwrite"])
+    assert result.exit_code == 2 and "would overwrite the input" in result.output
+    result = CliRunner().invoke(cli, ["eval", "accuracy", str(log), "--json", str(log)])
+    assert result.exit_code == 2 and "--json" in result.output and "would overwrite the input" in result.output
     same = str(tmp_path / "o.mcap")
     result = CliRunner().invoke(cli, ["process", str(log), "-o", same, "--rrd", same])
     assert result.exit_code == 2 and "same file" in result.output

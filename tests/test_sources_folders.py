@@ -103,6 +103,8 @@ def test_calibration_toml_extrinsics_and_unrectified(tmp_path):
         ("translation_m = [0.5, 0.0, 1.5]", "translation_m = [nan, 0.0, 1.5]", "'translation_m' must be a list of finite"),
         ("translation_m = [0.5, 0.0, 1.5]", "translation_m = [0.5, 0.0, 1e30]", "translation_m must be within 1 km"),
         ("rectified = false", 'rectified = "false"', "rectified must be true or false"),
+        ("width = 8", "width = 8.5", "width, height \\(whole pixels\\)"),
+        ("rectified = false", "cx_right = nan\nrectified = false", "cx_right must be a finite number of pixels"),
     ],
 )
 def test_nonsense_in_a_calibration_file_is_named(tmp_path, old, new, message):

@@ -10,6 +10,7 @@ interpolation of the four surrounding nodes; outside the grid the nearest edge n
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -39,6 +40,10 @@ class Heightfield:
         self.z = np.ascontiguousarray(self.z, dtype=np.float32)
         if self.z.ndim != 2 or min(self.z.shape) < 2:
             raise ValueError(f"height grid must be 2-D with at least 2×2 nodes, got {self.z.shape}")
+        if not (np.isfinite(self.z).all() and np.isfinite([self.x_min_m, self.y_min_m]).all()):
+            raise ValueError("height grid and its origin must be finite")
+        if not (math.isfinite(self.resolution_m) and self.resolution_m > 0):
+            raise ValueError(f"height grid resolution must be > 0 m, got {self.resolution_m}")
         self.z_max_m = float(self.z.max())
         # Within a cell the bilinear gradient is a blend of node differences, so this bounds it.
         step_x = float(np.abs(np.diff(self.z, axis=0)).max())

@@ -62,11 +62,9 @@ class SimConfig:
         check(self.format in ("mcap", "folder"), "format", f"must be mcap or folder, got {self.format!r}")
         check(1 <= self.frames <= 100_000, "frames", f"must be in 1..100000, got {self.frames}")
         check(0 <= self.seed < 2**32, "seed", f"must be in 0..2^32-1, got {self.seed}")
-        check(
-            16 <= self.width <= 4096 and 16 <= self.height <= 4096,
-            "width",
-            f"image must be 16×16 to 4096×4096, got {self.width}×{self.height}",
-        )
+        for name in ("width", "height"):
+            value = getattr(self, name)
+            check(16 <= value <= 4096, name, f"must be 16..4096 pixels, got {value}")
         for name in ("focal_px", "baseline_m", "camera_height_m", "fps", "terrain_resolution_m"):
             value = getattr(self, name)
             check(math.isfinite(value) and value > 0, name, f"must be > 0, got {value}")

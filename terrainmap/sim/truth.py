@@ -49,6 +49,15 @@ class TruthFrame:
     label: np.ndarray
     instance: np.ndarray
 
+    def __post_init__(self) -> None:
+        """Reject damaged truth (wrong shapes, non-finite pose) before it meets the scoring."""
+        if np.shape(self.rotation_world_base) != (3, 3) or np.shape(self.position_world_base) != (3,):
+            raise ValueError("vehicle pose must be a 3×3 rotation and a 3-vector")
+        if not (np.isfinite(self.rotation_world_base).all() and np.isfinite(self.position_world_base).all()):
+            raise ValueError("vehicle pose is not finite")
+        if np.shape(self.depth) != np.shape(self.label) or np.shape(self.label) != np.shape(self.instance):
+            raise ValueError("depth, label and instance images differ in size")
+
     def pose_world_base(self) -> np.ndarray:
         """4×4 pose of base_link in odom (``p_world = T @ p_base``)."""
         pose = np.eye(4)
@@ -182,7 +191,7 @@ def _mcap_frames(truth: Truth) -> Iterator[TruthFrame]:
     """Group the per-frame truth messages by log time (= stamp) and yield complete frames."""
     parts: dict[str, object] = {}
     stamp, index = None, 0
-    with open(truth.path, "rb") as file:
+    with _damaged(truth.path), open(truth.path, "rb") as file:
         messages = _mcap_reader(file).iter_decoded_messages(topics=list(FRAME_TOPICS), log_time_order=True)
         for _, channel, message, decoded in messages:
             if stamp is not None and message.log_time != stamp:

@@ -130,8 +130,8 @@ def middlebury_calibration(path: Path) -> StereoCalibration:
         K0 = _numbers(values["cam0"]).reshape(3, 3)
         baseline_m = float(values["baseline"]) / 1000.0
         calib = StereoCalibration(
-            width=int(float(values.get("width", 0))),
-            height=int(float(values.get("height", 0))),
+            width=_whole(values.get("width", 0)),
+            height=_whole(values.get("height", 0)),
             fx=float(K0[0, 0]),
             fy=float(K0[1, 1]),
             cx=float(K0[0, 2]),
@@ -147,6 +147,14 @@ def middlebury_calibration(path: Path) -> StereoCalibration:
             f"{path}: cam0 must be a 3×3 matrix, baseline and doffs numbers, width and height whole pixels"
         ) from None
     return check_calibration(calib)
+
+
+def _whole(text) -> int:
+    """A whole number of pixels from a text value (ValueError otherwise, also for 1242.7)."""
+    value = float(text)
+    if not value.is_integer():
+        raise ValueError(f"{text!r} is not a whole number")
+    return int(value)
 
 
 def _array(data: dict, key: str, shape: tuple[int, ...] | None, path: Path) -> np.ndarray:
@@ -202,6 +210,8 @@ def terrainmap_calibration(path: Path) -> tuple[StereoCalibration, Extrinsics | 
         raise CalibrationError(f"{path}: missing calibration keys: {', '.join(missing)}")
     try:
         numbers = {key: float(data[key]) for key in (*_REQUIRED, "doffs") if key in data}
+        if not all(numbers[key].is_integer() for key in ("width", "height")):
+            raise ValueError
         numbers.update({key: int(numbers[key]) for key in ("width", "height")})
         cx_right = None if data.get("cx_right") is None else float(data["cx_right"])
     except (TypeError, ValueError, OverflowError):
