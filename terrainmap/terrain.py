@@ -61,7 +61,7 @@ import numpy as np
 
 from .bspline import RationalSurface, TensorFit, clamped_knots
 from .config import GridConfig, TerrainConfig
-from .errors import FrameError
+from .errors import FrameError, InputError
 from .grid import HeightGrid, cell_centers
 
 
@@ -129,7 +129,17 @@ def equalize(P: np.ndarray, S: np.ndarray, fraction: np.ndarray, valid: np.ndarr
 
 
 def check_grid(grid: HeightGrid, config: TerrainConfig) -> None:
-    """Raise :class:`FrameError` when the grid cannot support the spline (too few samples)."""
+    """Raise :class:`FrameError` when the grid cannot support the spline (too few samples), and
+    :class:`InputError` when it is not a grid of its config's shape (a hand-built HeightGrid)."""
+    shape = tuple(grid.config.shape)
+    for name in ("z", "observed", "valid"):
+        array = getattr(grid, name)
+        if np.shape(array) != shape or (name != "z" and np.asarray(array).dtype != bool):
+            raise InputError(f"HeightGrid.{name} must be a {shape[0]}×{shape[1]} {'float' if name == 'z' else 'bool'} array")
+    if not np.isfinite(grid.z[grid.valid]).all():
+        raise InputError("HeightGrid.z must be finite on its valid cells")
+    if (grid.observed & ~grid.valid).any():
+        raise InputError("HeightGrid.valid must include every observed cell")
     need = max(config.min_valid_cells, (config.degree + 1) ** 2)
     observed = grid.observed
     if observed.sum() < need:

@@ -110,3 +110,22 @@ def test_bad_input_is_reported_cleanly():
         load_config(overrides=["terrain.degree=0"])
     with pytest.raises(ConfigError, match="grid.cell_size_m"):
         load_config(overrides=["grid.cell_size_m=-0.5"])
+
+
+def test_a_hand_built_grid_that_does_not_fit_is_an_input_error():
+    import dataclasses
+
+    from terrainmap.config import Config
+    from terrainmap.errors import InputError
+    from terrainmap.synthetic import cloud
+
+    config = Config()
+    grid = quantize(cloud(20_000, grid=config.grid), config.grid)
+    for change, message in (
+        ({"z": grid.z.T}, "HeightGrid.z must be a 68×44 float array"),
+        ({"observed": grid.observed.astype(int)}, "HeightGrid.observed must be a 68×44 bool array"),
+        ({"valid": np.zeros_like(grid.valid)}, "must include every observed cell"),
+        ({"z": np.where(grid.valid, np.nan, 0.0)}, "must be finite on its valid cells"),
+    ):
+        with pytest.raises(InputError, match=message):
+            estimate_terrain(dataclasses.replace(grid, **change), config.terrain)
