@@ -65,7 +65,7 @@ class McapFile:
         try:
             return reader.get_summary()
         except Exception as exc:  # no footer: a truncated or still-recording file
-            logger.warning("%s: no readable summary (%s); scanning the file", self.path, _reason(exc))
+            logger.info("%s: no readable summary (%s); scanning the file", self.path, _reason(exc))
             return None
 
     def _from_summary(self, summary) -> None:
