@@ -1,5 +1,6 @@
 """Folder sources: generic, KITTI (stereo, object, raw, odometry), Middlebury; selection; errors."""
 
+import shutil
 from pathlib import Path
 
 import cv2
@@ -274,3 +275,13 @@ def test_topics_given_for_an_image_folder_are_an_error(tmp_path):
     root = generic_folder(tmp_path, n=1)
     with pytest.raises(ConfigError, match="--left-topic/--right-topic: .* is an image folder"):
         open_source(root, left_topic="/camera/left")
+
+
+def test_a_kitti_folder_without_its_calibration_folder_takes_calibration(tmp_path):
+    root = kitti_stereo(tmp_path)
+    shutil.rmtree(root / "calib_cam_to_cam")
+    with pytest.raises(CalibrationError, match="no calibration found .*or pass --calibration"):
+        next(open_source(root).frames())
+    (tmp_path / "calib.yaml").write_text(CALIB_YAML)
+    frame = next(open_source(root, calibration=tmp_path / "calib.yaml").frames())
+    assert frame.calibration.fx == 500.0

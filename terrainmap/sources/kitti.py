@@ -42,15 +42,14 @@ class KittiStereoFolder(FolderSource):
 
     @classmethod
     def matches(cls, path: Path) -> bool:
-        left, _, _, calib = cls._dirs(path)
-        return left is not None and calib is not None
+        return cls._dirs(path)[0] is not None  # without a calibration folder: --calibration
 
     def _find_pairs(self) -> list[ImagePair]:
         left, right, keys, calib_dir = self._dirs(self.path)
         self._keys = keys if keys == ("P0", "P1") else None  # None: P_rect_02/03, else P2/P3
 
-        def scene_file(name: str) -> Path:  # 000005_10.png -> 000005.txt
-            return calib_dir / f"{name.split('.')[0].split('_')[0]}.txt"
+        def scene_file(name: str) -> Path | None:  # 000005_10.png -> 000005.txt
+            return calib_dir / f"{name.split('.')[0].split('_')[0]}.txt" if calib_dir else None
 
         return matching_pairs(self.path / left, self.path / right, scene_file)
 
