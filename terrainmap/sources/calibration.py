@@ -142,7 +142,7 @@ def middlebury_calibration(path: Path) -> StereoCalibration:
         )
     except KeyError as exc:
         raise CalibrationError(f"{path}: Middlebury calibration lacks {exc.args[0]!r}") from None
-    except (ValueError, OverflowError):
+    except ValueError:
         raise CalibrationError(
             f"{path}: cam0 must be a 3×3 matrix, baseline and doffs numbers, width and height whole pixels"
         ) from None
@@ -210,11 +210,9 @@ def terrainmap_calibration(path: Path) -> tuple[StereoCalibration, Extrinsics | 
         raise CalibrationError(f"{path}: missing calibration keys: {', '.join(missing)}")
     try:
         numbers = {key: float(data[key]) for key in (*_REQUIRED, "doffs") if key in data}
-        if not all(numbers[key].is_integer() for key in ("width", "height")):
-            raise ValueError
-        numbers.update({key: int(numbers[key]) for key in ("width", "height")})
+        numbers.update({key: _whole(numbers[key]) for key in ("width", "height")})
         cx_right = None if data.get("cx_right") is None else float(data["cx_right"])
-    except (TypeError, ValueError, OverflowError):
+    except (TypeError, ValueError):
         raise CalibrationError(
             f"{path}: width, height (whole pixels), fx, fy, cx, cy, baseline_m must be numbers"
         ) from None
