@@ -9,7 +9,7 @@ import click
 
 from terrainmap.config import load_config
 
-from .options import Failed, GracefulStop, config_options, refuse_overwriting_inputs
+from .options import Failed, GracefulStop, config_options, output_file, refuse_overwriting_inputs
 from .source_options import source_options
 
 
@@ -22,12 +22,12 @@ def default_output(log: Path) -> Path:
 
 @click.command()
 @click.argument("log", type=click.Path(exists=True, path_type=Path))
-@click.option("-o", "--output", type=click.Path(dir_okay=False, path_type=Path), help="Output MCAP (default: <log>.terrain.mcap beside the input).")
+@click.option("-o", "--output", type=click.Path(dir_okay=False), callback=output_file(), help="Output MCAP (default: <log>.terrain.mcap beside the input).")
 @click.option("--flavor", type=click.Choice(["foxglove", "ros2"]), default="foxglove", show_default=True,
               help="Message family of the MCAP: Foxglove protobuf schemas or ROS 2 messages (GridMap, PointCloud2).")
 @click.option("--compression", type=click.Choice(["lz4", "zstd", "none"]), default="lz4", show_default=True,
               help="MCAP chunk compression.")
-@click.option("--rrd", type=click.Path(dir_okay=False, path_type=Path), help="Also write a Rerun recording here.")
+@click.option("--rrd", type=click.Path(dir_okay=False), callback=output_file(), help="Also write a Rerun recording here.")
 @click.option("--overwrite", is_flag=True, help="Replace existing output files.")
 @source_options
 @config_options
@@ -72,12 +72,8 @@ def _check_outputs(log: Path, output: Path, rrd: Path | None, overwrite: bool, i
     """Outputs must not replace an input (the log, a file inside a log folder, the calibration or
     config file) nor each other, nor replace an existing file without ``--overwrite``."""
     refuse_overwriting_inputs({"-o/--output": output, "--rrd": rrd}, [log, *inputs])
-    for option, path in (("-o/--output", output), ("--rrd", rrd)):
-        if path is None:
-            continue
-        if not path.resolve().parent.is_dir():
-            raise click.UsageError(f"{option} {path}: folder {path.parent} does not exist")
-        if path.exists() and not overwrite:
+    for path in (output, rrd):
+        if path is not None and path.exists() and not overwrite:
             raise click.UsageError(f"{path} exists; pass --overwrite to replace it")
     if rrd is not None and rrd.resolve() == output.resolve():
         raise click.UsageError(f"--rrd and -o/--output are the same file {output}")

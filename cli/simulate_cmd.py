@@ -9,11 +9,11 @@ import click
 
 from terrainmap.sim.scenes import SCENES
 
-from .options import GracefulStop
+from .options import GracefulStop, output_file
 
 
 @click.command()
-@click.argument("out", type=click.Path(path_type=Path))
+@click.argument("out", type=click.Path(), callback=output_file())
 @click.option("--scene", type=click.Choice(SCENES), default="mounds", show_default=True, help="Terrain and obstacles.")
 @click.option("--frames", type=int, default=50, show_default=True, help="Number of stereo frames.")
 @click.option("--seed", type=int, default=0, show_default=True, help="Random seed (same seed, same log).")
@@ -43,8 +43,6 @@ def simulate(out: Path, fmt: str | None, overwrite: bool, **options) -> None:
     from terrainmap.sim import simulate as run
 
     fmt = fmt or ("mcap" if out.suffix.lower() == ".mcap" else "folder")
-    if not out.parent.is_dir():
-        raise click.UsageError(f"folder {out.parent} does not exist")
     if out.exists() and not overwrite and (out.is_file() or any(out.iterdir())):
         raise click.UsageError(f"{out} exists; pass --overwrite to replace it")
     if fmt == "mcap" and out.is_dir():
@@ -52,6 +50,7 @@ def simulate(out: Path, fmt: str | None, overwrite: bool, **options) -> None:
     if fmt == "folder" and out.is_file():
         raise click.UsageError(f"{out} is a file; a folder output must be a folder")
     config = SimConfig(format=fmt, **options)
+
     def progress(_) -> None:
         bar.update(1)
         stop.check()  # between frames: the log written so far is finalised

@@ -173,8 +173,6 @@ def _damaged(path: Path):
     """Turn the errors of reading a damaged truth file into one InputError naming it."""
     try:
         yield
-    except InputError:
-        raise
     except (OSError, ValueError, KeyError, TypeError) as exc:  # npz and json raise these on garbage
         raise InputError(f"{path}: damaged ground truth ({type(exc).__name__}: {exc})") from exc
 

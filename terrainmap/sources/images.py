@@ -113,7 +113,7 @@ def stereo_pair(
         )
     if left.ndim != right.ndim:
         left, right = (cv2.cvtColor(im, cv2.COLOR_RGB2GRAY) if im.ndim == 3 else im for im in (left, right))
-    if left.dtype != np.uint8 or right.dtype != np.uint8:
+    if left.dtype != np.uint8:  # both 16-bit (equal depths checked above)
         peak = float(max(int(left.max()), int(right.max()), 1))
         left, right = (np.clip(im.astype(np.float32) * (255.0 / peak) + 0.5, 0, 255).astype(np.uint8)
                        for im in (left, right))

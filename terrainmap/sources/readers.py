@@ -125,7 +125,6 @@ def mcap_files(path: Path) -> list[Path]:
             names = [str(name) for name in info.get("relative_file_paths") or []]
         except (OSError, ValueError, yaml.YAMLError, KeyError, TypeError, AttributeError) as exc:
             logger.warning("%s: unreadable (%s); using the .mcap files in the folder", metadata, _reason(exc))
-            names = []
     inside = path.resolve()
     files = [path / n for n in names if (path / n).suffix == ".mcap" and (path / n).is_file()
              and inside in (path / n).resolve().parents]  # a rosbag2 folder holds its own files
