@@ -86,7 +86,8 @@ def write_text(path: Path, text: str) -> None:
 
 def output_file(*suffixes: str) -> Callable:
     """A click callback for an output file option: its folder must exist (checked before any work
-    is done) and, where ``suffixes`` are given, its name must end in one of them. Gives a Path."""
+    is done), an existing path must be a file or a folder (click's ``dir_okay`` decides which) and, where ``suffixes`` are given,
+    its name must end in one of them. Gives a Path."""
 
     def check(ctx: click.Context, param: click.Parameter, value) -> Path | None:
         if value is None:
@@ -96,6 +97,8 @@ def output_file(*suffixes: str) -> Callable:
             raise click.BadParameter(f"folder {path.parent} does not exist")
         if suffixes and path.suffix.lower() not in suffixes:
             raise click.BadParameter(f"{path} must end in {', '.join(suffixes)}")
+        if path.exists() and not (path.is_file() or path.is_dir()):  # a FIFO would block, a device...
+            raise click.BadParameter(f"{path} exists and is neither a regular file nor a folder")
         return path
 
     return check

@@ -528,10 +528,13 @@ def _toml_value(value: Any) -> str:
     return repr(value)
 
 
-def _coerce(section: str, name: str, current: Any, value: Any) -> Any:
-    """Convert ``value`` (from TOML or a ``--set`` string) to the type of ``current``."""
+def _coerce(section: str, name: str, current: Any, value: Any, text: bool) -> Any:
+    """Convert ``value`` to the type of ``current``: from a ``--set`` string when ``text``, else a
+    TOML value, which must already have the field's kind (a quoted "0.5" is no number)."""
     key = f"{section}.{name}"
     try:
+        if not text and isinstance(value, str) != isinstance(current, str):
+            raise ValueError
         if isinstance(current, bool):
             if isinstance(value, str):
                 if value.lower() not in ("true", "false", "1", "0", "yes", "no"):
@@ -552,16 +555,17 @@ def _coerce(section: str, name: str, current: Any, value: Any) -> Any:
                 raise ValueError
             return result
         if isinstance(current, (tuple, list)):
-            items = value.split(",") if isinstance(value, str) else list(value)
-            return type(current)(_coerce(section, name, current[0], v) for v in items)
+            items = value.split(",") if text else list(value)
+            return type(current)(_coerce(section, name, current[0], v, text) for v in items)
         return str(value)
     except (TypeError, ValueError):
-        kind = {bool: "true or false", int: "an integer", float: "a number"}.get(type(current), type(current).__name__)
+        kind = {bool: "true or false", int: "an integer", float: "a number", str: "a string"}.get(type(current), type(current).__name__)
         raise ConfigError(f"{key}: cannot use {value!r}, expected {kind}") from None
 
 
-def apply_values(config: Config, values: dict[str, Any], source: str = "config") -> Config:
-    """Apply ``{section: {field: value}}`` onto ``config`` in place (unknown keys are errors)."""
+def apply_values(config: Config, values: dict[str, Any], source: str = "config", *, text: bool = False) -> Config:
+    """Apply ``{section: {field: value}}`` onto ``config`` in place (unknown keys are errors);
+    ``text``: the values are ``--set`` strings, else typed TOML values."""
     sections = {f.name: getattr(config, f.name) for f in fields(config)}
     for section, table in values.items():
         if section not in sections:
@@ -573,7 +577,7 @@ def apply_values(config: Config, values: dict[str, Any], source: str = "config")
         for name, value in table.items():
             if name not in names:
                 raise ConfigError(f"{source}: unknown field {section}.{name}")
-            setattr(target, name, _coerce(section, name, getattr(target, name), value))
+            setattr(target, name, _coerce(section, name, getattr(target, name), value, text))
     return config
 
 
@@ -601,5 +605,5 @@ def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str
             raise ConfigError(f"{path}: not valid TOML ({exc})") from None
         apply_values(config, data, source=str(path))
     for text in overrides:
-        apply_values(config, parse_override(text), source=f"--set {text}")
+        apply_values(config, parse_override(text), source=f"--set {text}", text=True)
     return config.validate()

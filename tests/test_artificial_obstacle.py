@@ -3,6 +3,7 @@ import math
 import numpy as np
 import pytest
 
+from terrainmap.errors import InputError
 from terrainmap.evaluation import artificial_obstacle as ao
 
 HEIGHTS = ao.PAPER_HEIGHTS_M
@@ -45,3 +46,11 @@ def test_box_is_added_where_asked():
     raised = with_box[:, 2] > 0
     assert np.all(np.abs(with_box[raised, 0] - 11.0) <= 1.0) and np.all(np.abs(with_box[raised, 1]) <= 1.0)
     assert raised.sum() == 16 * 16  # 2 m at 4 samples per 0.5 m cell
+
+
+@pytest.mark.parametrize("position, height", [((50.0, 0.0), 1.0), ((11.0, 0.0), 1e6)])
+def test_a_box_the_grid_never_sees_is_an_error_not_zero_percent(position, height):
+    """Outside the area, or with its top above grid.z_max_m, the box would leave the surface
+    untouched and score a misleading 0 %."""
+    with pytest.raises(InputError, match="leaves no point in the grid"):
+        ao.run([ao.Scenario(5, 2.0, height)], position_xy=position)

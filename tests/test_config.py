@@ -50,10 +50,20 @@ def test_bad_values_name_the_field(override, message):
         load_config(overrides=[override])
 
 
-def test_a_toml_boolean_is_no_number(tmp_path):
+@pytest.mark.parametrize(
+    "toml, message",
+    [
+        ("[terrain]\ndegree = true", "terrain.degree: cannot use True, expected an integer"),
+        ('[grid]\ncell_size_m = "0.5"', "grid.cell_size_m: cannot use '0.5', expected a number"),
+        ("[stereo]\nmode = 3", "stereo.mode: cannot use 3, expected a string"),
+    ],
+)
+def test_a_toml_value_must_have_the_fields_kind(tmp_path, toml, message):
+    """A TOML value is typed: a quoted number or a bare number for a name is a mistake to report
+    (``--set`` values are text and are converted)."""
     path = tmp_path / "c.toml"
-    path.write_text("[terrain]\ndegree = true\n")
-    with pytest.raises(ConfigError, match="terrain.degree: cannot use True, expected an integer"):
+    path.write_text(toml + "\n")
+    with pytest.raises(ConfigError, match=message):
         load_config(path)
 
 

@@ -1,5 +1,6 @@
 """End-to-end: `terrainmap process` and the runner on the real KITTI frame and bad input."""
 
+import os
 import shutil
 
 import numpy as np
@@ -187,6 +188,14 @@ def test_outputs_never_replace_the_input_or_each_other(small_log, tmp_path):
     result = CliRunner().invoke(cli, ["process", str(log), "-o", same, "--rrd", same])
     assert result.exit_code == 2 and "same file" in result.output
     assert log.read_bytes() == before
+
+
+def test_an_output_that_is_no_regular_file_is_refused(small_log, tmp_path):
+    """Writing to a FIFO would block until a reader came: refused before any work."""
+    fifo = tmp_path / "pipe.mcap"
+    os.mkfifo(fifo)
+    result = CliRunner().invoke(cli, ["process", str(small_log), "-o", str(fifo), "--overwrite"])
+    assert result.exit_code == 2 and "neither a regular file nor a folder" in result.output
 
 
 def test_a_terminated_run_still_finalises_its_output(small_log, tmp_path):

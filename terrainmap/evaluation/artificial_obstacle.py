@@ -22,7 +22,7 @@ import numpy as np
 
 from ..config import Config, GridConfig, TerrainConfig
 from ..errors import InputError
-from ..grid import quantize
+from ..grid import cell_index, quantize
 from ..terrain import estimate_terrain
 
 
@@ -117,7 +117,9 @@ def run(
         cfg.validate(grid)
         if sc.control_points not in reference:
             reference[sc.control_points] = _surface_on_lattice(base, grid, cfg, eval_per_cell)
-        with_box, _ = _surface_on_lattice(add_box(base, position_xy, sc.width_m, sc.height_m), grid, cfg, eval_per_cell)
+        scene = add_box(base, position_xy, sc.width_m, sc.height_m)
+        _check_box_is_seen(base, scene, grid, position_xy, sc)
+        with_box, _ = _surface_on_lattice(scene, grid, cfg, eval_per_cell)
         surface, observed = reference[sc.control_points]
         dev = float(np.max(np.abs(with_box - surface)[observed]))
         pct = 100.0 * dev / sc.height_m if sc.height_m > 0 else math.nan
@@ -126,6 +128,20 @@ def run(
         if progress:
             progress(result)
     return results
+
+
+def _check_box_is_seen(base: np.ndarray, scene: np.ndarray, grid: GridConfig, position_xy, sc: Scenario) -> None:
+    """Raise :class:`InputError` when no raised point of the box reaches the grid (a box outside
+    the area, or so tall that its top lies above ``grid.z_max_m``): it would score a silent 0 %."""
+    raised = scene[scene[:, 2] != base[:, 2]]
+    if not (cell_index(raised, grid) < grid.shape[0] * grid.shape[1]).any():
+        x, y = position_xy
+        raise InputError(
+            f"a {sc.width_m:g} m wide, {sc.height_m:g} m tall box at ({x:g}, {y:g}) leaves no point in the grid: "
+            f"its footprint must overlap the area (x {grid.x_min_m:g}..{grid.x_min_m + grid.length_m:g} m, "
+            f"y {grid.y_min_m:g}..{grid.y_min_m + grid.width_m:g} m, where the base scene has points) and its top "
+            f"must stay below grid.z_max_m = {grid.z_max_m:g} m"
+        )
 
 
 def points_from_log(path, config: Config, frame_index: int = 0) -> np.ndarray:
