@@ -7,9 +7,10 @@ speed goals. The inputs are synthetic so the figures are comparable anywhere:
 - ``grid``, ``surface``, ``labels``, ``obstacles``: a 300k-point cloud over rolling terrain
   with box obstacles (the size of a 640×480 stereo frame, its points in the order a camera
   delivers them: :func:`terrainmap.synthetic.cloud`), paper configuration (34 m × 22 m,
-  0.5 m cells, 25×25 control points, degree 3). ``surface`` is the whole iterative estimation
-  with the slope and cell-label layers; ``grid`` includes each point's cell index, which
-  ``labels`` reuses (as the pipeline does) to label every point.
+  0.5 m cells, 25×25 control points, degree 3), seen as from a stereo rig 1.8 m up with
+  f·B = 150 px·m (so eq. 1 discounts its noise, as in the pipeline). ``surface`` is the whole
+  iterative estimation with the slope and cell-label layers; ``grid`` includes each point's
+  cell index, which ``labels`` reuses (as the pipeline does) to label every point.
 - ``sgbm_alone``, ``frame_total``: one simulated 640×480 stereo pair (``terrainmap simulate``'s
   ``mounds`` scene, frame 0): OpenCV SGBM alone on the grey pair, and the whole per-frame pipeline
   (rectification check, SGBM, points, terrain, labels, obstacles, cost), side by side in one run.
@@ -45,33 +46,39 @@ def core_stages(config: Config, n_points: int = 300_000) -> dict[str, Stage]:
     from .grid import cell_index, quantize
     from .obstacle_stage import make_tracker, run_obstacle_stage
     from .pipeline import map_points
-    from .segmentation import label_cells, label_points
+    from .segmentation import label_cells, label_points, thresholds
     from .slope import layers as grid_layers
     from .synthetic import cloud
     from .terrain import estimate_terrain
+    from .types import StereoCamera
 
     points = cloud(n_points, grid=config.grid)
-    result = map_points(points, config)
-    grid, terrain = result.grid, result.terrain
+    camera = StereoCamera(np.array([0.0, 0.0, 1.8]), np.array([1.0, 0.0, 0.0]), 150.0)  # the cloud's viewpoint
+    result = map_points(points, config, camera=camera)
+    grid, terrain = quantize(points, config.grid, camera=camera), result.terrain  # grid: the surface stage's input
     tracker = make_tracker(config)
 
-    def surface_stage():
+    def surface_stage():  # as in map_points
         estimate = estimate_terrain(grid, config.terrain)
-        layers = grid_layers(estimate.elevation, estimate.dz_dx, estimate.dz_dy)
-        label_cells(grid, layers["elevation"], config.segmentation)
+        gradient = (estimate.dz_dx, estimate.dz_dy)
+        layers = grid_layers(estimate.elevation, *gradient)
+        limits = thresholds(config.grid, config.segmentation, camera, estimate.elevation, *gradient)
+        label_cells(estimate.grid, layers["elevation"], config.segmentation, limits=limits)
 
     index = cell_index(points, config.grid)  # computed by the grid stage; the pipeline reuses it
+    gradient = (terrain.dz_dx, terrain.dz_dy)
+    limits = thresholds(config.grid, config.segmentation, camera, terrain.elevation, *gradient)
 
     def labels_stage():
-        label_points(points, terrain.elevation, terrain.dz_dx, terrain.dz_dy, config.grid, config.segmentation, index=index)
+        label_points(points, terrain.elevation, *gradient, config.grid, config.segmentation, index=index, limits=limits)
 
     stamp = iter(range(0, 10**15, 100_000_000))
 
     def obstacles_stage():
-        run_obstacle_stage(points, result.point_labels, grid, result.layers, next(stamp), tracker, config)
+        run_obstacle_stage(points, result.point_labels, result.grid, result.layers, next(stamp), tracker, config)
 
     return {
-        "grid": lambda: quantize(points, config.grid),
+        "grid": lambda: quantize(points, config.grid, camera=camera),
         "surface": surface_stage,
         "labels": labels_stage,
         "obstacles": obstacles_stage,

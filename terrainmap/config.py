@@ -139,6 +139,10 @@ class TerrainConfig:
     trust_below_px: float = 3.0
     """Where the stereo rig is known, such a sample must also lie deeper below the surface than a
     disparity error of this many pixels moves it (0: the band alone)."""
+    slope_noise_iterations: int = 3
+    """Where the stereo rig is known, the surfaces of the first this many iterations recompute
+    eq. 1's samples with the stereo noise on the terrain's slope instead of level ground
+    (decision 8 in :mod:`terrainmap.terrain`; 0: level ground throughout)."""
     epsilon_m: float = 0.005
     """Stop early when no valid sample moved more than this in the last equalization."""
     smoothness: float = 1e-3
@@ -171,6 +175,7 @@ class TerrainConfig:
         _check(self.equalize_tolerance_m >= 0, "terrain.equalize_tolerance_m", "must be >= 0")
         _check(self.equalize_tolerance_per_m >= 0, "terrain.equalize_tolerance_per_m", "must be >= 0")
         _check(self.trust_below_px >= 0, "terrain.trust_below_px", "must be >= 0")
+        _check(0 <= self.slope_noise_iterations <= 100, "terrain.slope_noise_iterations", "must be in 0..100")
         _check(self.epsilon_m > 0, "terrain.epsilon_m", "must be > 0")
         _check(self.smoothness > 0, "terrain.smoothness", "must be > 0")
         _check(0 <= self.filled_weight <= 1, "terrain.filled_weight", "must be in [0, 1]")

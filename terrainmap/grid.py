@@ -14,6 +14,9 @@ known, σ counts only the spread beyond the stereo noise: ``σ' = √max(σ² �
 instead of σ_s below the terrain (12 cm at 20 m for f·B = 150 px·m, 0.5 px), while a car or a
 wall sharing a cell with the ground still spreads its points far beyond σ_s and pulls Z down
 to the ground as the paper intends. ``stereo_noise_px = 0`` or no rig gives eq. 1 exactly.
+:func:`quantize` takes σ_s on level ground; on ground that slopes towards the camera a disparity
+error moves a point much more in height (4× on a 17° slope 20 m ahead), and
+:meth:`HeightGrid.on_slope` recomputes the samples for the terrain's slope once a surface exists.
 Empty cells take the mean of their observed 8-neighbours; cells with none stay INVALID, Z = 0.
 """
 
@@ -23,7 +26,6 @@ from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
-from scipy.ndimage import convolve
 
 from .config import GridConfig
 from .errors import FrameError, InputError
@@ -40,7 +42,9 @@ class HeightGrid:
     ``count`` (int64): points per cell. ``observed = count > 0``; ``valid`` = observed or filled.
     ``height_per_px`` (float64, m/px, or None without a stereo rig): the height change a disparity
     error of one pixel makes at each cell's centre and mean height
-    (:meth:`~terrainmap.types.StereoCamera.height_per_px`, level ground).
+    (:meth:`~terrainmap.types.StereoCamera.height_per_px`; level ground, or the slope given to
+    :meth:`on_slope`). ``stats`` and ``camera``: what :meth:`on_slope` recomputes from (None for
+    a grid built by hand).
     """
 
     z: np.ndarray
@@ -50,6 +54,16 @@ class HeightGrid:
     valid: np.ndarray
     config: GridConfig
     height_per_px: np.ndarray | None = None
+    stats: CellStats | None = None
+    camera: StereoCamera | None = None
+
+    def on_slope(self, dz_dx: np.ndarray, dz_dy: np.ndarray) -> HeightGrid:
+        """The same cells with eq. 1's stereo-noise discount (module docstring) taken on terrain of
+        gradient ``(dz_dx, dz_dy)`` at the cell centres, (m0, m1) each, instead of level ground.
+        ``self`` when the grid has no stereo rig (nothing to recompute)."""
+        if self.stats is None or self.camera is None:
+            return self
+        return _samples(self.stats, self.config, self.camera, (dz_dx, dz_dy))
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -146,28 +160,47 @@ def quantize(
     count = per_cell()
     if not count.any():
         raise FrameError("no_points_in_area", "no finite point lies in the grid area")
-    s1 = per_cell(z)
-    s2 = per_cell(z * z)
-    observed = count > 0
     n = np.maximum(count, 1)
-    mean = s1 / n
-    variance = np.maximum(s2 / n - mean * mean, 0.0)
-    per_px = None
-    if camera is not None:
-        xs, ys = cell_centers(config)
-        per_px = camera.height_per_px(xs[:, None], ys[None, :], mean.reshape(m0, m1), 0.0, 0.0)
-        noise = config.stereo_noise_px * per_px.ravel()
-        variance = np.maximum(variance - noise**2, 0.0)
-    sigma = np.sqrt(variance)
-    zc = mean - config.sigma_factor * sigma
+    mean = per_cell(z) / n
+    variance = np.maximum(per_cell(z * z) / n - mean * mean, 0.0)
+    zmin = mean
     if config.sigma_factor > 0:  # the mean never lies below the minimum: skip the costly ufunc.at
         zmin = np.full(_LANES * (ncell + 1), np.inf)
         with np.errstate(invalid="ignore"):  # NaN z (non-finite points) only reach the trash bin
             np.minimum.at(zmin, lanes, z)
-        zc = np.maximum(zmin.reshape(_LANES, -1).min(0)[:ncell], zc)
-    zc = np.where(observed, zc, 0.0)
-    ztop = np.where(observed, mean + sigma, 0.0)
-    return _fill(zc.reshape(m0, m1), ztop.reshape(m0, m1), count.reshape(m0, m1), config, per_px)
+        zmin = zmin.reshape(_LANES, -1).min(0)[:ncell]
+    stats = CellStats(*(a.reshape(m0, m1) for a in (count, mean, variance, zmin)))
+    return _samples(stats, config, camera)
+
+
+@dataclass(frozen=True)
+class CellStats:
+    """Per-cell point statistics behind eq. 1, (m0, m1) each: ``count`` (int64), ``mean`` and
+    ``variance`` of z (m, m²; 0 where empty) and ``zmin`` (m; ``mean`` when σ is not used)."""
+
+    count: np.ndarray
+    mean: np.ndarray
+    variance: np.ndarray
+    zmin: np.ndarray
+
+
+def _samples(
+    stats: CellStats, config: GridConfig, camera: StereoCamera | None, gradient: tuple | None = None
+) -> HeightGrid:
+    """Eq. 1 per cell from ``stats`` (module docstring), σ discounting the rig's noise on terrain
+    of ``gradient`` (level when None), then :func:`_fill`."""
+    variance, per_px = stats.variance, None
+    if camera is not None:
+        xs, ys = cell_centers(config)
+        per_px = camera.height_per_px(xs[:, None], ys[None, :], stats.mean, *(gradient or (0.0, 0.0)))
+        variance = np.maximum(variance - (config.stereo_noise_px * per_px) ** 2, 0.0)
+    sigma = np.sqrt(variance)
+    observed = stats.count > 0
+    zc = np.where(observed, np.maximum(stats.zmin, stats.mean - config.sigma_factor * sigma), 0.0)
+    ztop = np.where(observed, stats.mean + sigma, 0.0)
+    grid = _fill(zc, ztop, stats.count, config, per_px)
+    grid.stats, grid.camera = stats, camera
+    return grid
 
 
 _LANES = 4
@@ -188,7 +221,13 @@ def _pow2(n: int) -> int:
     return 1 << max(n - 1, 0).bit_length()
 
 
-_NEIGHBOURS = np.array([[1, 1, 1], [1, 0, 1], [1, 1, 1]], dtype=np.float64)
+def _neighbour_sum(a: np.ndarray) -> np.ndarray:
+    """Sum over each cell's 8 neighbours (zero outside the grid), as a separable 3×3 box sum
+    minus the cell: 3× faster than ``scipy.ndimage.convolve`` on grids this small."""
+    padded = np.zeros((a.shape[0] + 2, a.shape[1] + 2))
+    padded[1:-1, 1:-1] = a
+    rows = padded[:-2] + padded[1:-1] + padded[2:]
+    return rows[:, :-2] + rows[:, 1:-1] + rows[:, 2:] - a
 
 
 def _fill(
@@ -198,11 +237,9 @@ def _fill(
     observed = count > 0
     valid = observed.copy()
     if config.fill_empty:
-        obs = observed.astype(np.float64)
-        nsum = convolve(np.where(observed, z, 0.0), _NEIGHBOURS, mode="constant")
-        ncount = convolve(obs, _NEIGHBOURS, mode="constant")
-        fill = ~observed & (ncount > 0)
-        z = np.where(fill, nsum / np.maximum(ncount, 1), z)
+        ncount = _neighbour_sum(observed)
+        fill = ~observed & (ncount > 0.5)
+        z = np.where(fill, _neighbour_sum(np.where(observed, z, 0.0)) / np.maximum(ncount, 1), z)
         ztop = np.where(fill, z, ztop)
         valid |= fill
     return HeightGrid(z, ztop, count, observed, valid, config, height_per_px)

@@ -92,6 +92,7 @@ def map_points(
         grid = quantize(points_vehicle, config.grid, index=idx, camera=camera)
     with watch("surface"):
         terrain = estimate_terrain(grid, config.terrain)
+        grid = terrain.grid  # its samples recomputed on the terrain's slope (terrain.py, decision 8)
         layers = grid_layers(terrain.elevation, terrain.dz_dx, terrain.dz_dy)
         gradient = (terrain.dz_dx, terrain.dz_dy)
         limits = thresholds(config.grid, config.segmentation, camera, terrain.elevation, *gradient)

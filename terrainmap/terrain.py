@@ -47,7 +47,18 @@ property it keeps:
    final net is reached *or* no sample was equalized in the last step. We stop when the net is
    final or no valid sample moved more than ``epsilon_m``; then one last fit on the final net
    with the last W, R and P gives the surface.
-7. **Well-posedness.** Each fit adds a small second-difference penalty on Q (see
+8. **Stereo noise on slopes.** Eq. 1 with the grid's noise discount (:mod:`terrainmap.grid`)
+   needs the terrain's slope, which only the fit knows: a disparity error moves a point on ground
+   that slopes towards the camera several times more in height than on level ground, so the
+   level-ground discount leaves σ, and the sample's low bias, too large there. Where the grid
+   knows the stereo rig, the surfaces of the first ``slope_noise_iterations`` iterations
+   recompute the samples on their slope (:meth:`HeightGrid.on_slope`) before they are weighed
+   and equalized; ``grid`` of the result is the last such grid. Early surfaces suffice: the
+   slope of the terrain is settled long before its detail (on the simulated scenes, 3 refreshes
+   do as well as one per iteration, and 1 nearly so). It took the 10–20 m elevation RMSE on the
+   simulated 17° climb from 18 to 12 cm and the canyon's terrain F1 from 0.84 to 0.97
+   (README, Accuracy).
+9. **Well-posedness.** Each fit adds a small second-difference penalty on Q (see
    :class:`~terrainmap.bspline.TensorFit`), so knot spans without valid samples are bridged
    smoothly instead of making the normal equations singular.
 """
@@ -74,6 +85,8 @@ class TerrainEstimate:
     iteration, (m0, m1) metres (``grid.z`` holds them before). ``weights``: the last sample
     weights W of eq. 3, (m0, m1). ``iterations``: fits before the final one. ``mean_error_m``:
     ē of the last iteration. ``converged``: stopped early because no sample moved more than ε.
+    ``grid``: the grid whose samples the final fit used (decision 8; the input grid when it has
+    no stereo rig).
     """
 
     surface: RationalSurface
@@ -85,6 +98,7 @@ class TerrainEstimate:
     iterations: int
     mean_error_m: float
     converged: bool
+    grid: HeightGrid
 
 
 @lru_cache(maxsize=32)
@@ -170,11 +184,9 @@ def estimate_terrain(grid: HeightGrid, config: TerrainConfig) -> TerrainEstimate
     gcfg = grid.config
     xs, ys = cell_centers(gcfg)
     tolerance = config.equalize_tolerance_m + config.equalize_tolerance_per_m * np.hypot(xs[:, None], ys[None, :])
-    below_noise = 0.0 if grid.height_per_px is None else config.trust_below_px * grid.height_per_px
     valid = grid.valid
     base = np.where(grid.observed, 1.0, np.where(valid, config.filled_weight, 0.0))
-    Z0 = grid.z.astype(np.float64)
-    P = Z0.copy()
+    P = grid.z.astype(np.float64)
     final = (config.control_points_x, config.control_points_y)
     n = (min(config.start_control_points, final[0]), min(config.start_control_points, final[1]))
     fit = fitter_for(gcfg, *n, config.degree)
@@ -184,7 +196,11 @@ def estimate_terrain(grid: HeightGrid, config: TerrainConfig) -> TerrainEstimate
     while True:
         iteration += 1
         Q = fit.fit(P, base * W, R, config.smoothness)
-        S = fit.evaluate(Q, R)
+        if iteration <= config.slope_noise_iterations:  # decision 8
+            S, gx, gy = fit.evaluate_with_gradient(Q, R)
+            grid = grid.on_slope(gx, gy)
+        else:
+            S = fit.evaluate(Q, R)
         dz = P - S
         error = float(np.abs(dz[valid]).mean())
         th = max(config.threshold_factor * error, config.threshold_min_m)
@@ -192,9 +208,10 @@ def estimate_terrain(grid: HeightGrid, config: TerrainConfig) -> TerrainEstimate
         band = np.maximum(tolerance, th)
         W, _ = sample_weights(dz, th, alpha, config.weight_max)
         if config.trust_below:
+            below_noise = 0.0 if grid.height_per_px is None else config.trust_below_px * grid.height_per_px
             W = np.where(dz < -np.maximum(band, below_noise), config.weight_max, W)
-        _, f = sample_weights(Z0 - S, th, alpha, config.weight_max)
-        P_next = equalize(Z0, S, f, valid, band)
+        _, f = sample_weights(grid.z - S, th, alpha, config.weight_max)
+        P_next = equalize(grid.z, S, f, valid, band)
         moved = float(np.max(np.abs(P_next - P)[valid]))
         P = P_next
         if n == final or moved < config.epsilon_m:
@@ -210,7 +227,7 @@ def estimate_terrain(grid: HeightGrid, config: TerrainConfig) -> TerrainEstimate
     if not np.all(np.isfinite(Q)):
         raise FrameError("fit_failed", "the terrain fit produced non-finite control points")
     elevation, gx, gy = fit.evaluate_with_gradient(Q, R)
-    return TerrainEstimate(fit.surface(Q, R), elevation, gx, gy, P, W, iteration, error, converged)
+    return TerrainEstimate(fit.surface(Q, R), elevation, gx, gy, P, W, iteration, error, converged, grid)
 
 
 def _control_weights(fit: TensorFit, weights: np.ndarray, floor: float) -> np.ndarray:

@@ -49,10 +49,12 @@ _RIG = StereoCamera.from_rig(
 _FAR = GridConfig(x_min_m=14.0, length_m=2.0, width_m=2.0, y_center_m=0.0, cell_size_m=1.0)  # 2×2 cells, 14–16 m
 
 
-def _stereo_ground(n: int, noise_px: float, seed: int = 0) -> np.ndarray:
-    """Points of the plane z = 0 at 10–20 m, each moved along its camera ray by a disparity error."""
+def _stereo_ground(n: int, noise_px: float, seed: int = 0, rise: float = 0.0) -> np.ndarray:
+    """Points of the plane z = rise·(x − 15) at 10–20 m, each moved along its camera ray by a
+    disparity error."""
     rng = np.random.default_rng(seed)
-    ground = np.column_stack([rng.uniform(10, 20, n), rng.uniform(-1, 1, n), np.zeros(n)])
+    x = rng.uniform(10, 20, n)
+    ground = np.column_stack([x, rng.uniform(-1, 1, n), rise * (x - 15)])
     ray = ground - _RIG.center_m
     depth = ray @ _RIG.axis
     return _RIG.center_m + ray * (1 + depth * rng.normal(0, noise_px, n) / _RIG.focal_baseline)[:, None]
@@ -68,6 +70,23 @@ def test_stereo_noise_no_longer_pulls_eq1_below_the_ground():
     # The height a pixel of disparity moves level ground: depth · camera height / (f·B), 15 m → 0.18 m
     np.testing.assert_allclose(paper.height_per_px, 1.8 * np.array([[14.5] * 2, [15.5] * 2]) / 150, rtol=0.02)
     assert quantize(pts, _FAR).height_per_px is None
+
+
+def test_on_slope_takes_the_noise_of_ground_facing_the_camera():
+    """On ground rising 0.3 m per m (17°) the same disparity noise moves points 16× more in height
+    than the level-ground discount assumes at 15 m: Z stays ~σ_s low until the slope is known."""
+    pts = _stereo_ground(200_000, 0.5, rise=0.3)
+    level = quantize(pts, _FAR, camera=_RIG)
+    truth = 0.3 * (cell_centers(_FAR)[0] - 15)[:, None]
+    gx, gy = np.full(level.shape, 0.3), np.zeros(level.shape)
+    sloped = level.on_slope(gx, gy)
+    assert np.all(level.z - truth < -0.15)
+    # What is left is the spread of a 1 m cell on a 17° slope itself, 0.3/√12 = 9 cm: eq. 1's own.
+    assert np.all(np.abs(sloped.z - truth + 0.087) < 0.03)
+    np.testing.assert_allclose(sloped.height_per_px, 15 * (1.8 + 0.3 * 15) / 150, rtol=0.1)
+    np.testing.assert_array_equal(level.on_slope(0 * gx, gy).z, level.z)
+    no_rig = quantize(pts, _FAR)
+    assert no_rig.on_slope(gx, gy) is no_rig
 
 
 def test_stereo_noise_discount_keeps_obstacles_out_of_the_sample():
