@@ -86,8 +86,8 @@ def write_text(path: Path, text: str) -> None:
 
 def output_file(*suffixes: str) -> Callable:
     """A click callback for an output file option: its folder must exist (checked before any work
-    is done), an existing path must be a file or a folder (click's ``dir_okay`` decides which) and, where ``suffixes`` are given,
-    its name must end in one of them. Gives a Path."""
+    is done), an existing path must be a file or a folder (click's ``dir_okay`` decides which),
+    and, where ``suffixes`` are given, its name must end in one of them. Gives a Path."""
 
     def check(ctx: click.Context, param: click.Parameter, value) -> Path | None:
         if value is None:

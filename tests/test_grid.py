@@ -73,7 +73,7 @@ def test_stereo_noise_no_longer_pulls_eq1_below_the_ground():
 
 
 def test_on_slope_takes_the_noise_of_ground_facing_the_camera():
-    """On ground rising 0.3 m per m (17°) the same disparity noise moves points 16× more in height
+    """On ground rising 0.3 m per m (17°) the same disparity noise moves points 3.5× more in height
     than the level-ground discount assumes at 15 m: Z stays ~σ_s low until the slope is known."""
     pts = _stereo_ground(200_000, 0.5, rise=0.3)
     level = quantize(pts, _FAR, camera=_RIG)
