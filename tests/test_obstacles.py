@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 import pytest
 from obstacle_scenes import GRID, Plane, box_points, labelled, terrain_points
@@ -109,7 +107,7 @@ def test_min_cell_points_drops_sparse_cells():
     )
 
 
-def test_thousands_of_tiny_clusters_are_cheap():
+def test_thousands_of_tiny_clusters_are_each_found():
     plane = Plane()
     m0, m1 = GRID.shape
     ix, iy = np.meshgrid(np.arange(0, m0, 2), np.arange(0, m1, 2), indexing="ij")
@@ -125,13 +123,9 @@ def test_thousands_of_tiny_clusters_are_cheap():
     pts = np.column_stack([pts, rng.uniform(0.4, 1.0, len(pts))])
     labels = np.full(len(pts), Label.OBSTACLE, np.uint8)
     config = ObstacleConfig(min_points=1)
-    extract_obstacles(pts, labels, GRID, plane, config)  # warm-up
-    start = time.perf_counter()
-    found = extract_obstacles(pts, labels, GRID, plane, config)
-    elapsed = time.perf_counter() - start
+    found = extract_obstacles(pts, labels, GRID, plane, config)  # its speed: `terrainmap bench`
     assert n_clusters > 700 and len(found) == n_clusters
     assert all(o.point_count == per_cluster for o in found)
-    assert elapsed < 0.1  # ~3 ms measured; generous for a loaded machine
     assert extract_obstacles(pts, labels, GRID, plane, ObstacleConfig(min_points=6)) == []
 
 

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-import time
 from pathlib import Path
 
 import numpy as np
@@ -182,13 +181,14 @@ def test_schemas_registered_once_with_short_dependency_names(ros_file):
 
 
 @pytest.mark.parametrize("flavor", ["foxglove", "ros2"])
-def test_write_cost_per_frame_68x44_grid_300k_points(tmp_path, flavor):
-    """Whole-sink cost per frame at the paper's grid size (loose bound: a shared 2-core machine)."""
-    frames = [make_frame(i, grid=GridConfig(), points=300_000) for i in range(4)]
-    with open_mcap_sink(tmp_path / "bench.mcap", flavor, config=Config(), compression="lz4") as sink:
-        sink.write(*frames[0])
-        start = time.perf_counter()
-        for frame, result in frames[1:]:
+def test_full_size_frames_are_written_whole(tmp_path, flavor):
+    """Frames of 300k points at the paper's grid size: every point reaches the file (x, y, z
+    float32 and a uint8 label, at least 13 bytes each). The cost per frame: `terrainmap bench`."""
+    frames = [make_frame(i, grid=GridConfig(), points=300_000) for i in range(3)]
+    path = tmp_path / "full.mcap"
+    with open_mcap_sink(path, flavor, config=Config(), compression="lz4") as sink:
+        for frame, result in frames:
             sink.write(frame, result)
-        per_frame_ms = (time.perf_counter() - start) / 3 * 1e3
-    assert per_frame_ms < 150
+    with open(path, "rb") as f:
+        clouds = [m for _s, _c, m in make_reader(f).iter_messages(topics=["/terrainmap/points"])]
+    assert len(clouds) == 3 and all(len(m.data) >= 300_000 * 13 for m in clouds)
