@@ -63,9 +63,13 @@ def test_bench_stages_take_turns_and_goals_follow_the_medians():
     results = bench.run(runs=3, stages=stages, warmup=1)
     assert calls == ["sgbm_alone", "frame_total"] * 4  # interleaved: one call of each per round
     assert results["frame_total"]["runs"] == 3
-    fake = {"grid": 3.0, "labels": 1.5, "sgbm_alone": 20.0, "frame_total": 34.0}
+    fake = {"grid": 3.0, "surface": 6.0, "labels": 1.5, "sgbm_alone": 20.0, "frame_total": 34.0}
     checks = bench.goals({name: {"median_ms": ms} for name, ms in fake.items()})
-    assert checks == [("grid + labels, ms", 4.5, 5.0), ("frame_total / sgbm_alone", 1.7, 1.6)]
+    assert checks == [
+        ("surface (estimation, slope, cell labels), ms", 6.0, 5.0),
+        ("grid + labels, ms", 4.5, 5.0),
+        ("frame_total / sgbm_alone", 1.7, 1.6),
+    ]
 
 
 def test_eval_artificial_obstacle_on_a_simulated_base_frame(tmp_path):
