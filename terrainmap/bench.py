@@ -45,32 +45,22 @@ def core_stages(config: Config, n_points: int = 300_000) -> dict[str, Stage]:
     """Stage name → zero-argument callable, for the terrain core on a synthetic cloud."""
     from .grid import cell_index, quantize
     from .obstacle_stage import make_tracker, run_obstacle_stage
-    from .pipeline import map_points
-    from .segmentation import label_cells, label_points, thresholds
-    from .slope import layers as grid_layers
+    from .pipeline import map_points, map_surface
+    from .segmentation import label_points
     from .synthetic import cloud
-    from .terrain import estimate_terrain
     from .types import StereoCamera
 
     points = cloud(n_points, grid=config.grid)
     camera = StereoCamera(np.array([0.0, 0.0, 1.8]), np.array([1.0, 0.0, 0.0]), 150.0)  # the cloud's viewpoint
     result = map_points(points, config, camera=camera)
-    grid, terrain = quantize(points, config.grid, camera=camera), result.terrain  # grid: the surface stage's input
+    grid = quantize(points, config.grid, camera=camera)  # the surface stage's input
+    terrain, _, limits = map_surface(grid, config, camera)
+    index = cell_index(points, config.grid)  # computed by the grid stage; the pipeline reuses it
     tracker = make_tracker(config)
 
-    def surface_stage():  # as in map_points
-        estimate = estimate_terrain(grid, config.terrain)
-        gradient = (estimate.dz_dx, estimate.dz_dy)
-        layers = grid_layers(estimate.elevation, *gradient)
-        limits = thresholds(config.grid, config.segmentation, camera, estimate.elevation, *gradient)
-        label_cells(estimate.grid, layers["elevation"], config.segmentation, limits=limits)
-
-    index = cell_index(points, config.grid)  # computed by the grid stage; the pipeline reuses it
-    gradient = (terrain.dz_dx, terrain.dz_dy)
-    limits = thresholds(config.grid, config.segmentation, camera, terrain.elevation, *gradient)
-
     def labels_stage():
-        label_points(points, terrain.elevation, *gradient, config.grid, config.segmentation, index=index, limits=limits)
+        label_points(points, terrain.elevation, terrain.dz_dx, terrain.dz_dy, config.grid, config.segmentation,
+                     index=index, limits=limits)
 
     stamp = iter(range(0, 10**15, 100_000_000))
 
@@ -79,7 +69,7 @@ def core_stages(config: Config, n_points: int = 300_000) -> dict[str, Stage]:
 
     return {
         "grid": lambda: quantize(points, config.grid, camera=camera),
-        "surface": surface_stage,
+        "surface": lambda: map_surface(grid, config, camera),
         "labels": labels_stage,
         "obstacles": obstacles_stage,
     }

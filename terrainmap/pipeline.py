@@ -91,18 +91,29 @@ def map_points(
         idx = cell_index(points_vehicle, config.grid)
         grid = quantize(points_vehicle, config.grid, index=idx, camera=camera)
     with watch("surface"):
-        terrain = estimate_terrain(grid, config.terrain)
-        grid = terrain.grid  # its samples recomputed on the terrain's slope (terrain.py, decision 8)
-        layers = grid_layers(terrain.elevation, terrain.dz_dx, terrain.dz_dy)
-        gradient = (terrain.dz_dx, terrain.dz_dy)
-        limits = thresholds(config.grid, config.segmentation, camera, terrain.elevation, *gradient)
-        layers["label"] = label_cells(grid, layers["elevation"], config.segmentation, limits=limits)
-        layers["valid"] = grid.valid
+        terrain, layers, limits = map_surface(grid, config, camera)
     with watch("labels"):
         labels = label_points(
-            points_vehicle, terrain.elevation, *gradient, config.grid, config.segmentation, index=idx, limits=limits
+            points_vehicle, terrain.elevation, terrain.dz_dx, terrain.dz_dy, config.grid, config.segmentation,
+            index=idx, limits=limits,
         )
-    return TerrainMap(grid, terrain, layers, labels, watch.ms)
+    return TerrainMap(terrain.grid, terrain, layers, labels, watch.ms)
+
+
+def map_surface(
+    grid: HeightGrid, config: Config, camera: StereoCamera | None = None
+) -> tuple[TerrainEstimate, dict[str, np.ndarray], tuple[np.ndarray, np.ndarray]]:
+    """The surface stage of :func:`map_points`: the terrain fit, its layers (elevation, slope,
+    ..., per-cell ``label`` and ``valid``, (m0, m1) each) and the per-cell (above, below)
+    labelling thresholds. The cells are labelled against ``terrain.grid``, whose samples the fit
+    recomputed on the terrain's slope (terrain.py, decision 8)."""
+    terrain = estimate_terrain(grid, config.terrain)
+    gradient = (terrain.dz_dx, terrain.dz_dy)
+    layers = grid_layers(terrain.elevation, *gradient)
+    limits = thresholds(config.grid, config.segmentation, camera, terrain.elevation, *gradient)
+    layers["label"] = label_cells(terrain.grid, layers["elevation"], config.segmentation, limits=limits)
+    layers["valid"] = terrain.grid.valid
+    return terrain, layers, limits
 
 
 @dataclass
