@@ -32,7 +32,7 @@ from scipy import ndimage
 
 from .config import GridConfig, ObstacleConfig
 from .errors import InputError
-from .grid import cell_centers, cell_index
+from .grid import as_points, cell_centers, cell_index
 from .types import Label, Obstacle
 
 logger = logging.getLogger(__name__)
@@ -77,10 +77,8 @@ def extract_obstacles(
     InputError
         ``points_vehicle`` is not N×3 or ``point_labels`` does not have one label per point.
     """
-    points_vehicle = np.asarray(points_vehicle)
+    points_vehicle = as_points(points_vehicle)
     point_labels = np.asarray(point_labels)
-    if points_vehicle.ndim != 2 or points_vehicle.shape[1] != 3:
-        raise InputError(f"obstacles: points must be an N×3 array, got shape {points_vehicle.shape}")
     if point_labels.shape != (len(points_vehicle),):
         raise InputError(
             f"obstacles: expected {len(points_vehicle)} point labels, got shape {point_labels.shape}"
