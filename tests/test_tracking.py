@@ -177,6 +177,19 @@ def test_far_detection_outside_the_gate_starts_a_new_track():
     assert b.track_id != a.track_id and not b.confirmed
 
 
+
+def test_track_missing_its_obstacle_does_not_take_a_neighbours_detection():
+    """A frame without B's detection, but with A's and a fragment of A's: matching as many pairs
+    as possible would give B A's detection (1.6 m, inside the gate) and A the fragment (0.7 m),
+    and switch A's id; A keeps its obstacle and B coasts."""
+    tracker = ObstacleTracker(TrackingConfig(gate_m=2.0))
+    for k in range(2):
+        a, b = tracker.update([detection(10, 0), detection(10, 1.6)], k * DT_NS)
+    out = tracker.update([detection(10, 0), detection(10, -0.7)], 2 * DT_NS)
+    ids = {o.track_id: o.center_m[1] for o in out}
+    assert ids[a.track_id] == pytest.approx(0, abs=0.05)
+    assert b.track_id not in ids
+
 @pytest.mark.parametrize("radius", [1.5, 0.0])
 def test_fragment_beside_a_confirmed_track_starts_no_track(radius):
     """A second cluster of an obstacle already tracked (1 m from it) starts no track of its own;
