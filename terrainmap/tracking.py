@@ -11,7 +11,7 @@ Per frame (:meth:`ObstacleTracker.update`):
 1. predict every track by ``dt`` (from the stamps) with white-acceleration process noise;
 2. associate detections to tracks of the same kind by the matching of least total distance
    between predicted and detected centres, a track or detection left unmatched costing
-   ``gate_m / 2`` (:func:`_min_cost_matching`), so pairs farther than ``gate_m`` never match;
+   ``gate_m / 2`` (:meth:`ObstacleTracker._associate`), so pairs farther than ``gate_m`` never match;
 3. update matched tracks; start a tentative track for every unmatched detection but the
    fragments: one within ``fragment_radius_m`` of a confirmed track of its kind matched in this
    frame is another cluster of that obstacle (a low mound whose top flickers above the
@@ -38,8 +38,7 @@ from __future__ import annotations
 import logging
 
 import numpy as np
-from scipy.sparse import csr_array
-from scipy.sparse.csgraph import min_weight_full_bipartite_matching
+from scipy.optimize import linear_sum_assignment
 from scipy.spatial import cKDTree
 
 from .config import GridConfig, TrackingConfig
@@ -163,8 +162,16 @@ class ObstacleTracker:
         self._P = F @ self._P @ F.T + Q
 
     def _associate(self, centers_xy: np.ndarray, kinds: list[str]) -> tuple[np.ndarray, np.ndarray]:
-        """Matching within the gate (:func:`_min_cost_matching`): (track rows, detection columns).
-        Candidate pairs come from a k-d tree, so the cost grows with the pairs, not with n·m."""
+        """The matching of least total distance within the gate: (track rows, detection columns).
+
+        Each track or detection left unmatched costs ``gate_m / 2``, so a pair (distance d < gate)
+        is worth ``d − gate`` against leaving both unmatched: the Hungarian algorithm on those
+        values, with 0 for pairs outside the gate, finds it. Matching as many pairs as possible
+        instead lets a track whose own obstacle was missed in this frame take a neighbour's
+        detection and push that neighbour's track onto a fragment: an id switch. Candidate pairs
+        come from a k-d tree; a pair that is the only candidate of both its track and its
+        detection is matched directly.
+        """
         n, m = len(self._ids), len(centers_xy)
         none = np.zeros(0, np.intp)
         if not n or not m:
@@ -174,7 +181,18 @@ class ObstacleTracker:
         )
         track_kinds = np.array([s[0].kind for s in self._shape])
         pairs = pairs[track_kinds[pairs["i"]] == np.asarray(kinds)[pairs["j"]]]
-        return _min_cost_matching(pairs["i"].astype(np.intp), pairs["j"].astype(np.intp), pairs["v"], n, m, self.config.gate_m)
+        i, j, dist = pairs["i"].astype(np.intp), pairs["j"].astype(np.intp), pairs["v"]
+        single = (np.bincount(i, minlength=n)[i] == 1) & (np.bincount(j, minlength=m)[j] == 1)
+        rest = ~single
+        if not rest.any():
+            return i[single], j[single]
+        rows, ri = np.unique(i[rest], return_inverse=True)
+        cols, ci = np.unique(j[rest], return_inverse=True)
+        gain = np.zeros((len(rows), len(cols)))
+        gain[ri, ci] = dist[rest] - self.config.gate_m  # < 0 within the gate
+        r, c = linear_sum_assignment(gain)
+        ok = gain[r, c] < 0
+        return np.concatenate([i[single], rows[r[ok]]]), np.concatenate([j[single], cols[c[ok]]])
 
     def _not_fragments(self, new: np.ndarray, centers_t: np.ndarray, obstacles: list[Obstacle], rows: np.ndarray):
         """The unmatched detections ``new`` that lie farther than ``fragment_radius_m`` from
@@ -276,27 +294,3 @@ def _pose(vehicle_pose: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
 def _wrap_half(angle: np.ndarray) -> np.ndarray:
     """Footprint yaw folded into (−π/2, π/2] (a rectangle is symmetric under a half turn)."""
     return np.pi / 2 - np.mod(np.pi / 2 - angle, np.pi)
-
-
-def _min_cost_matching(ri: np.ndarray, ci: np.ndarray, dist: np.ndarray, n: int, m: int, gate: float):
-    """Pairs (rows, cols) among the allowed pairs (track ``ri``, detection ``ci``, ``dist`` apart)
-    that minimise the summed distance plus ``gate / 2`` for every track and every detection left
-    unmatched.
-
-    Matching as many pairs as possible instead lets a track whose own obstacle was missed this
-    frame take a neighbour's detection (up to ``gate`` away) and push that neighbour's track onto
-    a fragment: an id switch. Leaving a pair unmatched costs ``gate``, so a pair within the gate
-    that nobody else wants is still always matched.
-
-    Solved as a sparse perfect matching: track i may also take its own "unmatched" node, detection
-    j its own, and the unmatched nodes of an allowed pair (i, j) pair up with each other at no
-    cost, which completes every matching of the real pairs. Every perfect matching has n + m
-    edges, so adding 1 to all weights (the solver wants them non-zero) changes nothing.
-    """
-    tracks, detections = np.arange(n), np.arange(m)
-    rows = np.concatenate([ri, tracks, n + detections, n + ci])  # tracks, then detections' unmatched nodes
-    cols = np.concatenate([ci, m + tracks, detections, m + ri])  # detections, then tracks' unmatched nodes
-    weight = np.concatenate([dist, np.full(n + m, gate / 2), np.zeros(len(ri))]) + 1.0
-    r, c = min_weight_full_bipartite_matching(csr_array((weight, (rows, cols)), shape=(n + m, m + n)))
-    pair = (r < n) & (c < m)
-    return r[pair], c[pair]
