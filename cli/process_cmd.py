@@ -41,8 +41,11 @@ def process(log, output, flavor, compression, rrd, overwrite, source_opts, confi
     output = output or default_output(log)
     _check_outputs(log, output, rrd, overwrite, [source_opts.calibration, config_path])
     show = sys.stderr.isatty()
+    outputs = [output] + ([rrd] if rrd else [])
+    progress = []  # the run's summary, kept to tell what was written when the run fails
 
     def on_frame(summary, frame, result) -> None:
+        progress[:] = [summary]
         if show:
             _progress(summary, frame, result)
         stop.check()  # between frames: a signal never cuts an output in the middle of a write
@@ -60,10 +63,15 @@ def process(log, output, flavor, compression, rrd, overwrite, source_opts, confi
                 raise
         try:
             summary = runner.run(frames, config, sinks, on_frame=on_frame)
+        except BaseException:
+            if progress and progress[0].frames_done:  # the sinks were closed: what they hold reads back
+                done = progress[0].frames_done
+                click.echo(f"wrote {done} frame{'s' * (done != 1)} to {', '.join(map(str, outputs))} before stopping")
+            raise
         finally:
             if show:
                 click.echo(err=True)
-    _report(summary, [output] + ([rrd] if rrd else []))
+    _report(summary, outputs)
     if summary.frames_done == 0:
         raise Failed(f"no frame of {log} could be processed ({_reasons(summary)})")
 

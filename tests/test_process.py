@@ -107,6 +107,31 @@ def test_truncated_log_keeps_what_was_written(shared_data, tmp_path, capsys):
         _grids(tmp_path / "o.mcap")  # whatever was written reads back
 
 
+def test_log_cut_after_a_frame_gives_one_error_line_and_that_frame(tmp_path, capsys):
+    """The frames before the damage are processed and written; stderr holds the one error line,
+    stdout says what was written; ``info`` names the damage."""
+    from terrainmap.sim import SimConfig, simulate
+
+    log = tmp_path / "sim.mcap"
+    simulate(log, SimConfig(scene="flat", frames=4, seed=1, width=320, height=240, focal_px=250.0))
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(log.read_bytes()[: log.stat().st_size * 7 // 10])
+    out = tmp_path / "o.mcap"
+    from terrainmap.cli.main import main
+
+    with pytest.raises(SystemExit) as exc:
+        main(["process", str(cut), "-o", str(out)])
+    captured = capsys.readouterr()
+    assert exc.value.code == 2
+    assert captured.err.splitlines() == [f"Error: {cut}: log is truncated or corrupt after 3 messages of "
+                                         "/stereo/left/image_rect, /stereo/right/image_rect, /tf (EndOfFile)"]
+    assert f"wrote 1 frame to {out} before stopping" in captured.out
+    assert len(_grids(out)) == 1
+    main(["info", str(cut)])
+    captured = capsys.readouterr()
+    assert f"damage:             {cut}: truncated or corrupt after" in captured.out and captured.err == ""
+
+
 def test_unusable_calibration_is_reported(shared_data, tmp_path, capsys):
     from terrainmap.cli.main import main
 

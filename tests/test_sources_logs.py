@@ -305,6 +305,36 @@ def test_truncated_log_yields_what_it_can_then_raises(tmp_path):
     np.testing.assert_array_equal(frames[2].left, pair_images(2)[0])
 
 
+def test_truncated_log_names_its_damage_in_describe(tmp_path):
+    path = write_ros2_log(tmp_path / "full.mcap", n=20)
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+    with open_source(path) as source:
+        assert source.describe()["damage"] is None
+    with open_source(cut) as source:
+        assert source.describe()["damage"].startswith(f"{cut}: truncated or corrupt after ")
+
+
+def test_unparsable_schema_names_the_topic_and_prints_nothing(tmp_path, capfd):
+    """mcap_ros2's definition parser prints the bad line to stderr before raising: kept quiet,
+    and the error says which topic's schema it is (not that the log is truncated)."""
+    from mcap.writer import Writer
+
+    path = tmp_path / "schema.mcap"
+    with open(path, "wb") as f:
+        writer = Writer(f)
+        writer.start()
+        schema = writer.register_schema("sensor_msgs/msg/Image", "ros2msg", b"int32 x y z\n")
+        for topic in ("/cam/left/image_rect", "/cam/right/image_rect"):
+            channel = writer.register_channel(topic, "cdr", schema)
+            writer.add_message(channel, log_time=1, data=b"\0" * 20, publish_time=1)
+        writer.finish()
+    with pytest.raises(InputError, match="topic /cam/left/image_rect: unreadable schema sensor_msgs/msg/Image"):
+        with open_source(path) as source:
+            list(source.frames())
+    assert capfd.readouterr().err == ""
+
+
 @pytest.mark.parametrize("damage", ["half", "overwrite", "garbage"])
 def test_corrupt_real_log_gives_one_line_error(tmp_path, damage):
     real = DATA / "kitti2015_000005_ros2_raw" / "kitti2015_000005_ros2_raw.mcap"

@@ -141,8 +141,8 @@ class LogSource(Source):
                         tree.add(*transform)
                     if limit and tree.resolves(self.frame_id):
                         break
-            except InputError as exc:  # a damaged log: keep the transforms read before the damage
-                logger.warning("reading transforms: %s", exc)
+            except InputError as exc:  # a damaged log (reader.damage): keep the transforms read before it
+                logger.info("reading transforms: %s", exc)
             finally:
                 stream.close()
         return tree.extrinsics(self.frame_id)
@@ -207,6 +207,7 @@ class LogSource(Source):
             "format": self.format,
             "path": str(self.path),
             "files": [str(p) for p in self.reader.paths],
+            "damage": self.reader.damage,
             "topics": [{"topic": t, "type": k, "count": counts.get(t)} for t, k in sorted(self.reader.types.items())],
             "left_topic": self.left_topic,
             "right_topic": self.right_topic,

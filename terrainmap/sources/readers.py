@@ -10,9 +10,10 @@ that could be read.
 
 from __future__ import annotations
 
+import io
 import logging
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, redirect_stderr
 from pathlib import Path
 from typing import Any
 
@@ -25,7 +26,8 @@ logger = logging.getLogger(__name__)
 
 
 def _reason(exc: Exception) -> str:
-    return f"{type(exc).__name__}: {exc}".splitlines()[0][:200]
+    """``Type: message`` of an exception, first line only ("Type" when the message is empty)."""
+    return f"{type(exc).__name__}: {exc}".rstrip(": ").splitlines()[0][:200]
 
 
 def _decoder_factories() -> list:
@@ -84,8 +86,9 @@ class McapFile:
                 self.types[channel.topic] = normalize_type(schema.name if schema else "")
                 self.counts[channel.topic] = self.counts.get(channel.topic, 0) + 1
         except Exception as exc:
+            # Not a warning: ``info`` shows it, and reading the messages raises it as the error.
             self.damage = f"{self.path}: truncated or corrupt after {sum(self.counts.values())} messages ({_reason(exc)})"
-            logger.warning("%s", self.damage)
+            logger.info("%s", self.damage)
 
     def messages(self, topics: list[str]) -> Iterator[tuple[str, int, Any]]:
         """(topic, log_time_ns, decoded message) of ``topics`` in log-time order."""
@@ -98,9 +101,7 @@ class McapFile:
                 reader = SeekingReader(stream) if self.indexed else NonSeekingReader(stream)
                 for schema, channel, message in reader.iter_messages(topics=topics, log_time_order=self.indexed):
                     if channel.id not in decoders:
-                        decoders[channel.id] = next(
-                            (d for f in factories if (d := f.decoder_for(channel.message_encoding, schema))), None
-                        )
+                        decoders[channel.id] = self._decoder(factories, channel, schema)
                     if decoders[channel.id] is None:
                         raise InputError(f"{self.path}: no decoder for topic {channel.topic} ({channel.message_encoding})")
                     yield channel.topic, message.log_time, decoders[channel.id](message.data)
@@ -111,6 +112,17 @@ class McapFile:
             raise InputError(
                 f"{self.path}: log is truncated or corrupt after {count} messages of {', '.join(topics)} ({_reason(exc)})"
             ) from exc
+
+    def _decoder(self, factories, channel, schema):
+        """The first decoder the factories offer for ``channel`` (None if none does), or
+        :class:`InputError` naming the topic when its schema cannot be parsed."""
+        try:
+            # mcap_ros2's message-definition parser prints the bad line to stderr before raising
+            with redirect_stderr(io.StringIO()):
+                return next((d for f in factories if (d := f.decoder_for(channel.message_encoding, schema))), None)
+        except Exception as exc:
+            name = schema.name if schema else "none"
+            raise InputError(f"{self.path}: topic {channel.topic}: unreadable schema {name} ({_reason(exc)})") from exc
 
 
 def mcap_files(path: Path) -> list[Path]:
