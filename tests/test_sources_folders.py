@@ -169,6 +169,16 @@ def test_kitti_raw_drive_with_timestamps_and_calibration_two_levels_up(tmp_path)
     assert frames[0].calibration.cx_right == pytest.approx(610.0)
 
 
+@pytest.mark.parametrize("size", ["8.5 6", "8 nan"])
+def test_kitti_image_size_must_be_whole_pixels(tmp_path, size):
+    path = tmp_path / "calib_cam_to_cam.txt"
+    path.write_text(f"S_rect_02: {size}\nP_rect_02: {KITTI_P2}\nP_rect_03: {KITTI_P3}\n")
+    from terrainmap.sources.calibration import kitti_calibration
+
+    with pytest.raises(CalibrationError, match="S_rect_02 must be the image width and height in pixels"):
+        kitti_calibration(path)
+
+
 def test_kitti_odometry_sequence(tmp_path):
     for i in range(4):
         write(tmp_path / "image_2" / f"{i:06d}.png", image(i))

@@ -113,7 +113,7 @@ def kitti_calibration(path: Path, keys: tuple[str, str] | None = None) -> Stereo
                 raise CalibrationError(f"{path}: {left_key}/{right_key} are not numbers") from None
             try:
                 size = _numbers(values.get(size_key, "0 0"))
-                width, height = (int(v) for v in size[:2]) if size.size >= 2 else (0, 0)
+                width, height = (_whole(v) for v in size[:2]) if size.size >= 2 else (0, 0)
             except (ValueError, OverflowError):
                 raise CalibrationError(f"{path}: {size_key} must be the image width and height in pixels") from None
             if P_left.size != 12 or P_right.size != 12:
