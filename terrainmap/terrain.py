@@ -196,7 +196,7 @@ def estimate_terrain(grid: HeightGrid, config: TerrainConfig) -> TerrainEstimate
     while True:
         iteration += 1
         Q = fit.fit(P, base * W, R, config.smoothness)
-        if iteration <= config.slope_noise_iterations:  # decision 8
+        if iteration <= config.slope_noise_iterations and grid.camera is not None:  # decision 8
             S, gx, gy = fit.evaluate_with_gradient(Q, R)
             grid = grid.on_slope(gx, gy)
         else:
