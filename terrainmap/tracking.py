@@ -188,10 +188,10 @@ class ObstacleTracker:
             return i[single], j[single]
         rows, ri = np.unique(i[rest], return_inverse=True)
         cols, ci = np.unique(j[rest], return_inverse=True)
-        gain = np.zeros((len(rows), len(cols)))
-        gain[ri, ci] = dist[rest] - self.config.gate_m  # < 0 within the gate
-        r, c = linear_sum_assignment(gain)
-        ok = gain[r, c] < 0
+        cost = np.zeros((len(rows), len(cols)))  # against leaving the pair unmatched
+        cost[ri, ci] = dist[rest] - self.config.gate_m  # < 0 within the gate
+        r, c = linear_sum_assignment(cost)
+        ok = cost[r, c] < 0
         return np.concatenate([i[single], rows[r[ok]]]), np.concatenate([j[single], cols[c[ok]]])
 
     def _not_fragments(self, new: np.ndarray, centers_t: np.ndarray, obstacles: list[Obstacle], rows: np.ndarray):
