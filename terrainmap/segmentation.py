@@ -6,7 +6,8 @@ that and BELOW under it, with both thresholds growing with range r = ‖(x, y)�
 UNKNOWN.
 
 Where the stereo camera is known (:class:`StereoCamera`), each cell's thresholds are also at
-least the height change a disparity error of ``disparity_tolerance_px`` makes there. A point
+least the height change a disparity error of ``disparity_tolerance_px`` (above) or
+``below_tolerance_px`` (below; wider, as SGBM puts ground points low) makes there. A point
 at camera depth Z along the ray ``ρ = p − c`` (c the camera centre) moves by
 ``Δp = ρ · Z · Δd / (f·B)`` for a disparity error Δd, which changes its height above the
 tangent plane ``S ≈ c₀ + gx·x + gy·y`` by ``Δh = (ρz − gx·ρx − gy·ρy) · Z · Δd / (f·B)``. On flat
@@ -45,9 +46,10 @@ def thresholds(
     x, y = xs[:, None], ys[None, :]
     grow = config.threshold_per_m * np.hypot(x, y)
     above, below = config.obstacle_height_m + grow, config.below_depth_m + grow
-    if camera is not None and config.disparity_tolerance_px > 0:
-        noise = config.disparity_tolerance_px * camera.height_per_px(x, y, elevation, dz_dx, dz_dy)
-        above, below = np.maximum(above, noise), np.maximum(below, noise)
+    if camera is not None and (config.disparity_tolerance_px > 0 or config.below_tolerance_px > 0):
+        per_px = camera.height_per_px(x, y, elevation, dz_dx, dz_dy)
+        above = np.maximum(above, config.disparity_tolerance_px * per_px)
+        below = np.maximum(below, config.below_tolerance_px * per_px)
     return np.broadcast_to(above, grid.shape), np.broadcast_to(below, grid.shape)
 
 

@@ -35,6 +35,7 @@ def test_toml_round_trip_and_overrides(tmp_path):
         ("terrain.start_control_points=2", r"at least degree \+ 1"),
         ("grid.cell_size_m=nan", "cannot use 'nan'"),
         ("grid.stereo_noise_px=-0.5", "grid.stereo_noise_px: must be >= 0"),
+        ("segmentation.below_tolerance_px=-1", "segmentation.below_tolerance_px: must be >= 0"),
         ("tracking.report_misses=4", "tracking.report_misses: must be in 0..tracking.max_misses"),
         ("stereo.texture_measure=sobel", "stereo.texture_measure: must be variance or x_gradient"),
         ("stereo.texture_margin_px=-1", "stereo.texture_margin_px: must be in 0..100"),

@@ -3,7 +3,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from terrainmap.config import Config, GridConfig, SegmentationConfig
-from terrainmap.grid import cell_index, quantize
+from terrainmap.grid import cell_centers, cell_index, quantize
 from terrainmap.pipeline import map_points
 from terrainmap.segmentation import (
     cell_planes,
@@ -110,5 +110,23 @@ def test_stereo_thresholds_grow_where_disparity_noise_lifts_points():
     # ground rising at 0.3 towards the camera: 20 × |−1.8 − 0.3 × 20| / 150 ≈ 1.0 m
     rising = thresholds(grid, config, CAMERA, flat, np.full(grid.shape, 0.3), flat)[0]
     assert 0.9 < rising[ix, iy] < 1.2
-    off = SegmentationConfig(disparity_tolerance_px=0.0)  # thresholds that grow with range only
+    off = SegmentationConfig(disparity_tolerance_px=0.0, below_tolerance_px=0.0)  # range only
     assert np.array_equal(thresholds(grid, off, CAMERA, flat, flat, flat)[0], fixed[0])
+    assert np.array_equal(thresholds(grid, off, CAMERA, flat, flat, flat)[1], fixed[1])
+
+
+def test_the_below_threshold_has_its_own_wider_floor():
+    """SGBM reads ground disparity low, so the floor under the below threshold is 2 px (above: 1 px)."""
+    config, grid = SegmentationConfig(), GridConfig()
+    assert config.below_tolerance_px == 2.0
+    flat, rising = np.zeros(grid.shape), np.full(grid.shape, 0.3)
+    xs, ys = cell_centers(grid)
+    per_px = CAMERA.height_per_px(xs[:, None], ys[None, :], flat, rising, flat)
+    above, below = thresholds(grid, config, CAMERA, flat, rising, flat)
+    fixed_above, fixed_below = thresholds(grid, config)
+    assert np.allclose(above, np.maximum(fixed_above, per_px))
+    assert np.allclose(below, np.maximum(fixed_below, 2.0 * per_px))
+    assert np.any(below > above)  # where the 2 px floor is binding
+    only_above = SegmentationConfig(below_tolerance_px=0.0)
+    assert np.array_equal(thresholds(grid, only_above, CAMERA, flat, rising, flat)[1], fixed_below)
+    assert np.array_equal(thresholds(grid, only_above, CAMERA, flat, rising, flat)[0], above)
