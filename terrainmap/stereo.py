@@ -319,6 +319,53 @@ def _texture_energy(grey: np.ndarray, config: StereoConfig) -> np.ndarray:
     return energy
 
 
+_SKY_WINDOW = 5
+"""Side of the window over which a sky pixel must be flat, pixels. A pixel is flat only when its
+window misses the skyline, so growing the flat region by the half-width reaches exactly to it."""
+
+
+def sky_mask(grey: np.ndarray, pinhole: RectifiedPinhole, extrinsics: Extrinsics, config: StereoConfig) -> np.ndarray:
+    """The pixels of the rectified left image that see sky: H×W bool.
+
+    Sky is the region of flat pixels (grey-level standard deviation over a 5×5 window below
+    ``config.min_texture``) that reaches the top row of the image through flat pixels above the
+    horizon, grown by the window's half-width up to the skyline. "Above the horizon" means the ray
+    would meet level ground under the camera no nearer than ``config.max_range_m`` (horizontal
+    distance), if at all: ground seen there gives no points anyway, and sky just above distant
+    terrain lower than the vehicle still counts. The bound keeps flat ground and dark or saturated
+    objects out even where they touch the sky along an image border; flat regions closed in by
+    texture (a car's panel, a wall) are not reached.
+
+    Parameters
+    ----------
+    grey : H×W uint8
+        The rectified left image.
+    pinhole : RectifiedPinhole
+        Its camera model.
+    extrinsics : Extrinsics
+        The camera's pose in the vehicle frame (its rotation orients the rays, its height sets
+        the horizon's margin).
+    config : StereoConfig
+        ``min_texture`` (0 finds no sky) and ``max_range_m``.
+    """
+    box = (_SKY_WINDOW, _SKY_WINDOW)
+    mean = cv2.boxFilter(grey, cv2.CV_32F, box)
+    flat = cv2.sqrBoxFilter(grey, cv2.CV_32F, box) - mean * mean < np.float32(config.min_texture) ** 2
+    rotation = np.asarray(extrinsics.rotation, np.float64)
+    u = (np.arange(pinhole.width) - pinhole.cx) / pinhole.fx
+    v = (np.arange(pinhole.height) - pinhole.cy) / pinhole.fy
+    ray_x, ray_y, ray_z = (r[0] * u[None, :] + r[1] * v[:, None] + r[2] for r in rotation)  # vehicle frame
+    tan_dip = max(float(extrinsics.translation[2]), 0.0) / config.max_range_m
+    flat &= ray_z > -tan_dip * np.hypot(ray_x, ray_y)
+    count, labels = cv2.connectedComponents(flat.view(np.uint8), connectivity=8)
+    reaches_top = np.zeros(count, bool)
+    reaches_top[labels[0]] = True
+    reaches_top[0] = False  # label 0: the pixels that are not flat
+    sky = reaches_top[labels].view(np.uint8)
+    side = 2 * (_SKY_WINDOW // 2) + 1
+    return cv2.dilate(sky, np.ones((side, side), np.uint8)).view(bool)
+
+
 def to_grey(image: np.ndarray) -> np.ndarray:
     """The image as one uint8 channel (RGB converted), as SGBM matches it."""
     return image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)

@@ -275,3 +275,72 @@ def test_open_terrain_preset_drops_the_sky_beside_objects_on_a_rendered_frame():
     assert counts["default"]["sky"] > 1000
     assert counts["preset"]["sky"] < 0.2 * counts["default"]["sky"]
     assert counts["preset"]["obstacle"] > 0.85 * counts["default"]["obstacle"]
+
+
+def _sky_test_image(rng: np.random.Generator) -> np.ndarray:
+    """120×200 grey image: noise-only sky (σ = 2) over textured ground from row 40, a flat patch
+    closed in by texture in the sky's rows (a car's panel), and a flat dark strip down the left
+    border below row 40 that touches the sky there."""
+    grey = np.clip(rng.normal(128, 2, (120, 200)), 0, 255).astype(np.uint8)
+    grey[40:] = cv2.GaussianBlur(rng.integers(0, 255, (80, 200)).astype(np.uint8), (3, 3), 0)
+    grey[10:40, 120:180] = cv2.GaussianBlur(rng.integers(0, 255, (30, 60)).astype(np.uint8), (3, 3), 0)
+    grey[18:32, 135:165] = np.clip(rng.normal(60, 2, (14, 30)), 0, 255).astype(np.uint8)  # the panel
+    grey[40:, :12] = np.clip(rng.normal(20, 2, (80, 12)), 0, 255).astype(np.uint8)  # the dark strip
+    return grey
+
+
+def test_sky_is_the_flat_region_above_the_horizon_that_reaches_the_top():
+    """The sky mask takes the flat region that reaches the top row, up to the skyline (its
+    5×5 flatness test misses the last two rows, which the growth restores), and nothing that
+    the texture closes in or that lies below the horizon, though flat and touching the sky."""
+    from terrainmap.stereo import RectifiedPinhole, sky_mask
+    from terrainmap.types import Extrinsics
+
+    grey = _sky_test_image(np.random.default_rng(3))
+    pinhole = RectifiedPinhole(100.0, 100.0, 100.0, 40.0, 0.3, 0.0, 200, 120)  # horizon at row 40
+    level = extrinsics_from_pose(1.5)
+    sky = sky_mask(grey, pinhole, level, StereoConfig())
+    assert sky[:40, :120].all() and sky[:10, 120:].all()  # the sky, down to the skyline
+    assert not sky[40:, 12:].any()  # textured ground
+    assert not sky[18:32, 135:165].any()  # the flat panel closed in by texture
+    assert not sky[44:, :12].any()  # flat and touching the sky, but below the horizon
+    assert sky[:40, 180:].all()  # sky to the right of the textured block reaches the top too
+    assert not sky_mask(grey, pinhole, level, StereoConfig(min_texture=0)).any()
+    down = extrinsics_from_pose(1.5, np.radians(40.0))  # pitched 40° down
+    assert not sky_mask(grey, pinhole, down, StereoConfig()).any()  # a camera looking at the ground sees no sky
+
+
+def test_sky_mask_takes_the_sky_disparities_of_a_rendered_frame_and_nothing_else():
+    """On a simulated hills frame SGBM gives ~3200 sky pixels a near object's disparity (the band
+    above the horizon, fringes beside silhouettes; they float 1–4 m above the ground): the sky
+    mask takes every one of them (measured 3249 → 0) and not one terrain or obstacle pixel."""
+    from terrainmap.stereo import sky_mask
+
+    renderer = SimConfig(scene="hills", frames=1, seed=1).renderer(build_scene("hills", 1, length_m=10.0))
+    frame, rig = renderer.frame(0), renderer.rig
+    result = StereoMatcher(rig.calibration()).compute(frame.left, frame.right)
+    sky = sky_mask(frame.left, result.pinhole, rig.extrinsics(), StereoConfig())
+    matched = np.isfinite(result.disparity) & (result.disparity > 3)  # nearer than 50 m
+    on_sky = matched & (frame.label == 0)
+    assert on_sky.sum() > 1000
+    assert (on_sky & ~sky).sum() < 0.02 * on_sky.sum()
+    assert sky[frame.label == 0].mean() > 0.99
+    assert not sky[frame.label != 0].any()
+
+
+def test_the_pipeline_drops_the_points_of_the_sky_unless_told_not_to():
+    """``match_frame`` applies the sky mask once the camera pose is known (``stereo.drop_sky``)."""
+    from terrainmap.config import Config
+    from terrainmap.pipeline import PipelineState, match_frame
+    from terrainmap.types import StereoFrame
+
+    renderer = SimConfig(scene="hills", frames=1, seed=1).renderer(build_scene("hills", 1, length_m=10.0))
+    rendered, rig = renderer.frame(0), renderer.rig
+    frame = StereoFrame(0, rendered.stamp_ns, rendered.left, rendered.right, rig.calibration(), rig.extrinsics())
+    on_sky = {}
+    for drop in (True, False):
+        config = Config()
+        config.stereo.drop_sky = drop
+        matched = match_frame(frame, config, PipelineState(config))
+        on_sky[drop] = int((rendered.label[matched.pixels[:, 1], matched.pixels[:, 0]] == 0).sum())
+    assert on_sky[False] > 1000 and on_sky[True] < 0.02 * on_sky[False]
