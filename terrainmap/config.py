@@ -418,6 +418,13 @@ class ObstacleConfig:
     split_min_part: float = 0.1
     """A part of a split cluster is kept only if it holds at least this fraction of the
     cluster's points (smaller parts are smear and are dropped)."""
+    tall_height_m: float = 0.7
+    """Positive clusters standing at least this high above the terrain must hold at least
+    ``tall_min_share`` of all the points in their cells. A tall object hides the ground behind
+    it, so most points in its cells are its own; stereo mismatches standing up from ground
+    that faces the camera are a few high points among the ground's."""
+    tall_min_share: float = 0.3
+    """See ``tall_height_m``; 0 turns the test off."""
 
     def validate(self) -> None:
         _check(self.min_height_m > 0, "obstacles.min_height_m", "must be > 0")
@@ -428,6 +435,8 @@ class ObstacleConfig:
         _check(self.split_min_length_m > 0, "obstacles.split_min_length_m", "must be > 0")
         _check(0 <= self.split_gap_fraction < 1, "obstacles.split_gap_fraction", "must be in [0, 1)")
         _check(0 <= self.split_min_part <= 1, "obstacles.split_min_part", "must be in [0, 1]")
+        _check(self.tall_height_m > 0, "obstacles.tall_height_m", "must be > 0")
+        _check(0 <= self.tall_min_share <= 1, "obstacles.tall_min_share", "must be in [0, 1]")
 
 
 @dataclass

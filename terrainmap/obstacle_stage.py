@@ -62,7 +62,8 @@ def run_obstacle_stage(
     """
     elevation = layers["elevation"]
     detections = extract_obstacles(
-        points_vehicle, point_labels, grid.config, None, config.obstacles, elevation=elevation
+        points_vehicle, point_labels, grid.config, None, config.obstacles, elevation=elevation,
+        cell_counts=grid.count,
     )
     obstacles = tracker.update(detections, stamp_ns, vehicle_pose)
     relief_cells = grid.observed & (layers["label"] != Label.OBSTACLE)

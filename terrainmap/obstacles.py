@@ -48,6 +48,7 @@ def extract_obstacles(
     config: ObstacleConfig,
     *,
     elevation: np.ndarray | None = None,
+    cell_counts: np.ndarray | None = None,
 ) -> list[Obstacle]:
     """Cluster above/below-terrain points into positive and negative obstacles.
 
@@ -66,6 +67,10 @@ def extract_obstacles(
         Minimum size, height and point count of an obstacle.
     elevation : (m0, m1) float array, optional
         The surface at the cell centres (the ``elevation`` layer), to avoid evaluating it again.
+    cell_counts : (m0, m1) int array, optional
+        All points per cell, whatever their label (``HeightGrid.count``): with it, positive
+        clusters at least ``config.tall_height_m`` tall must hold ``config.tall_min_share`` of
+        the points in their cells.
 
     Returns
     -------
@@ -91,7 +96,8 @@ def extract_obstacles(
     result: list[Obstacle] = []
     for label, kind, min_height in kinds:
         selected = points_vehicle[np.flatnonzero(point_labels == label)]  # 10× faster than a mask
-        result += _clusters(selected, grid_config, np.asarray(elevation, float), config, kind, min_height)
+        counts = cell_counts if kind == "positive" else None
+        result += _clusters(selected, grid_config, np.asarray(elevation, float), config, kind, min_height, counts)
     return result
 
 
@@ -121,8 +127,11 @@ def _clusters(
     config: ObstacleConfig,
     kind: str,
     min_height: float,
+    cell_counts: np.ndarray | None = None,
 ) -> list[Obstacle]:
-    """Obstacles of one kind from the points of that kind (see the module docstring)."""
+    """Obstacles of one kind from the points of that kind (see the module docstring); with
+    ``cell_counts`` (all points per cell), tall clusters must hold ``config.tall_min_share`` of
+    the points in their cells."""
     m0, m1 = grid_config.shape
     idx = cell_index(points, grid_config)
     inside = idx < m0 * m1
@@ -136,14 +145,17 @@ def _clusters(
     cid = cells.ravel()[idx] - 1  # cluster of each point, -1 where its cell has too few points
     keep = cid >= 0
     points, cid = points[keep], cid[keep]
-    ncells = np.bincount(cells.ravel(), minlength=n + 1)[1:]
+    per_cell = np.ones(m0 * m1) if cell_counts is None else np.asarray(cell_counts, float).ravel()
+    ncells, in_cells = (np.bincount(cells.ravel(), w, n + 1)[1:] for w in (None, per_cell))
     if config.split_gap_fraction > 0:
         cut, split = _split_at_gaps(points, cid, n, grid_config.cell_size_m, config)
         if split > n:  # the parts of a cut cluster may share cells: count each part's from its points
             kept = cut >= 0
             cell = idx[keep][kept]
             points, cid, n = points[kept], cut[kept], split
-            ncells = np.bincount(np.unique(cid * (m0 * m1) + cell) // (m0 * m1), minlength=n)
+            part_cell = np.unique(cid * (m0 * m1) + cell)
+            part, cell = part_cell // (m0 * m1), part_cell % (m0 * m1)
+            ncells, in_cells = (np.bincount(part, w, n) for w in (None, per_cell[cell]))
     x, y, z = points[:, 0], points[:, 1], points[:, 2]
     height = z - terrain_at(points, elevation, grid_config)
     if kind == "negative":
@@ -152,6 +164,8 @@ def _clusters(
     npts = np.bincount(cid, minlength=n)
     top = _reduce(np.maximum, height, cid, n, -np.inf)
     ok = (npts >= config.min_points) & (ncells >= config.min_cells) & (top >= min_height)
+    if cell_counts is not None:  # tall objects hide the ground behind them (ObstacleConfig.tall_height_m)
+        ok &= (top < config.tall_height_m) | (npts >= config.tall_min_share * in_cells)
     if not ok.any():
         return []
     # Keep only the surviving clusters' points from here on, renumbered 0..k-1.

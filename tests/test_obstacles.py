@@ -156,7 +156,8 @@ def test_terrain_at_is_exact_on_a_plane():
 @pytest.mark.parametrize(
     ("field", "value"),
     [("min_height_m", 0), ("min_depth_m", 0), ("min_points", 0), ("min_cells", 0), ("min_cell_points", 0),
-     ("split_min_length_m", 0), ("split_gap_fraction", 1.0), ("split_min_part", -0.1)],
+     ("split_min_length_m", 0), ("split_gap_fraction", 1.0), ("split_min_part", -0.1),
+     ("tall_height_m", 0), ("tall_min_share", 1.5)],
 )
 def test_config_rejects_nonsense(field, value):
     with pytest.raises(ConfigError, match=f"obstacles.{field}"):
@@ -237,3 +238,37 @@ def test_box_ignores_a_sparse_smeared_tail():
     assert abs(centre[0]) < 0.6 and half[0] < 1.1  # the plain extent would give centre 2.75, half 3.25
     centre, half = _robust_extent(compact, np.zeros(400, int), 1, np.array([400.0]))
     assert half[0] == pytest.approx(0.5, abs=0.01) and abs(centre[0]) < 0.05  # compact: full extent kept
+
+
+def _cell_counts(points: np.ndarray) -> np.ndarray:
+    """All points per grid cell, as ``HeightGrid.count`` holds them."""
+    from terrainmap.grid import cell_index
+
+    n = GRID.shape[0] * GRID.shape[1]
+    return np.bincount(cell_index(points, GRID), minlength=n + 1)[:n].reshape(GRID.shape)
+
+
+def test_tall_clusters_must_hold_their_cells():
+    """Stereo mismatches standing 1.5 m up from the ground (a few points among the ground's 25 per
+    cell) are no obstacle once the cells' point counts are given; a tall box, which holds most of
+    its cells' points, stays, and so does a low rock holding as small a share (the test is for
+    clusters at least ``tall_height_m`` tall)."""
+    plane = Plane()
+    rng = np.random.default_rng(0)
+    stray = np.column_stack([rng.uniform(14.0, 15.0, 24), rng.uniform(-4.0, -3.0, 24), rng.uniform(1.3, 1.7, 24)])
+    box = box_points(plane, (10.0, 2.0), 1.0, 1.0, 1.2)
+    rock = box_points(plane, (18.0, 5.0), 1.0, 1.0, 0.5, spacing=0.25)
+    points, labels = labelled(plane, terrain_points(plane), stray, box, rock)
+    counts = _cell_counts(points)
+    for part, (x0, y0) in ((stray, (14.0, -4.0)), (rock, (17.5, 4.5))):  # each covers 2×2 cells
+        ix, iy = int((x0 - GRID.x_min_m) / 0.5), int((y0 - GRID.y_min_m) / 0.5)
+        share = (part[:, 2] > 0.25).sum() / counts[ix : ix + 2, iy : iy + 2].sum()
+        assert share < 0.25  # both well under tall_min_share
+    config = ObstacleConfig(min_points=10)
+    found = {(round(o.center_m[0]), round(o.center_m[1])): o for o in extract_obstacles(
+        points, labels, GRID, plane, config, cell_counts=counts)}
+    assert set(found) == {(10, 2), (18, 5)}
+    assert found[(18, 5)].height_m == pytest.approx(0.5, abs=0.01)
+    assert len(extract_obstacles(points, labels, GRID, plane, config)) == 3  # without the counts
+    off = ObstacleConfig(min_points=10, tall_min_share=0)
+    assert len(extract_obstacles(points, labels, GRID, plane, off, cell_counts=counts)) == 3
