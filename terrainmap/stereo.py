@@ -24,6 +24,7 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass
+from functools import lru_cache
 
 import cv2
 import numpy as np
@@ -348,22 +349,44 @@ def sky_mask(grey: np.ndarray, pinhole: RectifiedPinhole, extrinsics: Extrinsics
     config : StereoConfig
         ``min_texture`` (0 finds no sky) and ``max_range_m``.
     """
+    above = _above_horizon(
+        pinhole, np.asarray(extrinsics.rotation, np.float64).tobytes(), float(extrinsics.translation[2]),
+        config.max_range_m,
+    )
+    sky = np.zeros(grey.shape, bool)
+    rows = min(len(above), grey.shape[0])  # only rows down to the lowest that holds some sky can see it
+    if rows == 0:
+        return sky
+    window = grey[: min(rows + _SKY_WINDOW, grey.shape[0])]
     box = (_SKY_WINDOW, _SKY_WINDOW)
-    mean = cv2.boxFilter(grey, cv2.CV_32F, box)
-    flat = cv2.sqrBoxFilter(grey, cv2.CV_32F, box) - mean * mean < np.float32(config.min_texture) ** 2
-    rotation = np.asarray(extrinsics.rotation, np.float64)
-    u = (np.arange(pinhole.width) - pinhole.cx) / pinhole.fx
-    v = (np.arange(pinhole.height) - pinhole.cy) / pinhole.fy
-    ray_x, ray_y, ray_z = (r[0] * u[None, :] + r[1] * v[:, None] + r[2] for r in rotation)  # vehicle frame
-    tan_dip = max(float(extrinsics.translation[2]), 0.0) / config.max_range_m
-    flat &= ray_z > -tan_dip * np.hypot(ray_x, ray_y)
+    mean = cv2.boxFilter(window, cv2.CV_32F, box)
+    flat = cv2.sqrBoxFilter(window, cv2.CV_32F, box) - mean * mean < np.float32(config.min_texture) ** 2
+    flat = flat[:rows] & above[:rows]
     count, labels = cv2.connectedComponents(flat.view(np.uint8), connectivity=8)
     reaches_top = np.zeros(count, bool)
     reaches_top[labels[0]] = True
     reaches_top[0] = False  # label 0: the pixels that are not flat
-    sky = reaches_top[labels].view(np.uint8)
+    grown = np.zeros(window.shape, np.uint8)
+    grown[:rows] = reaches_top[labels]
     side = 2 * (_SKY_WINDOW // 2) + 1
-    return cv2.dilate(sky, np.ones((side, side), np.uint8)).view(bool)
+    sky[: len(window)] = cv2.dilate(grown, np.ones((side, side), np.uint8)).view(bool)
+    return sky
+
+
+@lru_cache(maxsize=8)
+def _above_horizon(pinhole: RectifiedPinhole, rotation: bytes, height_m: float, max_range_m: float) -> np.ndarray:
+    """Which pixels look above the horizon of :func:`sky_mask`: bool (R, W), the image's first R
+    rows, R the last row holding such a pixel plus one (0 rows when none does). Cached: it depends
+    only on the camera, which a run keeps."""
+    r = np.frombuffer(rotation).reshape(3, 3)
+    u = (np.arange(pinhole.width) - pinhole.cx) / pinhole.fx
+    v = (np.arange(pinhole.height) - pinhole.cy) / pinhole.fy
+    ray_x, ray_y, ray_z = (row[0] * u[None, :] + row[1] * v[:, None] + row[2] for row in r)  # vehicle frame
+    above = ray_z > -max(height_m, 0.0) / max_range_m * np.hypot(ray_x, ray_y)
+    rows = np.flatnonzero(above.any(axis=1))
+    above = above[: rows[-1] + 1 if rows.size else 0]
+    above.setflags(write=False)
+    return above
 
 
 def to_grey(image: np.ndarray) -> np.ndarray:

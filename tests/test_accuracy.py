@@ -190,7 +190,7 @@ def test_report_schema_on_a_simulated_log(tiny_log):
     assert report["frames"] == 2 and report["log"] == str(tiny_log)
     assert set(report["methods"]) == {"terrainmap", "ransac_plane"}
     for scores in report["methods"].values():
-        assert list(scores) == list(BANDS) == ["0-10", "10-20", "20-35", "all"]
+        assert list(scores) == list(BANDS) == ["0-10", "10-20", "0-20", "20-35", "all"]
         assert all(list(band) == list(METRICS) for band in scores.values())
     tm, plane = report["methods"]["terrainmap"]["all"], report["methods"]["ransac_plane"]["all"]
     assert plane["obstacle_recall"] is None and plane["false_obstacles_per_frame"] is None

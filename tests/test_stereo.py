@@ -294,7 +294,6 @@ def test_sky_is_the_flat_region_above_the_horizon_that_reaches_the_top():
     5×5 flatness test misses the last two rows, which the growth restores), and nothing that
     the texture closes in or that lies below the horizon, though flat and touching the sky."""
     from terrainmap.stereo import RectifiedPinhole, sky_mask
-    from terrainmap.types import Extrinsics
 
     grey = _sky_test_image(np.random.default_rng(3))
     pinhole = RectifiedPinhole(100.0, 100.0, 100.0, 40.0, 0.3, 0.0, 200, 120)  # horizon at row 40

@@ -37,7 +37,11 @@ layers, point labels and tracked obstacles) and every other method of
 ``obstacles`` (extra key) holds, per truth obstacle, ``frames_to_confirmation`` (frames from
 first being eligible to first being matched, None if never) and ``id_switches``: how often the
 track credited with it changed between frames where it was matched (:func:`credited_track`: an
-obstacle seen as two tracked clusters does not switch while the credited one keeps matching).
+obstacle seen as two tracked clusters does not switch while the credited one keeps matching);
+and ``false_on_steep_ground_per_frame``: the false positive obstacles within
+``obstacle_range_m`` whose footprint covers true terrain steeper than ``cost.max_slope_deg``
+(berms, walls: ground the vehicle cannot drive on, which the paper counts out of the
+traversable terrain), per evaluated frame.
 
 ``common_cells`` (extra key) repeats the elevation metrics over the cells that *every* selected
 method covers, so methods with partial coverage are compared on the same cells.
@@ -58,6 +62,7 @@ import numpy as np
 
 from ..config import Config
 from ..errors import ConfigError, FrameError, InputError
+from ..grid import cell_index
 from ..pipeline import PipelineState, process_frame
 from ..sim.truth import TruthFrame, open_truth
 from ..sources import open_source
@@ -123,6 +128,7 @@ class _Evaluation:
         self.first_matched: dict[str, int] = {}
         self.last_track: dict[str, int] = {}
         self.id_switches: Counter = Counter()
+        self.false_on_steep_ground = 0
         self.frames = 0
 
     def add_frame(self, result: FrameResult, truth_frame: TruthFrame) -> None:
@@ -184,8 +190,13 @@ class _Evaluation:
                 )
                 self.id_switches[key] += previous not in (None, track)
                 self.last_track[key] = track
-        false_range = [float(np.hypot(*o.center_m[:2])) for o in confirmed if self._is_false(o, gt, truth_frame)]
+        false = [o for o in confirmed if self._is_false(o, gt, truth_frame)]
+        false_range = [float(np.hypot(*o.center_m[:2])) for o in false]
         self.scores["terrainmap"].add_obstacles([t.range_m for t in eligible], matched, false_range)
+        max_slope = np.radians(self.config.cost.max_slope_deg)
+        self.false_on_steep_ground += sum(
+            r <= opt["obstacle_range_m"] and _steepest_under(o, gt, grid) > max_slope for o, r in zip(false, false_range)
+        )
 
     def _is_false(self, obstacle, gt: GridTruth, truth_frame: TruthFrame) -> bool:
         margin = self.options["obstacle_margin_m"]
@@ -210,6 +221,7 @@ class _Evaluation:
                 "range_m": self.options["obstacle_range_m"], "min_visible_pixels": self.options["min_visible_pixels"],
                 "frames_to_confirmation": confirmation,
                 "id_switches": {k: self.id_switches[k] for k in sorted(self.first_matched)},
+                "false_on_steep_ground_per_frame": self.false_on_steep_ground / self.frames if self.frames else None,
             },
             "rmse_vs_range": {
                 "range_edges_m": [k * PROFILE_STEP_M for k in range(PROFILE_BINS)] + [None],
@@ -218,6 +230,17 @@ class _Evaluation:
             "seconds": {"wall": wall_s, **{k: round(v, 3) for k, v in self.seconds.items()}},
             "config": self.config.to_dict(),
         }
+
+
+def _steepest_under(obstacle, gt: GridTruth, grid) -> float:
+    """The largest true terrain slope (rad) over the cells under an obstacle's footprint."""
+    c, s = np.cos(obstacle.yaw_rad), np.sin(obstacle.yaw_rad)
+    steps = np.linspace(-0.5, 0.5, 5)
+    u, v = (a.ravel() for a in np.meshgrid(steps * obstacle.size_m[0], steps * obstacle.size_m[1]))
+    x, y = obstacle.center_m[0] + u * c - v * s, obstacle.center_m[1] + u * s + v * c
+    cells = cell_index(np.column_stack([x, y, np.zeros_like(x)]), grid)
+    cells = cells[cells < gt.slope_rad.size]
+    return float(gt.slope_rad.ravel()[cells].max()) if cells.size else 0.0
 
 
 def evaluate(

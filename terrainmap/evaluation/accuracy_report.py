@@ -54,6 +54,10 @@ def _obstacle_lines(obstacles: dict | None) -> list[str]:
              f"{'obstacle':<{width}} {'frames to confirm':>18} {'id switches':>12}"]
     for key, frames in confirm.items():
         lines.append(f"{key:<{width}} {'never' if frames is None else frames:>18} {switches.get(key, '—'):>12}")
+    steep = obstacles.get("false_on_steep_ground_per_frame")
+    if steep is not None:
+        lines.append(f"false obstacles per frame within {obstacles['range_m']} m standing on ground steeper than "
+                     f"cost.max_slope_deg: {steep:.2f}")
     return lines
 
 

@@ -11,9 +11,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-BANDS: dict[str, tuple[float, float]] = {"0-10": (0.0, 10.0), "10-20": (10.0, 20.0), "20-35": (20.0, 35.0),
-                                         "all": (0.0, math.inf)}
-"""Range bands (horizontal distance from the vehicle origin, m): ``lo <= r < hi``."""
+BANDS: dict[str, tuple[float, float]] = {"0-10": (0.0, 10.0), "10-20": (10.0, 20.0), "0-20": (0.0, 20.0),
+                                         "20-35": (20.0, 35.0), "all": (0.0, math.inf)}
+"""Range bands (horizontal distance from the vehicle origin, m): ``lo <= r < hi``. ``0-20`` pools
+the first two: "within 20 m"."""
 
 METRICS = (
     "elevation_rmse_m", "elevation_mae_m", "elevation_bias_m", "elevation_p95_m", "slope_error_median_deg",
