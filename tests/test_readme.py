@@ -35,13 +35,3 @@ def test_every_config_field_the_readme_names_exists():
     for section, field in re.findall(r"`([a-z]+)\.([a-z_]+)(?:=[^`]*)?`", README):
         if section in config:
             assert field in config[section], f"README names {section}.{field}"
-
-
-def test_the_open_terrain_preset_in_set_form_is_the_preset_file():
-    """The README repeats examples/open_terrain.toml as --set flags, for installs without the
-    repository: both must give the same configuration."""
-    from terrainmap.config import load_config
-
-    flags = re.search(r"the same is `(--set [^`]*)`", README).group(1)
-    overrides = re.findall(r"--set (\S+)", flags)
-    assert load_config(None, overrides) == load_config(ROOT / "examples" / "open_terrain.toml")
