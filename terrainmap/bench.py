@@ -65,7 +65,8 @@ def core_stages(config: Config, n_points: int = 300_000) -> dict[str, Stage]:
     stamp = iter(range(0, 10**15, 100_000_000))
 
     def obstacles_stage():
-        run_obstacle_stage(points, result.point_labels, result.grid, result.layers, next(stamp), tracker, config)
+        run_obstacle_stage(points, result.point_labels, result.grid, result.layers, next(stamp), tracker, config,
+                           camera=camera)
 
     return {
         "grid": lambda: quantize(points, config.grid, camera=camera),

@@ -14,7 +14,7 @@ from .cost import step_height, traversability_cost
 from .grid import HeightGrid
 from .obstacles import extract_obstacles
 from .tracking import ObstacleTracker
-from .types import Label, Obstacle
+from .types import Label, Obstacle, StereoCamera
 
 
 def make_tracker(config: Config) -> ObstacleTracker:
@@ -32,6 +32,7 @@ def run_obstacle_stage(
     config: Config,
     *,
     vehicle_pose: np.ndarray | None = None,
+    camera: StereoCamera | None = None,
 ) -> tuple[list[Obstacle], np.ndarray]:
     """Obstacles of this frame (tracked) and the cost layer.
 
@@ -52,6 +53,8 @@ def run_obstacle_stage(
     config : Config
     vehicle_pose : (4, 4) array, optional
         ``world_from_vehicle`` from odometry; tracks then live in the world frame.
+    camera : StereoCamera, optional
+        The stereo rig of the points: the tracker then knows how a detection's depth jitters.
 
     Returns
     -------
@@ -65,7 +68,7 @@ def run_obstacle_stage(
         points_vehicle, point_labels, grid.config, None, config.obstacles, elevation=elevation,
         cell_counts=grid.count,
     )
-    obstacles = tracker.update(detections, stamp_ns, vehicle_pose)
+    obstacles = tracker.update(detections, stamp_ns, vehicle_pose, camera)
     relief_cells = grid.observed & (layers["label"] != Label.OBSTACLE)
     step = step_height(grid.z, elevation, relief_cells)
     cost = traversability_cost(

@@ -1,7 +1,10 @@
 """Kalman tracking of obstacles (paper step 5: "a Kalman filter is applied to prune false positives").
 
 Each track is a constant-velocity Kalman filter on the obstacle's 2D centre, state
-``(x, y, vx, vy)``. Tracks live in a *tracking frame*: the vehicle frame when no pose is given,
+``(x, y, vx, vy)``. A detected centre is uncertain by ``measurement_std_m`` in every direction
+and, where the stereo rig is known, by a disparity error of ``disparity_std_px`` along its line of
+sight, which grows as the square of range: a far obstacle's centre jitters in depth, and a filter
+that trusted it would read the jitter as motion. Tracks live in a *tracking frame*: the vehicle frame when no pose is given,
 else the world/odometry frame of ``vehicle_pose`` (4×4 ``world_from_vehicle``), so that static
 obstacles stand still while the vehicle moves. Obstacles are reported back in the current
 vehicle frame either way.
@@ -43,7 +46,7 @@ from scipy.spatial import cKDTree
 
 from .config import GridConfig, TrackingConfig
 from .errors import InputError
-from .types import Obstacle
+from .types import Obstacle, StereoCamera
 
 logger = logging.getLogger(__name__)
 
@@ -89,7 +92,11 @@ class ObstacleTracker:
         return bool(self._world)
 
     def update(
-        self, obstacles: list[Obstacle], stamp_ns: int, vehicle_pose: np.ndarray | None = None
+        self,
+        obstacles: list[Obstacle],
+        stamp_ns: int,
+        vehicle_pose: np.ndarray | None = None,
+        camera: StereoCamera | None = None,
     ) -> list[Obstacle]:
         """Advance the tracks to ``stamp_ns`` with this frame's detections (vehicle frame).
 
@@ -102,6 +109,9 @@ class ObstacleTracker:
         vehicle_pose : (4, 4) array, optional
             ``world_from_vehicle`` (odometry / tf); tracks then live in that world frame. Give
             one with every frame or with none: switching between the two resets the tracks.
+        camera : StereoCamera, optional
+            The stereo rig of the detections: their centres are then also uncertain along the
+            line of sight, by ``disparity_std_px`` of disparity (:meth:`_measurement_noise`).
 
         Returns
         -------
@@ -122,7 +132,8 @@ class ObstacleTracker:
         yaw_v = float(np.arctan2(rot[1, 0], rot[0, 0]))
         rows, cols = self._associate(centers_t[:, :2], [o.kind for o in obstacles])
 
-        self._correct(rows, centers_t[cols, :2])
+        noise = self._measurement_noise(centers, rot, camera)
+        self._correct(rows, centers_t[cols, :2], noise[cols])
         matched = np.zeros(len(self._ids), bool)
         matched[rows] = True
         self._hits[rows] += 1
@@ -205,12 +216,24 @@ class ObstacleTracker:
         same = np.array([obstacles[i].kind for i in new])[:, None] == np.array([self._shape[r][0].kind for r in rows])
         return new[~(near & same).any(1)]
 
-    def _correct(self, rows: np.ndarray, z: np.ndarray) -> None:
-        """Batched Kalman update of tracks ``rows`` with measured centres ``z`` (k, 2)."""
+    def _measurement_noise(self, centers: np.ndarray, rot: np.ndarray, camera: StereoCamera | None) -> np.ndarray:
+        """Covariance (n, 2, 2) of the detected centres (n, 3, vehicle frame) in the tracking frame:
+        ``measurement_std_m``² in every direction, plus, with a camera, the variance of a
+        ``disparity_std_px`` disparity error along each centre's line of sight (stereo depth error
+        grows as Z², so a far obstacle's centre jitters in range far more than across it)."""
+        noise = np.broadcast_to(self.config.measurement_std_m**2 * np.eye(2), (len(centers), 2, 2))
+        if camera is None or self.config.disparity_std_px <= 0 or not len(centers):
+            return noise
+        shift = camera.shift_per_px(centers)[:, :2] @ rot[:2, :2].T * self.config.disparity_std_px
+        return noise + shift[:, :, None] * shift[:, None, :]
+
+    def _correct(self, rows: np.ndarray, z: np.ndarray, noise: np.ndarray) -> None:
+        """Batched Kalman update of tracks ``rows`` with measured centres ``z`` (k, 2) of
+        covariance ``noise`` (k, 2, 2)."""
         if not len(rows):
             return
         P = self._P[rows]
-        S = P[:, :2, :2] + self.config.measurement_std_m**2 * np.eye(2)
+        S = P[:, :2, :2] + noise
         K = P[:, :, :2] @ np.linalg.inv(S)  # (k, 4, 2)
         innovation = z - self._x[rows, :2]
         self._x[rows] += (K @ innovation[:, :, None])[:, :, 0]

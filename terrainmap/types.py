@@ -178,3 +178,10 @@ class StereoCamera:
         rx, ry, rz = x - self.center_m[0], y - self.center_m[1], z - self.center_m[2]
         depth = np.maximum(rx * self.axis[0] + ry * self.axis[1] + rz * self.axis[2], 0.0)
         return depth * np.abs(rz - dz_dx * rx - dz_dy * ry) / self.focal_baseline
+
+    def shift_per_px(self, points: np.ndarray) -> np.ndarray:
+        """How far points (N, 3) move along their rays per pixel of disparity error, ``ρ·Z/(f·B)``:
+        (N, 3) metres per pixel, vehicle frame (the error of stereo depth grows as Z²)."""
+        ray = np.asarray(points, float).reshape(-1, 3) - self.center_m
+        depth = np.maximum(ray @ self.axis, 0.0)
+        return ray * (depth / self.focal_baseline)[:, None]
