@@ -310,9 +310,10 @@ class StereoConfig:
     region above the horizon that reaches the top of the image. SGBM carries a near object's
     disparity along the rows of flat sky beside its silhouette and above the horizon, where the
     ``texture_window`` reaches across the skyline and passes the texture test; those points float
-    1–4 m above the ground at the object's range. On the simulated drives this took the false
-    obstacles within 20 m from 6.75 to 4.65 per frame summed over six scenes (README, Measured
-    accuracy); on KITTI 2015 pair 000005 it changes nothing. Needs ``min_texture`` > 0."""
+    1–4 m above the ground at the object's range. On the simulated drives, before
+    ``obstacles.tall_min_share``, it took the false obstacles within 20 m from 6.75 to 4.65 per
+    frame summed over six scenes (README, Measured accuracy); on KITTI 2015 pair 000005 it
+    changes nothing. Needs ``min_texture`` > 0."""
 
     def validate(self) -> None:
         _check(

@@ -354,7 +354,7 @@ def sky_mask(grey: np.ndarray, pinhole: RectifiedPinhole, extrinsics: Extrinsics
         config.max_range_m,
     )
     sky = np.zeros(grey.shape, bool)
-    rows = min(len(above), grey.shape[0])  # only rows down to the lowest that holds some sky can see it
+    rows = len(above)  # the rows below hold no pixel above the horizon
     if rows == 0:
         return sky
     window = grey[: min(rows + _SKY_WINDOW, grey.shape[0])]

@@ -4,10 +4,10 @@ Each track is a constant-velocity Kalman filter on the obstacle's 2D centre, sta
 ``(x, y, vx, vy)``. A detected centre is uncertain by ``measurement_std_m`` in every direction
 and, where the stereo rig is known, by a disparity error of ``disparity_std_px`` along its line of
 sight, which grows as the square of range: a far obstacle's centre jitters in depth, and a filter
-that trusted it would read the jitter as motion. Tracks live in a *tracking frame*: the vehicle frame when no pose is given,
-else the world/odometry frame of ``vehicle_pose`` (4×4 ``world_from_vehicle``), so that static
-obstacles stand still while the vehicle moves. Obstacles are reported back in the current
-vehicle frame either way.
+that trusted it would read the jitter as motion. Tracks live in a *tracking frame*: the vehicle
+frame when no pose is given, else the world/odometry frame of ``vehicle_pose`` (4×4
+``world_from_vehicle``), so that static obstacles stand still while the vehicle moves. Obstacles
+are reported back in the current vehicle frame either way.
 
 Per frame (:meth:`ObstacleTracker.update`):
 

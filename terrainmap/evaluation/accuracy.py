@@ -194,9 +194,8 @@ class _Evaluation:
         false_range = [float(np.hypot(*o.center_m[:2])) for o in false]
         self.scores["terrainmap"].add_obstacles([t.range_m for t in eligible], matched, false_range)
         max_slope = np.radians(self.config.cost.max_slope_deg)
-        self.false_on_steep_ground += sum(
-            r <= opt["obstacle_range_m"] and _steepest_under(o, gt, grid) > max_slope for o, r in zip(false, false_range)
-        )
+        near = [o for o, r in zip(false, false_range) if r <= opt["obstacle_range_m"]]
+        self.false_on_steep_ground += sum(_steepest_under(o, gt, grid) > max_slope for o in near)
 
     def _is_false(self, obstacle, gt: GridTruth, truth_frame: TruthFrame) -> bool:
         margin = self.options["obstacle_margin_m"]
