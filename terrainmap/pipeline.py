@@ -20,7 +20,7 @@ from .grid import HeightGrid, cell_index, quantize
 from .obstacle_stage import make_tracker, run_obstacle_stage
 from .segmentation import label_cells, label_points, thresholds
 from .slope import layers as grid_layers
-from .stereo import StereoMatcher, StereoResult, sky_mask, to_grey, to_vehicle
+from .stereo import StereoMatcher, StereoResult, sky_mask, to_vehicle
 from .terrain import TerrainEstimate, estimate_terrain
 from .tracking import ObstacleTracker
 from .types import Extrinsics, FrameResult, StereoCamera, StereoFrame
@@ -167,7 +167,7 @@ def match_frame(frame: StereoFrame, config: Config, state: PipelineState) -> Mat
             points_cam, _ = state.matcher.reproject(stereo.disparity)
             extrinsics = state.extrinsics = estimate_extrinsics(points_cam, config.extrinsics)
         if config.stereo.drop_sky:  # the horizon needs the extrinsics, hence here and not in the matcher
-            sky = sky_mask(to_grey(stereo.image), stereo.pinhole, extrinsics, config.stereo)
+            sky = sky_mask(stereo.grey, stereo.pinhole, extrinsics, config.stereo)
             stereo.disparity[sky] = np.nan
         points_cam, pixels = state.matcher.reproject(stereo.disparity)
         points = to_vehicle(points_cam, extrinsics)

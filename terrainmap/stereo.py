@@ -68,11 +68,13 @@ class StereoResult:
     ``disparity``: H×W float32, pixels, NaN where SGBM found no valid match.
     ``image``: the rectified left image, H×W or H×W×3 uint8 as given (RGB stays RGB).
     ``pinhole``: the rectified camera model the disparity refers to.
+    ``grey``: the rectified left image as matched, H×W uint8 (``image`` itself when mono).
     """
 
     disparity: np.ndarray
     image: np.ndarray
     pinhole: RectifiedPinhole
+    grey: np.ndarray
 
 
 def check_calibration(calibration: StereoCalibration, *, size_known: bool = True) -> StereoCalibration:
@@ -243,7 +245,8 @@ class StereoMatcher:
     def compute(self, left: np.ndarray, right: np.ndarray) -> StereoResult:
         """Rectify (if needed) and match one pair of uint8 images (H×W mono or H×W×3 RGB)."""
         left_rect, right_rect = self.rectify(left, right)
-        return StereoResult(self.match(left_rect, right_rect), left_rect, self.pinhole)
+        grey = to_grey(left_rect)
+        return StereoResult(self.match(grey, right_rect), left_rect, self.pinhole, grey)
 
     def reproject(self, disparity: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Disparities → 3D points in the left camera optical frame (x right, y down, z forward).
