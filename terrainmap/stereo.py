@@ -364,7 +364,7 @@ def sky_mask(grey: np.ndarray, pinhole: RectifiedPinhole, extrinsics: Extrinsics
     box = (_SKY_WINDOW, _SKY_WINDOW)
     mean = cv2.boxFilter(window, cv2.CV_32F, box)
     flat = cv2.sqrBoxFilter(window, cv2.CV_32F, box) - mean * mean < np.float32(config.min_texture) ** 2
-    flat = flat[:rows] & above[:rows]
+    flat = flat[:rows] & above
     count, labels = cv2.connectedComponents(flat.view(np.uint8), connectivity=8)
     reaches_top = np.zeros(count, bool)
     reaches_top[labels[0]] = True

@@ -132,8 +132,7 @@ class ObstacleTracker:
         yaw_v = float(np.arctan2(rot[1, 0], rot[0, 0]))
         rows, cols = self._associate(centers_t[:, :2], [o.kind for o in obstacles])
 
-        noise = self._measurement_noise(centers, rot, camera)
-        self._correct(rows, centers_t[cols, :2], noise[cols])
+        self._correct(rows, centers_t[cols, :2], self._measurement_noise(centers[cols], rot, camera))
         matched = np.zeros(len(self._ids), bool)
         matched[rows] = True
         self._hits[rows] += 1
