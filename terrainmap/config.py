@@ -314,6 +314,20 @@ class StereoConfig:
     ``obstacles.tall_min_share``, it took the false obstacles within 20 m from 6.75 to 4.65 per
     frame summed over six scenes (README, Measured accuracy); on KITTI 2015 pair 000005 it
     changes nothing. Needs ``min_texture`` > 0."""
+    full_width: bool = True
+    """Match the left image's left border too. OpenCV's SGBM gives no disparity in the leftmost
+    ``min_disparity + num_disparities`` columns (15 % of the image by default), where a pixel's
+    search range would reach past the right image's left edge, although distant ground and
+    obstacles there are seen by both cameras. With this on, both images are padded on the left
+    (edge pixels repeated) so that SGBM searches those columns, and a disparity is kept only where
+    its match lies at least ``left_margin_px`` inside the right image. Costs 10–20 % more SGBM
+    time at 640×480; on the simulated drives it lowered the 10–20 m elevation RMSE by a third and
+    raised obstacle recall (README, Measured accuracy)."""
+    left_margin_px: int = 32
+    """With ``full_width``: the nearest to the right image's left edge, pixels, that a match may
+    lie. Nearer, SGBM's matches go wrong more often (on the simulated drives: 21 % gross errors
+    within 8 px of the edge, 4 % at 24–32 px, 2 % beyond 96 px), most of them too small a
+    disparity, which puts ground points below the ground."""
 
     def validate(self) -> None:
         _check(
@@ -356,6 +370,7 @@ class StereoConfig:
             f"must be variance or x_gradient, got {self.texture_measure!r}",
         )
         _check(0 <= self.texture_margin_px <= 100, "stereo.texture_margin_px", "must be in 0..100")
+        _check(0 <= self.left_margin_px <= 1024, "stereo.left_margin_px", "must be in 0..1024")
 
 
 @dataclass

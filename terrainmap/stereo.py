@@ -204,6 +204,11 @@ class StereoMatcher:
             )
         self.sgbm = create_sgbm(self.config, calibration.width)
         """The bare ``cv2.StereoSGBM`` (``sgbm.compute(grey_left, grey_right)`` is "SGBM alone")."""
+        # config.full_width: columns padded on the left, so that SGBM searches every column whose
+        # match can lie left_margin_px inside the right image; the largest disparity kept per column.
+        self._pad = max(0, self.config.min_disparity + n - self.config.left_margin_px) if self.config.full_width else 0
+        columns = min(calibration.width, self.config.min_disparity + n + self.config.left_margin_px)
+        self._max_disparity = np.arange(columns, dtype=np.float32) - self.config.left_margin_px
         if calibration.rectified:
             self._maps = None
             self.pinhole = _rectified_pinhole(calibration)
@@ -233,11 +238,19 @@ class StereoMatcher:
 
     def match(self, left_rect: np.ndarray, right_rect: np.ndarray) -> np.ndarray:
         """SGBM on a rectified pair → disparity H×W float32 in pixels, NaN where invalid."""
-        grey = to_grey(left_rect)
-        raw = self.sgbm.compute(grey, to_grey(right_rect))  # int16, disparity × 16
+        grey, pad = to_grey(left_rect), self._pad
+        if pad:
+            padded = (cv2.copyMakeBorder(to_grey(im), 0, 0, pad, 0, cv2.BORDER_REPLICATE) for im in (grey, right_rect))
+            raw = self.sgbm.compute(*padded)[:, pad:]
+        else:
+            raw = self.sgbm.compute(grey, to_grey(right_rect))  # int16, disparity × 16
         disparity = raw.astype(np.float32)
         disparity *= 1.0 / 16.0
         disparity[raw < self.config.min_disparity * 16] = np.nan
+        if pad:  # only the columns left of min_disparity + n + margin can hold a match too near the edge
+            strip = disparity[:, : self._max_disparity.size]
+            with np.errstate(invalid="ignore"):
+                strip[strip > self._max_disparity] = np.nan
         if self.config.min_texture > 0:
             disparity[_texture_energy(grey, self.config) < self.config.min_texture**2] = np.nan
         return disparity

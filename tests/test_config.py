@@ -39,6 +39,7 @@ def test_toml_round_trip_and_overrides(tmp_path):
         ("tracking.report_misses=4", "tracking.report_misses: must be in 0..tracking.max_misses"),
         ("stereo.texture_measure=sobel", "stereo.texture_measure: must be variance or x_gradient"),
         ("stereo.texture_margin_px=-1", "stereo.texture_margin_px: must be in 0..100"),
+        ("stereo.left_margin_px=-1", "stereo.left_margin_px: must be in 0..1024"),
         ("grid.cell_size_m=0.001", "at most 2000 per axis"),  # 34 000 × 22 000 cells: a typo, not a map
         ("grid.length_m=1e300", "at most 2000 per axis"),
         ("stereo.p2_per_pixel=99999999999", "stereo.p2_per_pixel: must be at most 10000"),

@@ -100,6 +100,28 @@ def test_fronto_parallel_plane_depth(doffs):
     assert np.median(points[:, 2]) == pytest.approx(400.0 * 0.3 / (shift + doffs), rel=0.01)
 
 
+@pytest.mark.parametrize("margin", [16, 32])
+def test_full_width_matches_the_left_border_up_to_the_margin(margin):
+    """OpenCV leaves the leftmost num_disparities columns without disparity; ``full_width`` fills
+    them wherever the match lies at least ``left_margin_px`` inside the right image."""
+    H, W, shift, n = 120, 320, 12, 64
+    texture = _textured(H, W + shift, seed=3)
+    left, right = texture[:, :-shift], texture[:, shift:]
+    calib = StereoCalibration(W, H, fx=400.0, fy=400.0, cx=160.0, cy=60.0, baseline_m=0.3)
+    plain = StereoMatcher(calib, StereoConfig(num_disparities=n, min_texture=0, full_width=False)).compute(left, right)
+    full = StereoMatcher(
+        calib, StereoConfig(num_disparities=n, min_texture=0, left_margin_px=margin)
+    ).compute(left, right)
+    assert np.isnan(plain.disparity[:, :n]).all()
+    first = margin + shift  # the first column whose match lies `margin` inside the right image
+    assert np.isnan(full.disparity[:, :first]).all()
+    border = full.disparity[:, first:n]
+    assert np.isfinite(border).mean() > 0.9
+    assert np.nanmedian(np.abs(border - shift)) < 0.1
+    # the rest of the image is matched as before
+    np.testing.assert_allclose(np.nanmedian(full.disparity[:, n:]), np.nanmedian(plain.disparity[:, n:]), atol=0.05)
+
+
 def test_cx_right_offset_is_applied():
     calib = StereoCalibration(64, 48, 100.0, 100.0, 32.0, 24.0, 0.5, cx_right=28.0, doffs=1.0)
     matcher = StereoMatcher(calib)
