@@ -238,16 +238,15 @@ class StereoMatcher:
 
     def match(self, left_rect: np.ndarray, right_rect: np.ndarray) -> np.ndarray:
         """SGBM on a rectified pair → disparity H×W float32 in pixels, NaN where invalid."""
-        grey, pad = to_grey(left_rect), self._pad
-        if pad:
-            padded = (cv2.copyMakeBorder(to_grey(im), 0, 0, pad, 0, cv2.BORDER_REPLICATE) for im in (grey, right_rect))
-            raw = self.sgbm.compute(*padded)[:, pad:]
-        else:
-            raw = self.sgbm.compute(grey, to_grey(right_rect))  # int16, disparity × 16
+        grey = to_grey(left_rect)
+        pair = (grey, to_grey(right_rect))
+        if self._pad:
+            pair = [cv2.copyMakeBorder(image, 0, 0, self._pad, 0, cv2.BORDER_REPLICATE) for image in pair]
+        raw = self.sgbm.compute(*pair)[:, self._pad :]  # int16, disparity × 16
         disparity = raw.astype(np.float32)
         disparity *= 1.0 / 16.0
         disparity[raw < self.config.min_disparity * 16] = np.nan
-        if pad:  # only the columns left of min_disparity + n + margin can hold a match too near the edge
+        if self.config.full_width:  # only columns left of min_disparity + n + margin can match too near the edge
             strip = disparity[:, : self._max_disparity.size]
             with np.errstate(invalid="ignore"):
                 strip[strip > self._max_disparity] = np.nan
