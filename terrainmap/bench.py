@@ -12,8 +12,9 @@ speed goals. The inputs are synthetic so the figures are comparable anywhere:
   iterative estimation with the slope and cell-label layers; ``grid`` includes each point's
   cell index, which ``labels`` reuses (as the pipeline does) to label every point.
 - ``sgbm_alone``, ``frame_total``: one simulated 640×480 stereo pair (``terrainmap simulate``'s
-  ``mounds`` scene, frame 0): OpenCV SGBM alone on the grey pair, and the whole per-frame pipeline
-  (rectification check, SGBM, points, terrain, labels, obstacles, cost), side by side in one run.
+  ``mounds`` scene, frame 0): OpenCV SGBM alone on the grey pair as given, and the whole per-frame
+  pipeline (rectification check, SGBM on the pair padded for ``stereo.full_width``, points,
+  terrain, labels, obstacles, cost), side by side in one run.
 - ``mcap_write``: writing that frame's result to a Foxglove MCAP (lz4), the default output.
 """
 
