@@ -383,8 +383,7 @@ def sky_mask(grey: np.ndarray, pinhole: RectifiedPinhole, extrinsics: Extrinsics
     reaches_top[0] = False  # label 0: the pixels that are not flat
     grown = np.zeros(window.shape, np.uint8)
     grown[:rows] = reaches_top[labels]
-    side = 2 * (_SKY_WINDOW // 2) + 1
-    sky[: len(window)] = cv2.dilate(grown, np.ones((side, side), np.uint8)).view(bool)
+    sky[: len(window)] = cv2.dilate(grown, np.ones(box, np.uint8)).view(bool)  # by the half-width
     return sky
 
 
