@@ -242,16 +242,28 @@ class StereoMatcher:
         pair = (grey, to_grey(right_rect))
         if self._pad:
             pair = [cv2.copyMakeBorder(image, 0, 0, self._pad, 0, cv2.BORDER_REPLICATE) for image in pair]
-        raw = self.sgbm.compute(*pair)[:, self._pad :]  # int16, disparity × 16
-        disparity = raw.astype(np.float32)
-        disparity *= 1.0 / 16.0
-        disparity[raw < self.config.min_disparity * 16] = np.nan
+        disparity = self._sgbm(pair)
+        if self.config.vertical_passes == 2:  # cancels the single-pass modes' bias on ground (config)
+            upside_down = cv2.flip(self._sgbm([cv2.flip(image, 0) for image in pair]), 0)
+            with np.errstate(invalid="ignore"):  # NaN compares false: pixels only one pass matched drop
+                disagree = ~(np.abs(disparity - upside_down) <= self.config.pass_tolerance_px)
+            disparity += upside_down
+            disparity *= 0.5
+            disparity[disagree] = np.nan
         if self.config.full_width:  # only columns left of min_disparity + n + margin can match too near the edge
             strip = disparity[:, : self._max_disparity.size]
             with np.errstate(invalid="ignore"):
                 strip[strip > self._max_disparity] = np.nan
         if self.config.min_texture > 0:
             disparity[_texture_energy(grey, self.config) < self.config.min_texture**2] = np.nan
+        return disparity
+
+    def _sgbm(self, pair) -> np.ndarray:
+        """One SGBM call on the (padded) grey pair → H×W float32 pixels, NaN where invalid."""
+        raw = self.sgbm.compute(*pair)[:, self._pad :]  # int16, disparity × 16
+        disparity = raw.astype(np.float32)
+        disparity *= 1.0 / 16.0
+        disparity[raw < self.config.min_disparity * 16] = np.nan
         return disparity
 
     def compute(self, left: np.ndarray, right: np.ndarray) -> StereoResult:
