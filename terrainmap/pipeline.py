@@ -20,7 +20,7 @@ from .grid import HeightGrid, cell_index, quantize
 from .obstacle_stage import make_tracker, run_obstacle_stage
 from .segmentation import label_cells, label_points, thresholds
 from .slope import layers as grid_layers
-from .stereo import StereoMatcher, StereoResult, sky_mask, to_vehicle
+from .stereo import StereoMatcher, StereoResult, to_vehicle
 from .terrain import TerrainEstimate, estimate_terrain
 from .tracking import ObstacleTracker
 from .types import Extrinsics, FrameResult, StereoCamera, StereoFrame
@@ -160,15 +160,13 @@ def match_frame(frame: StereoFrame, config: Config, state: PipelineState) -> Mat
     with watch("stereo"):
         if state.matcher is None or not state.matcher.same_setup(frame.calibration, config.stereo):
             state.matcher = StereoMatcher(frame.calibration, config.stereo)
-        stereo = state.matcher.compute(frame.left, frame.right)
-    with watch("points"):
         extrinsics = frame.extrinsics or state.extrinsics
-        if extrinsics is None:
+        stereo = state.matcher.compute(frame.left, frame.right, extrinsics)  # drops the sky if it can
+    with watch("points"):
+        if extrinsics is None:  # the sky's horizon needs the extrinsics: estimated first, here
             points_cam, _ = state.matcher.reproject(stereo.disparity)
             extrinsics = state.extrinsics = estimate_extrinsics(points_cam, config.extrinsics)
-        if config.stereo.drop_sky:  # the horizon needs the extrinsics, hence here and not in the matcher
-            sky = sky_mask(stereo.grey, stereo.pinhole, extrinsics, config.stereo)
-            stereo.disparity[sky] = np.nan
+            state.matcher.drop_sky(stereo, extrinsics)
         points_cam, pixels = state.matcher.reproject(stereo.disparity)
         points = to_vehicle(points_cam, extrinsics)
     return Matched(stereo, points, pixels, extrinsics, watch.ms)

@@ -236,8 +236,13 @@ class StereoMatcher:
         (l1, l2), (r1, r2) = self._maps
         return cv2.remap(left, l1, l2, cv2.INTER_LINEAR), cv2.remap(right, r1, r2, cv2.INTER_LINEAR)
 
-    def match(self, left_rect: np.ndarray, right_rect: np.ndarray) -> np.ndarray:
-        """SGBM on a rectified pair → disparity H×W float32 in pixels, NaN where invalid."""
+    def match(self, left_rect: np.ndarray, right_rect: np.ndarray, first_row: int = 0) -> np.ndarray:
+        """SGBM on a rectified pair → disparity H×W float32 in pixels, NaN where invalid.
+        Rows above ``first_row`` are not matched (NaN)."""
+        if first_row > 0:
+            disparity = np.full(left_rect.shape[:2], np.nan, np.float32)
+            disparity[first_row:] = self.match(left_rect[first_row:], right_rect[first_row:])
+            return disparity
         grey = to_grey(left_rect)
         pair = (grey, to_grey(right_rect))
         if self._pad:
@@ -266,11 +271,36 @@ class StereoMatcher:
         disparity[raw < self.config.min_disparity * 16] = np.nan
         return disparity
 
-    def compute(self, left: np.ndarray, right: np.ndarray) -> StereoResult:
-        """Rectify (if needed) and match one pair of uint8 images (H×W mono or H×W×3 RGB)."""
+    def compute(self, left: np.ndarray, right: np.ndarray, extrinsics: Extrinsics | None = None) -> StereoResult:
+        """Rectify (if needed) and match one pair of uint8 images (H×W mono or H×W×3 RGB).
+
+        With the camera's ``extrinsics`` and ``config.drop_sky``, the sky is found first
+        (:meth:`drop_sky`): the rows above the first that shows anything else, less a margin
+        for SGBM's and the texture test's windows, are not matched at all (a quarter to a third
+        of a 640×480 frame on the simulated drives, that much of SGBM's time), and the sky's
+        disparities are dropped.
+        """
         left_rect, right_rect = self.rectify(left, right)
         grey = to_grey(left_rect)
-        return StereoResult(self.match(grey, right_rect), left_rect, self.pinhole, grey)
+        sky = None if extrinsics is None or not self.config.drop_sky else self.sky(grey, extrinsics)
+        first_row = 0
+        if sky is not None:
+            rows_of_sky = int(np.argmin(sky.all(axis=1))) if not sky.all() else len(sky)
+            first_row = max(0, rows_of_sky - max(self.config.block_size, self.config.texture_window))
+        result = StereoResult(self.match(grey, right_rect, first_row), left_rect, self.pinhole, grey)
+        if sky is not None:
+            result.disparity[sky] = np.nan
+        return result
+
+    def sky(self, grey: np.ndarray, extrinsics: Extrinsics) -> np.ndarray:
+        """:func:`sky_mask` of a rectified grey left image: H×W bool."""
+        return sky_mask(grey, self.pinhole, extrinsics, self.config)
+
+    def drop_sky(self, result: StereoResult, extrinsics: Extrinsics) -> None:
+        """Set the disparities of the sky to NaN, where :meth:`compute` had no extrinsics yet
+        (the first frame of a run that estimates them from its points)."""
+        if self.config.drop_sky:
+            result.disparity[self.sky(result.grey, extrinsics)] = np.nan
 
     def reproject(self, disparity: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Disparities → 3D points in the left camera optical frame (x right, y down, z forward).

@@ -347,6 +347,38 @@ def test_the_pipeline_drops_the_points_of_the_sky_unless_told_not_to():
     assert on_sky[False] > 1000 and on_sky[True] < 0.02 * on_sky[False]
 
 
+def test_rows_that_see_only_sky_are_not_matched():
+    """With the camera's extrinsics, ``compute`` finds the sky first and hands SGBM only the rows
+    below the last row of nothing but sky, less a margin for the windows (the simulated hills
+    frame shows 138 rows of 480 of nothing but sky). The disparities elsewhere are those of matching the whole frame and
+    then dropping the sky, up to SGBM's sensitivity to where its image starts (its parallel
+    stripes move)."""
+    renderer = SimConfig(scene="hills", frames=1, seed=1).renderer(build_scene("hills", 1, length_m=10.0))
+    frame, rig = renderer.frame(0), renderer.rig
+    matcher, extrinsics = StereoMatcher(rig.calibration()), rig.extrinsics()
+    whole = matcher.compute(frame.left, frame.right)
+    matcher.drop_sky(whole, extrinsics)
+
+    heights = []
+    sgbm = matcher.sgbm
+
+    class Recorder:
+        def compute(self, left, right):
+            heights.append(left.shape[0])
+            return sgbm.compute(left, right)
+
+    matcher.sgbm = Recorder()
+    cropped = matcher.compute(frame.left, frame.right, extrinsics).disparity
+    sky_rows = int(np.argmin(matcher.sky(whole.grey, extrinsics).all(axis=1)))
+    assert sky_rows > 0.25 * frame.left.shape[0]
+    assert heights == [frame.left.shape[0] - sky_rows + StereoConfig().texture_window]
+    assert np.isnan(cropped[:sky_rows]).all()
+    a, b = whole.disparity, cropped
+    assert (np.isfinite(a) == np.isfinite(b)).mean() > 0.98
+    both = np.isfinite(a) & np.isfinite(b)
+    assert (np.abs(a[both] - b[both]) <= 1).mean() > 0.99
+
+
 def test_single_pass_sgbm_reads_ground_low_and_two_pass_or_upside_down_averaging_does_not():
     """OpenCV's single-pass modes aggregate along paths from the rows above only, so on ground,
     whose disparity grows down the image, they read low; the two-pass modes, with paths from
