@@ -23,7 +23,13 @@ Per frame (:meth:`ObstacleTracker.update`):
 4. a track is *confirmed* once it has been matched in ``confirm_hits`` frames (counting the
    first); a tentative track is dropped at its first miss, a confirmed one after more than
    ``max_misses`` consecutive misses, and any track whose predicted centre leaves the grid area
-   (when the tracker knows it) at once. Track ids count up from 1 and are never reused.
+   (when the tracker knows it) at once. Track ids count up from 1 and are never reused;
+5. two tracks of a kind, one confirmed, that lie within ``fragment_radius_m`` across the line
+   of sight and within ``duplicate_depth_sigmas`` depth errors more along it (at most
+   ``gate_m``) follow one obstacle: the one with fewer hits is merged into the other
+   (:meth:`ObstacleTracker._merge_duplicates`). Otherwise they would take its detection in
+   turn, each change an id switch; a person at 18 m, whose centre jumps a metre or two in depth
+   as it is seen whole or in part, left such pairs.
 
 Reported: every track matched in this frame (tentative ones with ``confirmed=False``) and the
 confirmed tracks that have missed at most ``report_misses`` frames (0 by default), at their
@@ -144,6 +150,7 @@ class ObstacleTracker:
         self._drop(
             (~matched) & ((self._hits < self.config.confirm_hits) | (self._misses > self.config.max_misses))
         )
+        self._merge_duplicates(rot, trans, camera)
         self._spawn([obstacles[i] for i in new], centers_t[new], yaw_v)
         return self._report(rot, trans, yaw_v)
 
@@ -214,6 +221,49 @@ class ObstacleTracker:
         near = np.hypot(*(centers_t[new, None, :2] - self._x[None, rows, :2]).transpose(2, 0, 1)) <= radius
         same = np.array([obstacles[i].kind for i in new])[:, None] == np.array([self._shape[r][0].kind for r in rows])
         return new[~(near & same).any(1)]
+
+    def _merge_duplicates(self, rot: np.ndarray, trans: np.ndarray, camera: StereoCamera | None) -> None:
+        """Merge tracks that follow one obstacle (``TrackingConfig.duplicate_depth_sigmas``): the
+        track with fewer hits (the younger on a tie) goes; the other keeps its id and, if only
+        the one that goes was matched in this frame, takes over its state and detection."""
+        radius = self.config.fragment_radius_m
+        if radius <= 0 or len(self._ids) < 2:
+            return
+        xy = self._x[:, :2]
+        # Per track, the ellipse r²·I + s·sᵀ, s the line-of-sight shift of k disparity errors.
+        shift = np.zeros((len(xy), 2))
+        if camera is not None:
+            centers = (np.column_stack([xy, [s[1] for s in self._shape]]) - trans) @ rot  # vehicle frame
+            k = self.config.duplicate_depth_sigmas * self.config.disparity_std_px
+            shift = camera.shift_per_px(centers)[:, :2] @ rot[:2, :2].T * k
+            # No longer than the gate: tracks farther apart never compete for one detection.
+            longest = np.sqrt(max(self.config.gate_m**2 - radius**2, 0.0))
+            shift *= np.minimum(1.0, longest / np.maximum(np.hypot(*shift.T), 1e-9))[:, None]
+        reach = np.sqrt(radius**2 + (shift**2).sum(1))  # the ellipses' semi-major axes
+        pairs = cKDTree(xy).query_pairs(reach.max(), output_type="ndarray")
+        if not len(pairs):
+            return
+        i, j = pairs.T
+        kinds = np.array([s[0].kind for s in self._shape])
+        confirmed = self._hits >= self.config.confirm_hits
+        d = xy[j] - xy[i]
+        metric = radius**2 * np.eye(2) + (shift[i, :, None] * shift[i, None, :] + shift[j, :, None] * shift[j, None, :]) / 2
+        inside = np.einsum("nk,nkl,nl->n", d, np.linalg.inv(metric), d) <= 1
+        keep = inside & (kinds[i] == kinds[j]) & (confirmed[i] | confirmed[j])
+        rank = np.lexsort((self._ids, -self._hits))  # best first: most hits, then oldest
+        order = np.empty(len(rank), np.intp)
+        order[rank] = np.arange(len(rank))
+        gone = np.zeros(len(self._ids), bool)
+        for a, b in sorted(zip(i[keep], j[keep], strict=True), key=lambda p: min(order[p[0]], order[p[1]])):
+            winner, loser = (a, b) if order[a] < order[b] else (b, a)
+            if gone[winner] or gone[loser]:
+                continue
+            if self._misses[loser] == 0 and self._misses[winner] > 0:  # the detection was the loser's
+                self._x[winner], self._P[winner], self._shape[winner] = self._x[loser], self._P[loser], self._shape[loser]
+                self._misses[winner] = 0
+                self._hits[winner] += 1
+            gone[loser] = True
+        self._drop(gone)
 
     def _measurement_noise(self, centers: np.ndarray, rot: np.ndarray, camera: StereoCamera | None) -> np.ndarray:
         """Covariance (n, 2, 2) of the detected centres (n, 3, vehicle frame) in the tracking frame:

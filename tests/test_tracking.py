@@ -227,7 +227,8 @@ def test_bad_pose_raises_input_error():
 def test_many_detections_are_tracked_quickly():
     rng = np.random.default_rng(2)
     xy = rng.uniform([3, -10], [35, 10], (300, 2))
-    tracker = ObstacleTracker(TrackingConfig(gate_m=0.3), area=GridConfig())
+    # 300 obstacles packed closer than the fragment radius: neither fragments nor duplicates here
+    tracker = ObstacleTracker(TrackingConfig(gate_m=0.3, fragment_radius_m=0), area=GridConfig())
     for k in range(3):
         out = tracker.update([detection(*p) for p in xy + rng.normal(0, 0.02, xy.shape)], k * DT_NS)
     assert len(out) == 300 and all(o.confirmed for o in out)
@@ -243,6 +244,8 @@ def test_config_rejects_nonsense(field):
         TrackingConfig(**{field: 0}).validate()
     with pytest.raises(ConfigError, match="tracking.fragment_radius_m"):
         TrackingConfig(fragment_radius_m=-1).validate()
+    with pytest.raises(ConfigError, match="tracking.duplicate_depth_sigmas"):
+        TrackingConfig(duplicate_depth_sigmas=float("nan")).validate()
     with pytest.raises(ConfigError, match="tracking.max_misses"):
         TrackingConfig(max_misses=-1).validate()
     with pytest.raises(ConfigError, match="tracking.report_misses"):
@@ -271,3 +274,42 @@ def test_depth_jitter_of_a_far_obstacle_is_not_read_as_motion():
             speeds[rig is not None].append(float(np.hypot(*out.velocity_mps[:2])))
     assert max(speeds[True]) < 0.6
     assert min(speeds[False][1:]) > 1.5
+
+
+RIG = StereoCamera(np.array([0.0, 0.0, 1.8]), np.array([1.0, 0.0, 0.0]), 150.0)
+
+
+@pytest.mark.parametrize(
+    "second, camera, merged",
+    [
+        ((19.8, 0.0), RIG, True),  # 1.8 m behind, at 18 m: within 3 depth errors (0.65 m each)
+        ((19.8, 0.0), None, False),  # without the rig, 1.8 m is beyond the 1.5 m radius
+        ((18.0, 1.8), RIG, False),  # 1.8 m beside: depth error does not reach across the ray
+    ],
+)
+def test_two_confirmed_tracks_on_one_obstacle_are_merged_into_the_older(second, camera, merged):
+    """A person at 18 m whose cluster jumps in depth can leave two tracks on it, which then take
+    its detection in turn (an id switch each time): they are one obstacle when they lie within
+    the fragment radius (1.5 m) across the line of sight and within 3 disparity errors along it."""
+    tracker = ObstacleTracker(TrackingConfig(), area=GridConfig())
+    for k in range(2):
+        (first,) = tracker.update([detection(18.0, 0.0)], k * DT_NS, camera=camera)
+    for k in range(2, 4):  # a second cluster 1.8 m away starts a track and confirms it
+        out = tracker.update([detection(18.0, 0.0), detection(*second)], k * DT_NS, camera=camera)
+    ids = [o.track_id for o in out]
+    assert all(o.confirmed for o in out) and first.track_id in ids
+    assert len(ids) == (1 if merged else 2)
+
+
+def test_a_merged_track_takes_over_the_detection_it_had_alone():
+    """When only the younger duplicate was matched in a frame, the older one keeps its id and
+    takes over the younger one's position and detection, so the obstacle stays reported."""
+    tracker = ObstacleTracker(TrackingConfig(gate_m=2.5), area=GridConfig())
+    for k in range(2):
+        (first,) = tracker.update([detection(18.0, 0.0)], k * DT_NS, camera=RIG)
+    # a second cluster 2.1 m behind (beyond the fragment radius) starts a track, then is the only one
+    tracker.update([detection(18.0, 0.0), detection(20.1, 0.0)], 2 * DT_NS, camera=RIG)
+    (out,) = tracker.update([detection(20.1, 0.0)], 3 * DT_NS, camera=RIG)
+    assert out.track_id == first.track_id and out.confirmed  # merged on confirmation
+    assert out.center_m[0] == pytest.approx(20.1, abs=0.1)
+    assert tracker.track_count == 1
