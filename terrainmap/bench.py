@@ -13,8 +13,10 @@ speed goals. The inputs are synthetic so the figures are comparable anywhere:
   cell index, which ``labels`` reuses (as the pipeline does) to label every point.
 - ``sgbm_alone``, ``frame_total``: one simulated 640×480 stereo pair (``terrainmap simulate``'s
   ``mounds`` scene, frame 0): OpenCV SGBM alone on the grey pair as given, and the whole per-frame
-  pipeline (rectification check, SGBM on the pair padded for ``stereo.full_width``, points,
-  terrain, labels, obstacles, cost), side by side in one run.
+  pipeline (rectification check, sky mask, SGBM on the rows below the sky (164 of 480 rows there
+  see only sky) of the pair padded for ``stereo.full_width``, points, terrain, labels, obstacles,
+  cost), side by side in one run. ``--set stereo.drop_sky=false`` times a frame that matches
+  every row.
 - ``mcap_write``: writing that frame's result to a Foxglove MCAP (lz4), the default output.
 """
 

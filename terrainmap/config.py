@@ -508,8 +508,8 @@ class TrackingConfig:
     (an ellipse; a person at 18 m jitters 0.65 m in depth per 0.3 px; tracks farther apart than
     the gate never compete for a detection): the track with fewer hits is merged into the other,
     which keeps its id. Two tracks on one obstacle take its detection in turn, and each change
-    is an id switch. On the simulated drives, 3 took the id switches from 3 and 1 to 1 and 1
-    (README, Measured accuracy). 0: the radius in every direction; ``fragment_radius_m`` 0 turns
+    is an id switch. On the simulated drives, 3 took the id switches from 3 and 1 to 2 and 1
+    (README, Design). 0: the radius in every direction; ``fragment_radius_m`` 0 turns
     merging off too."""
 
     def validate(self) -> None:
