@@ -335,7 +335,7 @@ class StereoConfig:
     disparity low (−0.23 px with the defaults on the simulated drives: ground points land below
     the ground, 6 cm at 10–20 m); the upside-down pass reads it high by as much, and the mean is
     unbiased. Doubles the SGBM time (``process`` at 19 instead of 28 frames/s here) for a 10–20 m
-    elevation RMSE lower by 8–48 % on the simulated drives; on KITTI 000005 it reads the road
+    elevation RMSE lower by 8–49 % on the simulated drives; on KITTI 000005 it reads the road
     0.2 px higher than the single pass, further from the ground truth (README, Measured accuracy)."""
     pass_tolerance_px: float = 2.0
     """With ``vertical_passes`` = 2: a pixel whose two disparities differ by more than this is

@@ -275,7 +275,7 @@ class StereoMatcher:
         """Rectify (if needed) and match one pair of uint8 images (H×W mono or H×W×3 RGB).
 
         With the camera's ``extrinsics`` and ``config.drop_sky``, the sky is found first
-        (:meth:`drop_sky`): the rows above the first that shows anything else, less a margin
+        (:func:`sky_mask`): the rows above the first that shows anything else, less a margin
         for SGBM's and the texture test's windows, are not matched at all (a quarter to a third
         of a 640×480 frame on the simulated drives, that much of SGBM's time), and the sky's
         disparities are dropped.
