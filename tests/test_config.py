@@ -78,3 +78,18 @@ def test_bad_files(tmp_path):
     bad.write_text("[grid\n")
     with pytest.raises(ConfigError, match="not valid TOML"):
         load_config(bad)
+
+
+def test_the_accuracy_example_loads_and_sets_what_it_says():
+    """examples/accuracy.toml, which the README offers for accuracy over frame rate."""
+    from pathlib import Path
+
+    config = load_config(Path(__file__).parent.parent / "examples" / "accuracy.toml")
+    expected = load_config(
+        overrides=[
+            "stereo.vertical_passes=2",
+            "segmentation.threshold_per_m=0.005",
+            "segmentation.disparity_tolerance_px=1.5",
+        ]
+    )
+    assert config.to_dict() == expected.to_dict() != Config().to_dict()
