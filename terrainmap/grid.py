@@ -116,7 +116,9 @@ def cell_index(points: np.ndarray, config: GridConfig) -> np.ndarray:
     ix *= m1
     ix += iy
     # intp, so that bincount and ufunc.at downstream do not convert the index again and again
-    return np.where(inside, ix, np.int32(m0 * m1)).astype(np.intp)
+    index = ix.astype(np.intp)
+    np.copyto(index, m0 * m1, where=~inside)  # 0.2 ms less than np.where for 300k points
+    return index
 
 
 def quantize(
