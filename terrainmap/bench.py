@@ -15,13 +15,14 @@ speed goals. The inputs are synthetic so the figures are comparable anywhere:
   ``mounds`` scene, frame 0): OpenCV SGBM alone on the grey pair as given, and the whole per-frame
   pipeline (rectification check, sky mask, SGBM on the rows below the sky (164 of 480 rows there
   see only sky) of the pair padded for ``stereo.full_width``, points, terrain, labels, obstacles,
-  cost), side by side in one run. ``--set stereo.drop_sky=false`` times a frame that matches
-  every row.
+  cost), side by side in one run; ``frame_every_row``: the same with ``stereo.drop_sky`` off,
+  so SGBM matches every row, as on a frame that shows no rows of only sky.
 - ``mcap_write``: writing that frame's result to a Foxglove MCAP (lz4), the default output.
 """
 
 from __future__ import annotations
 
+import copy
 import os
 import platform
 import statistics
@@ -104,6 +105,9 @@ def frame_stages(config: Config) -> dict[str, Stage]:
     frame = sim_frame()
     state = PipelineState(config)
     result = process_frame(frame, config, state)
+    every_row = copy.deepcopy(config)  # a frame with no rows of only sky: SGBM matches them all
+    every_row.stereo.drop_sky = False
+    every_row_state = PipelineState(every_row)
     grey = [to_grey(im) for im in (frame.left, frame.right)]
     out = tempfile.NamedTemporaryFile(suffix=".mcap", delete=False)
     out.close()
@@ -111,6 +115,7 @@ def frame_stages(config: Config) -> dict[str, Stage]:
     return {
         "sgbm_alone": lambda: state.matcher.sgbm.compute(*grey),
         "frame_total": lambda: process_frame(frame, config, state),
+        "frame_every_row": lambda: process_frame(frame, every_row, every_row_state),
         "mcap_write": lambda: sink.write(frame, result),
     }
 
@@ -175,6 +180,7 @@ def goals(results: dict) -> list[tuple[str, float, float]]:
         out.append(("grid + labels, ms", med["grid"] + med["labels"], 5.0))
     if "obstacles" in med:
         out.append(("obstacles (extraction, tracking, cost), ms", med["obstacles"], 5.0))
-    if {"frame_total", "sgbm_alone"} <= med.keys():
-        out.append(("frame_total / sgbm_alone", med["frame_total"] / med["sgbm_alone"], 1.6))
+    for frame in ("frame_total", "frame_every_row"):
+        if {frame, "sgbm_alone"} <= med.keys():
+            out.append((f"{frame} / sgbm_alone", med[frame] / med["sgbm_alone"], 1.6))
     return out

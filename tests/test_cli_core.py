@@ -49,6 +49,7 @@ def test_bench_reports_every_stage(tmp_path):
     assert result.exit_code == 0, result.output
     assert "machine:" in result.output
     assert "frame_total / sgbm_alone:" in result.output and "grid + labels, ms:" in result.output
+    assert "frame_every_row / sgbm_alone:" in result.output
     stages = json.loads((tmp_path / "b.json").read_text())
     for name in ("grid", "surface", "labels", "obstacles"):
         assert set(stages[name]) == {"median_ms", "min_ms", "max_ms", "runs"}
@@ -63,12 +64,13 @@ def test_bench_stages_take_turns_and_goals_follow_the_medians():
     results = bench.run(runs=3, stages=stages, warmup=1)
     assert calls == ["sgbm_alone", "frame_total"] * 4  # interleaved: one call of each per round
     assert results["frame_total"]["runs"] == 3
-    fake = {"grid": 3.0, "surface": 6.0, "labels": 1.5, "sgbm_alone": 20.0, "frame_total": 34.0}
+    fake = {"grid": 3.0, "surface": 6.0, "labels": 1.5, "sgbm_alone": 20.0, "frame_total": 34.0, "frame_every_row": 36.0}
     checks = bench.goals({name: {"median_ms": ms} for name, ms in fake.items()})
     assert checks == [
         ("surface (estimation, slope, cell labels), ms", 6.0, 5.0),
         ("grid + labels, ms", 4.5, 5.0),
         ("frame_total / sgbm_alone", 1.7, 1.6),
+        ("frame_every_row / sgbm_alone", 1.8, 1.6),
     ]
 
 
