@@ -276,8 +276,8 @@ class StereoMatcher:
 
         With the camera's ``extrinsics`` and ``config.drop_sky``, the sky is found first
         (:func:`sky_mask`): the rows above the first that shows anything else, less a margin
-        for SGBM's and the texture test's windows, are not matched at all (a quarter to a third
-        of a 640×480 frame on the simulated drives, that much of SGBM's time), and the sky's
+        for SGBM's and the texture test's windows, are not matched at all (15–34 % of the rows
+        of the simulated scenes' first frames, that much of SGBM's time), and the sky's
         disparities are dropped.
         """
         left_rect, right_rect = self.rectify(left, right)
@@ -285,7 +285,8 @@ class StereoMatcher:
         sky = None if extrinsics is None or not self.config.drop_sky else self.sky(grey, extrinsics)
         first_row = 0
         if sky is not None:
-            rows_of_sky = int(np.argmin(sky.all(axis=1))) if not sky.all() else len(sky)
+            all_sky = sky.all(axis=1)
+            rows_of_sky = len(sky) if all_sky.all() else int(all_sky.argmin())
             first_row = max(0, rows_of_sky - max(self.config.block_size, self.config.texture_window))
         result = StereoResult(self.match(grey, right_rect, first_row), left_rect, self.pinhole, grey)
         if sky is not None:
