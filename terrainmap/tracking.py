@@ -233,9 +233,8 @@ class ObstacleTracker:
         # Per track, the ellipse r²·I + s·sᵀ, s the line-of-sight shift of k disparity errors.
         shift = np.zeros((len(xy), 2))
         if camera is not None:
-            centers = (np.column_stack([xy, [s[1] for s in self._shape]]) - trans) @ rot  # vehicle frame
-            k = self.config.duplicate_depth_sigmas * self.config.disparity_std_px
-            shift = camera.shift_per_px(centers)[:, :2] @ rot[:2, :2].T * k
+            centers = self._centers_in_vehicle(np.arange(len(xy)), rot, trans)
+            shift = _line_of_sight(centers, rot, camera, self.config.duplicate_depth_sigmas * self.config.disparity_std_px)
             # No longer than the gate: tracks farther apart never compete for one detection.
             longest = np.sqrt(max(self.config.gate_m**2 - radius**2, 0.0))
             shift *= np.minimum(1.0, longest / np.maximum(np.hypot(*shift.T), 1e-9))[:, None]
@@ -273,8 +272,13 @@ class ObstacleTracker:
         noise = np.broadcast_to(self.config.measurement_std_m**2 * np.eye(2), (len(centers), 2, 2))
         if camera is None or self.config.disparity_std_px <= 0 or not len(centers):
             return noise
-        shift = camera.shift_per_px(centers)[:, :2] @ rot[:2, :2].T * self.config.disparity_std_px
+        shift = _line_of_sight(centers, rot, camera, self.config.disparity_std_px)
         return noise + shift[:, :, None] * shift[:, None, :]
+
+    def _centers_in_vehicle(self, rows: np.ndarray, rot: np.ndarray, trans: np.ndarray) -> np.ndarray:
+        """Centres (k, 3) of tracks ``rows`` in the vehicle frame: rotᵀ·(p − t) per row."""
+        z_t = np.array([self._shape[i][1] for i in rows]).reshape(-1)
+        return (np.column_stack([self._x[rows, :2], z_t]) - trans) @ rot
 
     def _correct(self, rows: np.ndarray, z: np.ndarray, noise: np.ndarray) -> None:
         """Batched Kalman update of tracks ``rows`` with measured centres ``z`` (k, 2) of
@@ -327,8 +331,7 @@ class ObstacleTracker:
     def _report(self, rot: np.ndarray, trans: np.ndarray, yaw_v: float) -> list[Obstacle]:
         confirmed = self._hits >= self.config.confirm_hits
         shown = np.flatnonzero((self._misses == 0) | (confirmed & (self._misses <= self.config.report_misses)))
-        z_t = np.array([self._shape[i][1] for i in shown]).reshape(-1)
-        centers = (np.column_stack([self._x[shown, :2], z_t]) - trans) @ rot  # rotᵀ·(p − t) per row
+        centers = self._centers_in_vehicle(shown, rot, trans)
         velocities = np.column_stack([self._x[shown, 2:], np.zeros(len(shown))]) @ rot
         velocities[:, 2] = 0.0
         yaws = _wrap_half(np.array([self._shape[i][2] for i in shown]) - yaw_v).tolist()
@@ -361,6 +364,12 @@ def _pose(vehicle_pose: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
         what = f"shape {T.shape}" if T.shape != (4, 4) else "non-finite values"
         raise InputError(f"tracking: vehicle_pose must be a finite 4×4 matrix, got {what}")
     return T[:3, :3], T[:3, 3]
+
+
+def _line_of_sight(centers: np.ndarray, rot: np.ndarray, camera: StereoCamera, disparity_px: float) -> np.ndarray:
+    """How far ``disparity_px`` of disparity error moves each centre (n, 3, vehicle frame) along its
+    line of sight: (n, 2) metres in the tracking frame."""
+    return camera.shift_per_px(centers)[:, :2] @ rot[:2, :2].T * disparity_px
 
 
 def _wrap_half(angle: np.ndarray) -> np.ndarray:
