@@ -452,6 +452,13 @@ class ObstacleConfig:
     that faces the camera are a few high points among the ground's."""
     tall_min_share: float = 0.3
     """See ``tall_height_m``; 0 turns the test off."""
+    drop_on_steep_ground: bool = True
+    """Drop positive clusters lower than ``tall_height_m`` with most of their points in cells
+    whose terrain slope reaches ``cost.max_slope_deg``. The cost already marks that ground
+    untraversable, so the cost layer loses nothing; what goes is the relief of berms and walls
+    standing just above a surface that lags their crests (on the 12 simulated drives, 1.10 of
+    4.45 false obstacles per frame summed, and no true obstacle). Taller clusters always stay:
+    where the surface climbs a car or a truck, its cells are steep too (KITTI 000005)."""
 
     def validate(self) -> None:
         _check(self.min_height_m > 0, "obstacles.min_height_m", "must be > 0")

@@ -64,9 +64,10 @@ def run_obstacle_stage(
         Traversability cost in [0, 1], NaN where unknown (:mod:`terrainmap.cost`).
     """
     elevation = layers["elevation"]
+    steep = layers["slope"] >= np.radians(config.cost.max_slope_deg) if config.obstacles.drop_on_steep_ground else None
     detections = extract_obstacles(
         points_vehicle, point_labels, grid.config, None, config.obstacles, elevation=elevation,
-        cell_counts=grid.count,
+        cell_counts=grid.count, steep=steep,
     )
     obstacles = tracker.update(detections, stamp_ns, vehicle_pose, camera)
     relief_cells = grid.observed & (layers["label"] != Label.OBSTACLE)

@@ -49,6 +49,7 @@ def extract_obstacles(
     *,
     elevation: np.ndarray | None = None,
     cell_counts: np.ndarray | None = None,
+    steep: np.ndarray | None = None,
 ) -> list[Obstacle]:
     """Cluster above/below-terrain points into positive and negative obstacles.
 
@@ -71,6 +72,10 @@ def extract_obstacles(
         All points per cell, whatever their label (``HeightGrid.count``): with it, positive
         clusters at least ``config.tall_height_m`` tall must hold ``config.tall_min_share`` of
         the points in their cells.
+    steep : (m0, m1) bool array, optional
+        Cells whose terrain is too steep to drive (the cost's ``max_slope_deg``): positive
+        clusters lower than ``config.tall_height_m`` with more than half their points in such
+        cells are dropped (``ObstacleConfig.drop_on_steep_ground``).
 
     Returns
     -------
@@ -96,8 +101,10 @@ def extract_obstacles(
     result: list[Obstacle] = []
     for label, kind, min_height in kinds:
         selected = points_vehicle[np.flatnonzero(point_labels == label)]  # 10× faster than a mask
-        counts = cell_counts if kind == "positive" else None
-        result += _clusters(selected, grid_config, np.asarray(elevation, float), config, kind, min_height, counts)
+        counts, on_steep = (cell_counts, steep) if kind == "positive" else (None, None)
+        result += _clusters(
+            selected, grid_config, np.asarray(elevation, float), config, kind, min_height, counts, on_steep
+        )
     return result
 
 
@@ -128,10 +135,12 @@ def _clusters(
     kind: str,
     min_height: float,
     cell_counts: np.ndarray | None = None,
+    steep: np.ndarray | None = None,
 ) -> list[Obstacle]:
     """Obstacles of one kind from the points of that kind (see the module docstring); with
     ``cell_counts`` (all points per cell), tall clusters must hold ``config.tall_min_share`` of
-    the points in their cells."""
+    the points in their cells; with ``steep`` (bool per cell), low clusters must hold at most
+    half their points in steep cells."""
     m0, m1 = grid_config.shape
     idx = cell_index(points, grid_config)
     inside = idx < m0 * m1
@@ -144,16 +153,15 @@ def _clusters(
         return []
     cid = cells.ravel()[idx] - 1  # cluster of each point, -1 where its cell has too few points
     keep = cid >= 0
-    points, cid = points[keep], cid[keep]
+    points, cid, idx = points[keep], cid[keep], idx[keep]
     per_cell = np.ones(m0 * m1) if cell_counts is None else np.asarray(cell_counts, float).ravel()
     ncells, in_cells = (np.bincount(cells.ravel(), w, n + 1)[1:] for w in (None, per_cell))
     if config.split_gap_fraction > 0:
         cut, split = _split_at_gaps(points, cid, n, grid_config.cell_size_m, config)
         if split > n:  # the parts of a cut cluster may share cells: count each part's from its points
             kept = cut >= 0
-            cell = idx[keep][kept]
-            points, cid, n = points[kept], cut[kept], split
-            part_cell = np.unique(cid * (m0 * m1) + cell)
+            points, cid, idx, n = points[kept], cut[kept], idx[kept], split
+            part_cell = np.unique(cid * (m0 * m1) + idx)
             part, cell = part_cell // (m0 * m1), part_cell % (m0 * m1)
             ncells, in_cells = (np.bincount(part, w, n) for w in (None, per_cell[cell]))
     x, y, z = points[:, 0], points[:, 1], points[:, 2]
@@ -166,6 +174,9 @@ def _clusters(
     ok = (npts >= config.min_points) & (ncells >= config.min_cells) & (top >= min_height)
     if cell_counts is not None:  # tall objects hide the ground behind them (ObstacleConfig.tall_height_m)
         ok &= (top < config.tall_height_m) | (npts >= config.tall_min_share * in_cells)
+    if steep is not None:  # low relief on ground the cost already forbids (drop_on_steep_ground)
+        on_steep = np.bincount(cid, np.asarray(steep, float).ravel()[idx], n)
+        ok &= (top >= config.tall_height_m) | (2 * on_steep <= npts)
     if not ok.any():
         return []
     # Keep only the surviving clusters' points from here on, renumbered 0..k-1.

@@ -217,3 +217,31 @@ def test_stage_on_a_scene_marks_the_box_once_confirmed_and_never_before():
     # The box's own 2×2 cells and one ring of neighbours (centres 0.25–0.35 m from the footprint).
     assert occupied[ix - 2 : ix + 2, iy - 2 : iy + 2].all() and occupied.sum() == 16
     np.testing.assert_allclose(cost[~occupied], slope_cost, atol=0.02)
+
+
+def test_low_relief_on_ground_too_steep_to_drive_is_no_obstacle_and_the_cost_is_the_same():
+    """``obstacles.drop_on_steep_ground``: on a 30° bank (past ``cost.max_slope_deg``) a low bump
+    gives no obstacle, and the cost layer is what it is with the option off and the bump confirmed
+    and occupying cells: the slope alone already costs 1 there."""
+    plane = Plane(gy=np.tan(np.deg2rad(30)))
+    bump = box_points(plane, (12.0, 0.0), 2.0, 0.5, 0.55)
+    points, labels = labelled(plane, terrain_points(plane, spacing=0.2), bump)
+    grid = quantize(points, GRID)
+    elevation = plane.on_grid(*cell_centers(GRID))
+    results = {}
+    for drop in (True, False):
+        config = Config()
+        config.obstacles.drop_on_steep_ground = drop
+        layers = {
+            "elevation": elevation,
+            "slope": np.full(GRID.shape, np.deg2rad(30)),
+            "label": label_cells(grid, elevation, config.segmentation),
+        }
+        tracker = make_tracker(config)
+        for stamp in (0, 10**8):
+            results[drop] = run_obstacle_stage(points, labels, grid, layers, stamp, tracker, config)
+    assert results[True][0] == []
+    (bump_track,) = results[False][0]
+    assert bump_track.confirmed and bump_track.height_m == pytest.approx(0.55, abs=0.02)
+    np.testing.assert_array_equal(results[True][1], results[False][1])
+    assert np.all(results[True][1][np.isfinite(results[True][1])] == 1)

@@ -272,3 +272,27 @@ def test_tall_clusters_must_hold_their_cells():
     assert len(extract_obstacles(points, labels, GRID, plane, config)) == 3  # without the counts
     off = ObstacleConfig(min_points=10, tall_min_share=0)
     assert len(extract_obstacles(points, labels, GRID, plane, off, cell_counts=counts)) == 3
+
+
+def test_low_clusters_on_steep_ground_are_dropped_tall_ones_stay():
+    """With ``steep`` cells (slope past the cost's limit), a low cluster lying mostly in them is
+    the ground's relief (a berm's crest standing above a lagging surface) and is dropped; a tall
+    box there stays (the surface climbs cars and trucks too), and so does a low one on drivable
+    ground, and everything when the cells are not given."""
+    plane = Plane()
+    crest = box_points(plane, (12.0, 5.0), 2.0, 0.5, 0.55)  # low and long, like a berm's crest
+    truck = box_points(plane, (12.0, -5.0), 3.0, 2.0, 2.5)
+    rock = box_points(plane, (20.0, 0.0), 1.0, 1.0, 0.55)
+    points, labels = labelled(plane, terrain_points(plane), crest, truck, rock)
+    steep = np.zeros(GRID.shape, bool)
+    for x0, y0, x1, y1 in ((10.5, 3.5, 13.5, 6.5), (10.0, -6.5, 14.0, -3.5)):  # the berm's and the truck's cells
+        steep[int((x0 - GRID.x_min_m) / 0.5) : int((x1 - GRID.x_min_m) / 0.5),
+              int((y0 - GRID.y_min_m) / 0.5) : int((y1 - GRID.y_min_m) / 0.5)] = True  # fmt: skip
+
+    def centres(**kwargs):
+        found = extract_obstacles(points, labels, GRID, plane, ObstacleConfig(), **kwargs)
+        return {(round(o.center_m[0]), round(o.center_m[1])) for o in found if o.kind == "positive"}
+
+    assert centres() == {(12, 5), (12, -5), (20, 0)}
+    assert centres(steep=steep) == {(12, -5), (20, 0)}
+    assert centres(steep=np.zeros(GRID.shape, bool)) == centres()
