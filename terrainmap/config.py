@@ -456,9 +456,10 @@ class ObstacleConfig:
     """Drop positive clusters lower than ``tall_height_m`` with most of their points in cells
     whose terrain slope reaches ``cost.max_slope_deg``. The slope already costs 1 on most of the
     cells such a cluster would occupy (the rest are its clearance and its flatter cells); what
-    goes is the relief of berms and walls standing just above a surface that lags their crests (on the 12 simulated drives, 1.10 of
-    4.45 false obstacles per frame summed, and no true obstacle). Taller clusters always stay:
-    where the surface climbs a car or a truck, its cells are steep too (KITTI 000005)."""
+    goes is the relief of berms and walls standing just above a surface that lags their crests
+    (on the 12 simulated drives, 1.10 of 4.45 false obstacles per frame summed, and no true
+    obstacle). Taller clusters always stay: where the surface climbs a car or a truck, its cells
+    are steep too (KITTI 000005)."""
 
     def validate(self) -> None:
         _check(self.min_height_m > 0, "obstacles.min_height_m", "must be > 0")
