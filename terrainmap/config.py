@@ -508,7 +508,9 @@ class TrackingConfig:
     drives against 3, and an obstacle moving at 1 m/s is still followed through misses."""
     fragment_radius_m: float = 1.5
     """An unmatched detection this close (centre to centre, metres) to a confirmed track matched
-    in the same frame is a fragment of that obstacle and starts no track of its own. 0 = off."""
+    in the same frame is a fragment of that obstacle and starts no track of its own; so is one
+    no taller than that track's detection in its shadow (behind it as the camera sees it, up to
+    this far beyond its footprint). 0 = off."""
     duplicate_depth_sigmas: float = 3.0
     """Two tracks of one kind, one of them confirmed, are one obstacle when their centres lie
     within ``fragment_radius_m`` of each other across the line of sight and within that radius

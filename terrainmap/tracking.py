@@ -212,13 +212,17 @@ class ObstacleTracker:
         return np.concatenate([i[single], rows[r[ok]]]), np.concatenate([j[single], cols[c[ok]]])
 
     def _not_fragments(self, new: np.ndarray, centers_t: np.ndarray, obstacles: list[Obstacle], rows: np.ndarray):
-        """The unmatched detections ``new`` that lie farther than ``fragment_radius_m`` from
-        every confirmed track of their kind matched in this frame."""
+        """The unmatched detections ``new`` that are no fragment of a confirmed track of their
+        kind matched in this frame: farther than ``fragment_radius_m`` from its centre and not
+        in the shadow of its detection (:func:`_in_shadow`: behind it as the camera sees it, up to
+        that radius beyond it, and no taller; what stands there is hidden by it, so a cluster
+        there is its far side or its smear, as when a car comes into range as two clusters)."""
         radius = self.config.fragment_radius_m
         rows = rows[self._hits[rows] >= self.config.confirm_hits]
         if radius <= 0 or not len(new) or not len(rows):
             return new
         near = np.hypot(*(centers_t[new, None, :2] - self._x[None, rows, :2]).transpose(2, 0, 1)) <= radius
+        near |= _in_shadow([obstacles[i] for i in new], [self._shape[r][0] for r in rows], radius)
         same = np.array([obstacles[i].kind for i in new])[:, None] == np.array([self._shape[r][0].kind for r in rows])
         return new[~(near & same).any(1)]
 
@@ -375,3 +379,30 @@ def _line_of_sight(centers: np.ndarray, rot: np.ndarray, camera: StereoCamera, d
 def _wrap_half(angle: np.ndarray) -> np.ndarray:
     """Footprint yaw folded into (−π/2, π/2] (a rectangle is symmetric under a half turn)."""
     return np.pi / 2 - np.mod(np.pi / 2 - angle, np.pi)
+
+
+def _in_shadow(detections: list[Obstacle], boxes: list[Obstacle], depth_m: float) -> np.ndarray:
+    """(n, k) bool: detection i lies in the shadow of box j as seen from the vehicle origin (the
+    camera above it): within the bearings of box j's footprint corners, beyond its centre, no
+    more than ``depth_m`` beyond its farthest corner and no taller. Vehicle frame, metres."""
+    det = np.array([d.center_m[:2] for d in detections], float).reshape(-1, 2)
+    centre = np.array([b.center_m[:2] for b in boxes], float).reshape(-1, 2)
+    half = np.array([b.size_m[:2] / 2 for b in boxes], float).reshape(-1, 2)
+    yaw = np.array([b.yaw_rad for b in boxes], float)
+    signs = np.array([[1, 1], [1, -1], [-1, 1], [-1, -1]], float)
+    local = signs[None] * half[:, None]  # (k, 4, 2) corners in the box frame
+    cos, sin = np.cos(yaw)[:, None], np.sin(yaw)[:, None]
+    corners = centre[:, None] + np.stack([local[..., 0] * cos - local[..., 1] * sin,
+                                          local[..., 0] * sin + local[..., 1] * cos], axis=-1)  # fmt: skip
+    bearing_c = np.arctan2(centre[:, 1], centre[:, 0])
+    spread = _wrap_pi(np.arctan2(corners[..., 1], corners[..., 0]) - bearing_c[:, None])  # (k, 4)
+    offset = _wrap_pi(np.arctan2(det[:, 1], det[:, 0])[:, None] - bearing_c[None])  # (n, k)
+    within = (offset >= spread.min(1)[None]) & (offset <= spread.max(1)[None])
+    rng = np.hypot(*det.T)[:, None]
+    behind = (rng > np.hypot(*centre.T)[None]) & (rng <= np.hypot(*corners.transpose(2, 0, 1)).max(1)[None] + depth_m)
+    lower = np.array([d.height_m for d in detections])[:, None] <= np.array([b.height_m for b in boxes])[None]
+    return within & behind & lower
+
+
+def _wrap_pi(angle: np.ndarray) -> np.ndarray:
+    return (angle + np.pi) % (2 * np.pi) - np.pi

@@ -15,12 +15,12 @@ from terrainmap.types import Obstacle, StereoCamera
 DT_NS = 100_000_000  # 10 Hz
 
 
-def detection(x: float, y: float, kind: str = "positive") -> Obstacle:
+def detection(x: float, y: float, kind: str = "positive", height: float = 1.0) -> Obstacle:
     return Obstacle(
-        center_m=np.array([x, y, 0.5]),
-        size_m=np.array([1.0, 1.0, 1.0]),
+        center_m=np.array([x, y, height / 2]),
+        size_m=np.array([1.0, 1.0, height]),
         yaw_rad=0.0,
-        height_m=1.0,
+        height_m=height,
         point_count=50,
         range_m=float(np.hypot(x, y)),
         kind=kind,
@@ -203,6 +203,30 @@ def test_fragment_beside_a_confirmed_track_starts_no_track(radius):
     assert starts == pytest.approx([13] if radius else [11, 13])
 
 
+def test_lower_cluster_in_a_confirmed_obstacles_shadow_starts_no_track():
+    """A car 4.3 m long seen as two clusters as it comes into range: its far part, 3.6 m behind the
+    tracked near part along the line of sight, lies in the near part's shadow (within the bearings
+    of its footprint, up to ``fragment_radius_m`` beyond it) and starts no track. Detections in
+    front of it, beside it, farther behind or taller (a person over a low rock) do."""
+    def box(x, y, length, height):
+        return Obstacle(center_m=np.array([x, y, height / 2]), size_m=np.array([length, 1.8, height]),
+                        yaw_rad=0.0, height_m=height, point_count=500, range_m=float(np.hypot(x, y)))  # fmt: skip
+
+    tracker = ObstacleTracker(TrackingConfig())
+    for k in range(2):
+        (car,) = tracker.update([box(17.0, 3.0, 4.3, 1.5)], k * DT_NS)
+    others = {"far part": box(20.6, 3.2, 1.0, 1.0), "taller": box(20.8, 2.6, 0.5, 1.8),
+              "in front": box(13.5, 2.6, 0.5, 1.0), "beyond": box(23.0, 3.4, 0.5, 1.0),
+              "beside": box(17.0, 5.5, 0.5, 1.0)}  # fmt: skip
+    out = tracker.update([box(17.0, 3.0, 4.3, 1.5), *others.values()], 2 * DT_NS)
+    started = {tuple(o.center_m[:2].round(1)) for o in out if o.track_id != car.track_id}
+    assert started == {tuple(d.center_m[:2].round(1)) for name, d in others.items() if name != "far part"}
+    off = ObstacleTracker(TrackingConfig(fragment_radius_m=0))
+    for k in range(2):
+        off.update([box(17.0, 3.0, 4.3, 1.5)], k * DT_NS)
+    assert len(off.update([box(17.0, 3.0, 4.3, 1.5), *others.values()], 2 * DT_NS)) == 6
+
+
 def test_stamp_going_back_resets_the_tracks():
     tracker = ObstacleTracker(TrackingConfig())
     tracker.update([detection(10, 0)], 5 * DT_NS)
@@ -294,8 +318,8 @@ def test_two_confirmed_tracks_on_one_obstacle_are_merged_into_the_older(second, 
     tracker = ObstacleTracker(TrackingConfig(), area=GridConfig())
     for k in range(2):
         (first,) = tracker.update([detection(18.0, 0.0)], k * DT_NS, camera=camera)
-    for k in range(2, 4):  # a second cluster 1.8 m away starts a track and confirms it
-        out = tracker.update([detection(18.0, 0.0), detection(*second)], k * DT_NS, camera=camera)
+    for k in range(2, 4):  # a second, taller cluster 1.8 m away starts a track and confirms it
+        out = tracker.update([detection(18.0, 0.0), detection(*second, height=1.2)], k * DT_NS, camera=camera)
     ids = [o.track_id for o in out]
     assert all(o.confirmed for o in out) and first.track_id in ids
     assert len(ids) == (1 if merged else 2)
