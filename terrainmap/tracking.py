@@ -405,4 +405,5 @@ def _in_shadow(detections: list[Obstacle], boxes: list[Obstacle], depth_m: float
 
 
 def _wrap_pi(angle: np.ndarray) -> np.ndarray:
+    """Angles folded into [−π, π)."""
     return (angle + np.pi) % (2 * np.pi) - np.pi
