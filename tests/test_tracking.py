@@ -131,6 +131,23 @@ def test_confirmed_track_coasts_through_misses_then_is_dropped():
     assert tracker.track_count == 0
 
 
+@pytest.mark.parametrize("gap", [3, 6])
+def test_track_back_after_a_long_gap_keeps_its_id_and_is_confirmed_again(gap):
+    """Back within ``reconfirm_misses`` (3) missed frames a track is an obstacle at once; after
+    more (up to ``max_misses``, 10) it keeps its id but is confirmed only by ``confirm_hits``
+    matches in a row again, like a new track."""
+    tracker = ObstacleTracker(TrackingConfig())
+    for k in range(2):
+        (first,) = tracker.update([detection(10.0, 0)], k * DT_NS)
+    assert first.confirmed
+    for k in range(2, 2 + gap):
+        assert tracker.update([], k * DT_NS) == []
+    (back,) = tracker.update([detection(10.0, 0)], (2 + gap) * DT_NS)
+    assert back.track_id == first.track_id and back.confirmed == (gap <= 3)
+    (again,) = tracker.update([detection(10.0, 0)], (3 + gap) * DT_NS)
+    assert again.track_id == first.track_id and again.confirmed
+
+
 def test_coasting_track_is_not_reported_by_default_but_keeps_its_id():
     tracker = ObstacleTracker(TrackingConfig(confirm_hits=2, max_misses=2))
     for k in range(3):
