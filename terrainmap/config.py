@@ -490,7 +490,7 @@ class TrackingConfig:
     like a new track: a false detection that happens to fall near a track kept that long is not
     reported at once. With 10 and 3 (against 3 and no such rule) the id switches on the simulated
     drives went from 0 and 1 to 0 and 0 and the false obstacles from 0.80 and 2.55 to 0.80 and
-    2.35 per frame summed; reporting such a track at once instead cost 0.20 more."""
+    2.35 per frame summed; reporting such a track at once gave 0.95 and 2.60."""
     report_misses: int = 0
     """A confirmed track is reported (and occupies the cost map) while it has missed at most
     this many consecutive frames; beyond that, up to ``max_misses``, it only keeps its id for
