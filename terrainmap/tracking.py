@@ -151,11 +151,7 @@ class ObstacleTracker:
         self._correct(rows, centers_t[cols, :2], self._measurement_noise(centers[cols], rot, camera))
         matched = np.zeros(len(self._ids), bool)
         matched[rows] = True
-        self._hits[rows] += 1
-        self._streak[rows] = np.where(self._misses[rows] == 0, self._streak[rows] + 1, 1)
-        self._suspect[rows] |= self._misses[rows] > self.config.reconfirm_misses
-        self._suspect[rows] &= self._streak[rows] < self.config.confirm_hits
-        self._misses[rows] = 0
+        self._mark_matched(rows)
         self._misses[~matched] += 1
         for r, c in zip(rows, cols, strict=True):
             self._shape[r] = (obstacles[c], centers_t[c, 2], obstacles[c].yaw_rad + yaw_v)
@@ -166,6 +162,16 @@ class ObstacleTracker:
         self._merge_duplicates(rot, trans, camera)
         self._spawn([obstacles[i] for i in new], centers_t[new], yaw_v)
         return self._report(rot, trans, yaw_v)
+
+    def _mark_matched(self, rows: np.ndarray) -> None:
+        """Count a match for tracks ``rows``: one more hit, the run of consecutive matches, and
+        whether the track is back after more than ``reconfirm_misses`` misses and not yet
+        matched ``confirm_hits`` times in a row again."""
+        self._hits[rows] += 1
+        self._streak[rows] = np.where(self._misses[rows] == 0, self._streak[rows] + 1, 1)
+        self._suspect[rows] |= self._misses[rows] > self.config.reconfirm_misses
+        self._suspect[rows] &= self._streak[rows] < self.config.confirm_hits
+        self._misses[rows] = 0
 
     def _advance(self, stamp_ns: int) -> float:
         """Seconds since the previous frame (0 for the first one); resets on a stamp going back."""
@@ -276,9 +282,7 @@ class ObstacleTracker:
                 continue
             if self._misses[loser] == 0 and self._misses[winner] > 0:  # the detection was the loser's
                 self._x[winner], self._P[winner], self._shape[winner] = self._x[loser], self._P[loser], self._shape[loser]
-                self._misses[winner] = 0
-                self._hits[winner] += 1
-                self._streak[winner], self._suspect[winner] = self._streak[loser], self._suspect[loser]
+                self._mark_matched(np.array([winner]))
             gone[loser] = True
         self._drop(gone)
 
