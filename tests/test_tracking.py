@@ -15,10 +15,10 @@ from terrainmap.types import Obstacle, StereoCamera
 DT_NS = 100_000_000  # 10 Hz
 
 
-def detection(x: float, y: float, kind: str = "positive", height: float = 1.0) -> Obstacle:
+def detection(x: float, y: float, kind: str = "positive", height: float = 1.0, footprint=(1.0, 1.0)) -> Obstacle:
     return Obstacle(
         center_m=np.array([x, y, height / 2]),
-        size_m=np.array([1.0, 1.0, height]),
+        size_m=np.array([*footprint, height]),
         yaw_rad=0.0,
         height_m=height,
         point_count=50,
@@ -226,8 +226,7 @@ def test_lower_cluster_in_a_confirmed_obstacles_shadow_starts_no_track():
     of its footprint, up to ``fragment_radius_m`` beyond it) and starts no track. Detections in
     front of it, beside it, farther behind or taller (a person over a low rock) do."""
     def box(x, y, length, height):
-        return Obstacle(center_m=np.array([x, y, height / 2]), size_m=np.array([length, 1.8, height]),
-                        yaw_rad=0.0, height_m=height, point_count=500, range_m=float(np.hypot(x, y)))  # fmt: skip
+        return detection(x, y, height=height, footprint=(length, 1.8))
 
     tracker = ObstacleTracker(TrackingConfig())
     for k in range(2):
