@@ -54,6 +54,18 @@ def test_calibration_topic_by_namespace():
     assert calibration_topic("/elsewhere/image", infos) is None
 
 
+@pytest.mark.parametrize(
+    ("left_image", "left_info"),
+    [("/cam/left_image", "/cam/left_info"), ("/stereo/left/image_rect", "/stereo/camera_info_left")],
+)
+def test_calibration_topics_in_one_namespace_go_by_their_side_token(left_image, left_info):
+    right_image, right_info = (t.replace("left", "right") for t in (left_image, left_info))
+    infos = [left_info, right_info]  # the right one sorts last: a tie on namespace alone picks it
+    sides = side_tokens(left_image, right_image)
+    left = calibration_topic(left_image, infos, side=sides)
+    assert (left, calibration_topic(right_image, infos, exclude=left, side=sides[::-1])) == (left_info, right_info)
+
+
 def test_pairer_matches_within_tolerance_and_stays_bounded():
     pairer = StereoPairer(tolerance_ns=5, max_buffer=4)
     assert pairer.push(0, 100, "L1") is None

@@ -35,7 +35,7 @@ from .images import stereo_pair
 from .pairing import StereoPairer
 from .readers import McapLog, Ros1Bag
 from .tf import TransformTree, VehiclePoses
-from .topics import calibration_topic, stereo_topics
+from .topics import calibration_topic, side_tokens, stereo_topics
 
 logger = logging.getLogger(__name__)
 
@@ -102,8 +102,9 @@ class LogSource(Source):
 
     def _log_calibration(self) -> StereoCalibration | None:
         topics = [t for t, kind in self.reader.types.items() if kind in msgs.CALIBRATION_TYPES]
-        left = calibration_topic(self.left_topic, topics)
-        right = calibration_topic(self.right_topic, topics, exclude=left)
+        sides = side_tokens(self.left_topic, self.right_topic)
+        left = calibration_topic(self.left_topic, topics, side=sides)
+        right = calibration_topic(self.right_topic, topics, exclude=left, side=sides and sides[::-1])
         self.calibration_topics = (left, right)
         try:
             if left is None or right is None:

@@ -6,7 +6,8 @@ token (runs of letters or of digits) and that token is a known side pair: ``left
 Among several pairs, rectified (``rect`` in the name) beats raw, uncompressed beats compressed,
 and ``left/right`` beats the numbered forms. A calibration topic belongs to the image topic with
 which it shares the longest leading namespace (``/stereo/left/camera_info`` ↔
-``/stereo/left/image_rect_color/compressed``).
+``/stereo/left/image_rect_color/compressed``); where two share as much, to the one whose side
+token it names (``/cam/left_info`` ↔ ``/cam/left_image``).
 """
 
 from __future__ import annotations
@@ -84,8 +85,17 @@ def _shared_namespace(a: str, b: str) -> int:
     return count
 
 
-def calibration_topic(image_topic: str, calibration_topics: list[str], exclude: str | None = None) -> str | None:
-    """The calibration topic sharing the longest namespace with ``image_topic`` (at least one level)."""
-    scored = [(_shared_namespace(c, image_topic), c) for c in calibration_topics if c != exclude]
-    best = max(scored, default=(0, None))
-    return best[1] if best[0] > 0 else None
+def calibration_topic(
+    image_topic: str, calibration_topics: list[str], exclude: str | None = None, side: tuple[str, str] | None = None
+) -> str | None:
+    """The calibration topic sharing the longest namespace with ``image_topic`` (at least one level);
+    among equals, the one naming ``side[0]`` (the image topic's side token, :func:`side_tokens`)
+    rather than ``side[1]`` (the other camera's)."""
+
+    def names_side(topic: str) -> int:
+        tokens = {t.lower() for t in _tokens(topic)}
+        return (side[0] in tokens) - (side[1] in tokens) if side else 0
+
+    scored = [(_shared_namespace(c, image_topic), names_side(c), c) for c in calibration_topics if c != exclude]
+    best = max(scored, default=(0, 0, None))
+    return best[2] if best[0] > 0 else None
