@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import sys
 from pathlib import Path
 
@@ -52,6 +53,12 @@ def process(log, output, flavor, compression, rrd, overwrite, source_opts, confi
 
     with GracefulStop() as stop, source_opts.open(str(log)) as source:
         frames = source.frames(**source_opts.frames_kwargs())
+        # The first frame is read before any output is opened: a bad selection, a missing
+        # calibration or an empty selection then fails without touching an earlier output.
+        first = next(frames, None)
+        if first is None:
+            raise Failed(f"no frame of {log} could be processed ({_NOTHING_SELECTED})")
+        frames = itertools.chain([first], frames)
         sinks = [open_mcap_sink(output, flavor, config=config, metadata={"source": str(log)}, compression=compression)]
         if rrd is not None:
             from terrainmap.sinks.rerun_recording import RerunSink
@@ -96,11 +103,13 @@ def _progress(summary, frame, result) -> None:
     )
 
 
+_NOTHING_SELECTED = (
+    "no stereo pair selected: check --start/--end, and that the left and right stamps agree within --pair-tolerance-ms"
+)
+
+
 def _reasons(summary) -> str:
-    return ", ".join(f"{reason} ×{n}" for reason, n in summary.failures.most_common()) or (
-        "no stereo pair selected: check --start/--end, and that the left and right stamps agree "
-        "within --pair-tolerance-ms"
-    )
+    return ", ".join(f"{reason} ×{n}" for reason, n in summary.failures.most_common()) or _NOTHING_SELECTED
 
 
 def _report(summary, outputs) -> None:

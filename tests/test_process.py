@@ -215,6 +215,16 @@ def test_outputs_never_replace_the_input_or_each_other(small_log, tmp_path):
     assert log.read_bytes() == before
 
 
+def test_options_or_a_selection_that_fail_before_the_first_frame_leave_an_earlier_output_alone(small_log, tmp_path):
+    out = tmp_path / "o.mcap"
+    out.write_bytes(b"an earlier run's output")
+    for extra, message in ((["--start", "5", "--end", "1"], "end: 1.0 s is before start 5.0 s"),
+                           (["--start", "500"], "no stereo pair selected")):
+        result = CliRunner().invoke(cli, ["process", str(small_log), "-o", str(out), "--overwrite", *extra])
+        assert result.exit_code != 0 and message in result.output + str(result.exception), extra
+    assert out.read_bytes() == b"an earlier run's output"
+
+
 def test_an_output_that_is_no_regular_file_is_refused(small_log, tmp_path):
     """Writing to a FIFO would block until a reader came: refused before any work."""
     fifo = tmp_path / "pipe.mcap"
