@@ -16,6 +16,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .errors import InputError
+
 SEPARATOR = "=" * 80
 
 _PRIMITIVES = frozenset(
@@ -170,8 +172,16 @@ SCHEMAS: dict[str, str] = {
 
 
 def stamp(stamp_ns: int) -> dict:
-    """``builtin_interfaces/Time`` dict of a time in nanoseconds (non-negative nanosec part)."""
+    """``builtin_interfaces/Time`` dict of a time in nanoseconds (non-negative nanosec part).
+
+    Raises :class:`InputError` for a time its int32 seconds cannot hold (before 1901 or after
+    2038-01-19 03:14:07 UTC)."""
     sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
+    if not -(2**31) <= sec < 2**31:
+        raise InputError(
+            f"stamp {stamp_ns} ns lies outside what ROS 2's builtin_interfaces/Time (int32 seconds) holds, "
+            "1901–2038; write --flavor foxglove instead"
+        )
     return {"sec": sec, "nanosec": nanosec}
 
 

@@ -138,8 +138,8 @@ class ObstacleTracker:
         if self._world is not None and self._world != (vehicle_pose is not None):
             logger.warning("tracking: vehicle poses started or stopped; tracks reset")
             self.reset()
+        dt = self._advance(int(stamp_ns))  # may reset the tracks, and with them _world
         self._world = vehicle_pose is not None
-        dt = self._advance(int(stamp_ns))
         self._predict(dt)
         self._drop(self._outside(rot, trans))
 

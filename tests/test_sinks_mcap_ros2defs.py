@@ -12,6 +12,7 @@ from mcap_ros2.writer import Writer
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from scipy.spatial.transform import Rotation
 
+from terrainmap.errors import InputError
 from terrainmap.ros2defs import SCHEMAS, SEPARATOR, header, quaternion_from_matrix, stamp, transform_stamped
 
 HUMBLE = get_typestore(Stores.ROS2_HUMBLE)
@@ -60,6 +61,9 @@ def test_mcap_ros2_round_trip_of_a_transform():
 def test_stamp_and_header():
     assert stamp(-1) == {"sec": -1, "nanosec": 999_999_999}
     assert header(2_000_000_001, "x") == {"stamp": {"sec": 2, "nanosec": 1}, "frame_id": "x"}
+    assert stamp((2**31 - 1) * 10**9)["sec"] == 2**31 - 1
+    with pytest.raises(InputError, match="int32 seconds.*--flavor foxglove"):
+        stamp(2**31 * 10**9)  # 2038-01-19 03:14:08 UTC
 
 
 def test_quaternion_from_matrix_matches_scipy():

@@ -190,6 +190,9 @@ def test_kitti_odometry_sequence(tmp_path):
     frames = list(source.frames(every=2))
     assert [f.stamp_ns for f in frames] == [0, 207_200_000]
     assert frames[1].calibration.baseline_m == pytest.approx(KITTI_BASELINE)
+    (tmp_path / "times.txt").write_text("0.0\ninf\n2.072e-01\n3.108e-01\n")
+    with pytest.raises(InputError, match="times.txt: need one finite time in seconds per line"):
+        open_source(tmp_path)
 
 
 MIDDLEBURY_CALIB = """cam0=[1758.23 0 953.34; 0 1758.23 552.29; 0 0 1]

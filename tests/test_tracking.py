@@ -250,6 +250,9 @@ def test_stamp_going_back_resets_the_tracks():
     assert out.confirmed
     (after,) = tracker.update([detection(10, 0)], DT_NS)
     assert not after.confirmed and after.track_id != out.track_id
+    tracker.update([detection(10, 0)], 9 * DT_NS, pose(100.0))
+    tracker.update([detection(10, 0)], 8 * DT_NS, pose(100.0))  # back in time, with a pose
+    assert tracker.in_world_frame
 
 
 def test_switching_between_pose_and_no_pose_resets_the_tracks():

@@ -116,8 +116,8 @@ class KittiOdometryFolder(FolderSource):
             return None
         try:
             return [round(float(line) * 1e9) for line in read_lines(path)]
-        except ValueError:
-            raise InputError(f"{path}: need one time in seconds per line") from None
+        except (ValueError, OverflowError):  # OverflowError: inf
+            raise InputError(f"{path}: need one finite time in seconds per line") from None
 
     def _read_calibration(self, path: Path):
         return calib_io.kitti_calibration(path, ("P2", "P3")), None
