@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import time
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -123,13 +123,16 @@ class PipelineState:
     ``matcher``: the stereo matcher, rebuilt only when the calibration or config changes.
     ``extrinsics``: camera pose estimated from the data on the first frame where the ground fit
     succeeds, then kept (the camera is rigidly mounted); unused when frames carry extrinsics.
-    ``tracker``: obstacle tracks.
+    ``tracker``: obstacle tracks, of the frames ``tracked_matcher`` matched. A new calibration
+    (another camera, or the next scene of a folder of unrelated scenes, each with its calibration
+    file) starts the estimated pose and the tracks afresh.
     """
 
     config: Config
     matcher: StereoMatcher | None = None
     extrinsics: Extrinsics | None = None
     tracker: ObstacleTracker | None = None
+    tracked_matcher: StereoMatcher | None = None
 
     def __post_init__(self) -> None:
         if self.tracker is None:
@@ -138,13 +141,15 @@ class PipelineState:
 
 @dataclass
 class Matched:
-    """The first half of a frame (:func:`match_frame`): stereo and the points in the vehicle frame."""
+    """The first half of a frame (:func:`match_frame`): stereo and the points in the vehicle frame,
+    and the ``matcher`` (``state.matcher`` then) that matched it."""
 
     stereo: StereoResult
     points_vehicle: np.ndarray
     pixels: np.ndarray
     extrinsics: Extrinsics
     timings_ms: dict[str, float]
+    matcher: StereoMatcher | None = None
 
     @property
     def camera(self) -> StereoCamera:
@@ -159,23 +164,29 @@ def match_frame(frame: StereoFrame, config: Config, state: PipelineState) -> Mat
     watch = Stopwatch()
     with watch("stereo"):
         if state.matcher is None or not state.matcher.same_setup(frame.calibration, config.stereo):
+            if state.matcher is not None:  # another camera or scene (a folder of KITTI or Middlebury
+                state.extrinsics = None  # scenes): the pose estimated before does not hold for it
             state.matcher = StereoMatcher(frame.calibration, config.stereo)
         extrinsics = frame.extrinsics or state.extrinsics
         stereo = state.matcher.compute(frame.left, frame.right, extrinsics)  # drops the sky if it can
     with watch("points"):
         if extrinsics is None:  # the sky's horizon needs the extrinsics: estimated first, here
             points_cam, _ = state.matcher.reproject(stereo.disparity)
-            extrinsics = state.extrinsics = estimate_extrinsics(points_cam, config.extrinsics)
+            estimated = estimate_extrinsics(points_cam, config.extrinsics)
+            extrinsics = state.extrinsics = replace(estimated, camera_frame_id=frame.frame_id)
             state.matcher.drop_sky(stereo, extrinsics)
         points_cam, pixels = state.matcher.reproject(stereo.disparity)
         points = to_vehicle(points_cam, extrinsics)
-    return Matched(stereo, points, pixels, extrinsics, watch.ms)
+    return Matched(stereo, points, pixels, extrinsics, watch.ms, state.matcher)
 
 
 def finish_frame(frame: StereoFrame, matched: Matched, config: Config, state: PipelineState) -> FrameResult:
     """Points → grid → terrain → slope, labels → obstacles (``state.tracker``) and cost."""
     watch = Stopwatch()
     watch.ms.update(matched.timings_ms)
+    if matched.matcher is not state.tracked_matcher:  # another camera or scene: its obstacles are
+        state.tracker.reset()  # not these (here, as match_frame may run a frame ahead)
+        state.tracked_matcher = matched.matcher
     points = matched.points_vehicle
     terrain = map_points(points, config, watch, matched.camera)
     with watch("obstacles"):

@@ -188,6 +188,30 @@ def small_log(tmp_path_factory):
     return path
 
 
+def test_a_new_calibration_starts_the_camera_pose_and_the_tracks_afresh(small_log):
+    """A folder of unrelated scenes (KITTI, Middlebury) gives each scene its calibration file: the
+    pose estimated on one scene and its tracks must not carry over to the next."""
+    import dataclasses
+
+    from terrainmap.pipeline import PipelineState, process_frame
+
+    with open_source(small_log) as source:
+        frames = [dataclasses.replace(f, extrinsics=None) for f in source.frames()]  # estimated
+    config, state = Config(), PipelineState(Config())
+    first = [process_frame(frame, config, state) for frame in frames]
+    assert first[0].extrinsics.source == "estimated"
+    assert first[0].extrinsics.camera_frame_id == frames[0].frame_id == "left_camera_optical"
+    assert any(o.confirmed for o in first[1].obstacles)
+    wrong = state.extrinsics = dataclasses.replace(state.extrinsics, translation=np.array([0.0, 0.0, 9.0]))
+    scene_b = dataclasses.replace(
+        frames[1], index=2, stamp_ns=frames[1].stamp_ns + 10**8,
+        calibration=dataclasses.replace(frames[1].calibration, source="scene_b/calib.txt"),
+    )
+    again = process_frame(scene_b, config, state)
+    assert again.extrinsics is not wrong and again.extrinsics.translation[2] < 3
+    assert again.obstacles and not any(o.confirmed for o in again.obstacles)  # seen once so far
+
+
 def test_outputs_never_replace_the_input_or_each_other(small_log, tmp_path):
     log = tmp_path / "in.mcap"
     shutil.copy(small_log, log)

@@ -262,6 +262,32 @@ def test_vehicle_pose_goes_on_tf_as_odometry_to_base_link(tmp_path, flavor):
         np.testing.assert_allclose(np.abs(np.dot([q.x, q.y, q.z, q.w], yaw.as_quat())), 1.0, atol=1e-12)
 
 
+@pytest.mark.parametrize("flavor", ["foxglove", "ros2"])
+def test_messages_are_placed_in_the_vehicle_frame_the_extrinsics_name(tmp_path, flavor):
+    """A log whose tf names the vehicle ``base_footprint``: grid, points, obstacles and the camera
+    transform all hang from that frame, so the output joins the log's tf tree."""
+    frames = []
+    for i in range(3):
+        frame, result = make_frame(i)
+        extrinsics = dataclasses.replace(result.extrinsics, source="tf", vehicle_frame_id="base_footprint")
+        frames.append((frame, dataclasses.replace(result, extrinsics=extrinsics)))
+    path = tmp_path / f"footprint_{flavor}.mcap"
+    write_frames(path, flavor, frames)
+    topics = read_messages(path, ProtobufDecoderFactory() if flavor == "foxglove" else Ros2DecoderFactory())
+    frame_ids = set()
+    for topic, messages in topics.items():
+        for _, _, msg in messages:
+            if topic in ("/tf", "/tf_static"):
+                frame_ids |= {t.parent_frame_id if flavor == "foxglove" else t.header.frame_id for t in msg.transforms}
+            elif topic == "/terrainmap/obstacles":
+                parts = msg.entities if flavor == "foxglove" else [m.header for m in msg.markers]
+                frame_ids |= {part.frame_id for part in parts}
+            else:
+                frame_ids.add(msg.frame_id if flavor == "foxglove" else msg.header.frame_id)
+    assert frame_ids == {"base_footprint"}
+    assert {"/tf_static", "/terrainmap/obstacles"} <= topics.keys() and len(topics) >= 4
+
+
 def test_grid_without_cost_layer(tmp_path):
     path = tmp_path / "nocost.mcap"
     write_frames(path, "foxglove", [make_frame(0, cost=False)])

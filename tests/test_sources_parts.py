@@ -88,9 +88,14 @@ def test_transform_tree_composes_up_to_the_vehicle_frame():
     np.testing.assert_allclose(ext.translation, [0.5, 0.2, 1.0], atol=1e-12)
     np.testing.assert_allclose(ext.rotation, quaternion_to_matrix([0, 0, np.sin(np.pi / 4), np.cos(np.pi / 4)]))
     assert tree.extrinsics("unknown_frame") is None
-    rootless = TransformTree()
-    rootless.add("world", "cam", [1, 2, 3], [0, 0, 0, 1])
-    assert rootless.extrinsics("cam").vehicle_frame_id == "world"
+    other = TransformTree()  # no base_link: the highest frame below the world frames is the vehicle
+    other.add("map", "odom", [5, 0, 0], [0, 0, 0, 1])
+    other.add("odom", "chassis", [10, 0, 0], [0, 0, 0, 1])
+    other.add("chassis", "cam", [1, 2, 3], [0, 0, 0, 1])
+    other.add("world", "fixed_cam", [1, 2, 3], [0, 0, 0, 1])
+    assert other.extrinsics("cam").vehicle_frame_id == "chassis"
+    np.testing.assert_allclose(other.extrinsics("cam").translation, [1, 2, 3])
+    assert other.extrinsics("fixed_cam") is None  # only a world frame above it: estimated instead
 
 
 def test_broken_static_transforms_are_skipped():

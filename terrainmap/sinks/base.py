@@ -26,7 +26,6 @@ from ..types import Extrinsics, FrameResult, Obstacle, StereoFrame
 
 log = logging.getLogger(__name__)
 
-VEHICLE_FRAME = "base_link"
 METADATA_NAME = "terrainmap"
 GRID_LAYERS = ("elevation", "slope", "cost", "label", "valid")
 """Layers written to the grid messages, in this order, where present (``cost`` is optional)."""

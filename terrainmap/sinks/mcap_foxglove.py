@@ -1,6 +1,7 @@
 """MCAP output with Foxglove protobuf schemas (the default flavour): opens in Foxglove with no setup.
 
-Topics, all in frame ``base_link`` and stamped with the source image's ``stamp_ns`` (log time,
+Topics, all in the vehicle frame (``Extrinsics.vehicle_frame_id``: ``base_link``, or
+``base_footprint`` where the log's tf has only that) and stamped with the source image's ``stamp_ns`` (log time,
 publish time and message timestamp):
 
 - ``/terrainmap/grid`` ``foxglove.Grid``: fields ``elevation`` (float32, m, NaN = no data),
@@ -47,7 +48,6 @@ from .base import (
     FLOAT_LAYERS,
     METADATA_NAME,
     POINT_DTYPE,
-    VEHICLE_FRAME,
     McapSink,
     grid_layers,
     obstacle_rgba,
@@ -89,7 +89,7 @@ def grid_message(result: FrameResult) -> Grid:
         cells[name] = array.T
     return Grid(
         timestamp=_timestamp(result.stamp_ns),
-        frame_id=VEHICLE_FRAME,
+        frame_id=result.extrinsics.vehicle_frame_id,
         pose=_pose((grid.x_min_m, grid.y_min_m, 0.0)),
         column_count=m0,
         cell_size=Vector2(x=grid.cell_size_m, y=grid.cell_size_m),
@@ -100,13 +100,9 @@ def grid_message(result: FrameResult) -> Grid:
     )
 
 
-def points_message(result: FrameResult) -> PointCloud:
-    """``foxglove.PointCloud`` with x, y, z (float32, m, vehicle frame) and uint8 ``label``."""
-    return PointCloud.FromString(encode_points(result))
-
-
 def encode_points(result: FrameResult) -> bytearray:
-    """Serialized :func:`points_message`, built without protobuf copying the point data.
+    """Serialized ``foxglove.PointCloud`` with x, y, z (float32, m, vehicle frame) and uint8
+    ``label``, built without protobuf copying the point data.
 
     Protobuf's own serializer takes ~10 ms for 300k points (4 MB); here the small fields are
     serialized by protobuf and the ``data`` field (bytes, number 6) is appended by hand
@@ -114,7 +110,7 @@ def encode_points(result: FrameResult) -> bytearray:
     """
     head = PointCloud(
         timestamp=_timestamp(result.stamp_ns),
-        frame_id=VEHICLE_FRAME,
+        frame_id=result.extrinsics.vehicle_frame_id,
         pose=_pose((0.0, 0.0, 0.0)),
         point_stride=POINT_DTYPE.itemsize,
         fields=_fields(POINT_DTYPE),
@@ -135,14 +131,14 @@ def _varint(value: int) -> bytes:
             return bytes(out)
 
 
-def _entity(obstacle: Obstacle, index: int, stamp: Timestamp) -> SceneEntity:
+def _entity(obstacle: Obstacle, index: int, stamp: Timestamp, frame_id: str) -> SceneEntity:
     center = np.asarray(obstacle.center_m, float)
     size = np.asarray(obstacle.size_m, float)
     r, g, b, a = obstacle_rgba(obstacle)
     top = center + [0.0, 0.0, size[2] / 2 + 0.3]
     return SceneEntity(
         timestamp=stamp,
-        frame_id=VEHICLE_FRAME,
+        frame_id=frame_id,
         id=f"obstacle/{obstacle.track_id if obstacle.track_id >= 0 else f'u{index}'}",
         cubes=[
             CubePrimitive(
@@ -169,7 +165,9 @@ def obstacles_message(result: FrameResult) -> SceneUpdate:
     stamp = _timestamp(result.stamp_ns)
     return SceneUpdate(
         deletions=[SceneEntityDeletion(timestamp=stamp, type=SceneEntityDeletion.ALL)],
-        entities=[_entity(obstacle, i, stamp) for i, obstacle in enumerate(result.obstacles)],
+        entities=[
+            _entity(obstacle, i, stamp, result.extrinsics.vehicle_frame_id) for i, obstacle in enumerate(result.obstacles)
+        ],
     )
 
 

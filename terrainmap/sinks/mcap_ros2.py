@@ -1,6 +1,7 @@
 """MCAP output with ROS 2 messages (CDR, profile ``ros2``) for ROS users.
 
-Topics, all in frame ``base_link`` and stamped with the source image's ``stamp_ns``:
+Topics, all in the vehicle frame (``Extrinsics.vehicle_frame_id``: ``base_link``, or
+``base_footprint`` where the log's tf has only that) and stamped with the source image's ``stamp_ns``:
 
 - ``/terrainmap/grid_map`` ``grid_map_msgs/msg/GridMap``: layers ``elevation`` (m, NaN = no
   data; the only basic layer), ``slope`` (rad), ``cost`` (when computed), ``label`` and
@@ -42,7 +43,6 @@ from ..types import FrameResult, Obstacle, StereoFrame
 from .base import (
     METADATA_NAME,
     POINT_DTYPE,
-    VEHICLE_FRAME,
     McapSink,
     grid_layers,
     obstacle_rgba,
@@ -58,7 +58,7 @@ def grid_map_message(result: FrameResult) -> dict:
     layers = grid_layers(result)
     grid = result.grid.config
     return {
-        "header": header(result.stamp_ns, VEHICLE_FRAME),
+        "header": header(result.stamp_ns, result.extrinsics.vehicle_frame_id),
         "info": grid_map_frame(grid.x_min_m, grid.y_min_m, grid.shape, grid.cell_size_m),
         "layers": list(layers),
         "basic_layers": ["elevation"] if "elevation" in layers else [],
@@ -78,7 +78,7 @@ def encode_point_cloud2(result: FrameResult) -> bytearray:
     ]
     head, tail = point_cloud2_head_tail(
         {
-            "header": header(result.stamp_ns, VEHICLE_FRAME),
+            "header": header(result.stamp_ns, result.extrinsics.vehicle_frame_id),
             "height": 1,
             "width": n,
             "fields": fields,
@@ -91,11 +91,11 @@ def encode_point_cloud2(result: FrameResult) -> bytearray:
     return points_record(result, head, tail)
 
 
-def _markers(obstacle: Obstacle, marker_id: int, stamp_ns: int) -> list[dict]:
+def _markers(obstacle: Obstacle, marker_id: int, stamp_ns: int, frame_id: str) -> list[dict]:
     center = np.asarray(obstacle.center_m, float)
     size = np.asarray(obstacle.size_m, float)
     r, g, b, a = obstacle_rgba(obstacle)
-    common = {"header": header(stamp_ns, VEHICLE_FRAME), "id": marker_id, "action": MARKER_ADD}
+    common = {"header": header(stamp_ns, frame_id), "id": marker_id, "action": MARKER_ADD}
     cube = {
         **common,
         "ns": "obstacles",
@@ -118,9 +118,10 @@ def _markers(obstacle: Obstacle, marker_id: int, stamp_ns: int) -> list[dict]:
 
 def marker_array_message(result: FrameResult) -> dict:
     """MarkerArray dict: DELETEALL, then a cube and a text marker per obstacle (id = track id or index)."""
-    markers = [{"header": header(result.stamp_ns, VEHICLE_FRAME), "action": MARKER_DELETEALL}]
+    frame_id = result.extrinsics.vehicle_frame_id
+    markers = [{"header": header(result.stamp_ns, frame_id), "action": MARKER_DELETEALL}]
     for i, obstacle in enumerate(result.obstacles):
-        markers += _markers(obstacle, obstacle.track_id if obstacle.track_id >= 0 else i, result.stamp_ns)
+        markers += _markers(obstacle, obstacle.track_id if obstacle.track_id >= 0 else i, result.stamp_ns, frame_id)
     return {"markers": markers}
 
 

@@ -7,6 +7,7 @@ mount is static, and only the edges between the camera and the vehicle frame mat
 
 from __future__ import annotations
 
+import itertools
 from bisect import bisect_left
 
 import numpy as np
@@ -14,6 +15,7 @@ import numpy as np
 from ..types import Extrinsics
 
 VEHICLE_FRAMES = ("base_link", "base_footprint")
+WORLD_FRAMES = ("map", "odom", "world", "earth")
 
 
 def usable(translation, quaternion_xyzw) -> bool:
@@ -69,14 +71,17 @@ class TransformTree:
         return any(name in VEHICLE_FRAMES for name in self.chain(frame))
 
     def extrinsics(self, camera_frame: str) -> Extrinsics | None:
-        """Pose of ``camera_frame`` in ``base_link`` (else ``base_footprint``, else the root).
+        """Pose of ``camera_frame`` in ``base_link`` (else ``base_footprint``, else the highest
+        ancestor below the world frames of REP-105, ``map``, ``odom``, ``world``, ``earth``, which
+        move with respect to the vehicle).
 
-        None when the tree knows no parent of the camera frame.
+        None when the tree knows no such frame above the camera frame.
         """
         chain = self.chain(camera_frame)
-        if len(chain) == 1:
+        body = list(itertools.takewhile(lambda name: name not in WORLD_FRAMES, chain))
+        target = next((name for name in VEHICLE_FRAMES if name in chain), body[-1] if body else chain[0])
+        if target == chain[0]:
             return None
-        target = next((name for name in VEHICLE_FRAMES if name in chain), chain[-1])
         T = np.eye(4)
         for child in chain[: chain.index(target)]:
             T = self._parent[child][1] @ T
