@@ -256,10 +256,13 @@ def test_unsupported_encoding_names_topic_and_encoding(tmp_path):
 def test_topic_overrides_and_partner_guessing(tmp_path):
     path = write_ros2_log(tmp_path / "cams.mcap", n=2, topics=("/cam0/image_raw", "/cam1/image_raw"), camera_info=False)
     calib = tmp_path / "calib.yaml"
-    calib.write_text("width: 8\nheight: 6\nfx: 400\nfy: 400\ncx: 4\ncy: 3\nbaseline_m: 0.2\n")
+    calib.write_text("width: 8\nheight: 6\nfx: 400\nfy: 400\ncx: 4\ncy: 3\nbaseline_m: 0.2\n"
+                     "extrinsics:\n  rotation: [[0, 0, 1], [-1, 0, 0], [0, -1, 0]]\n  translation_m: [0, 0, 1.5]\n")
     with open_source(path, right_topic="/cam1/image_raw", calibration=calib) as source:
         assert (source.left_topic, source.right_topic) == ("/cam0/image_raw", "/cam1/image_raw")
-        assert next(source.frames()).calibration.baseline_m == 0.2
+        frame = next(source.frames())
+        assert frame.calibration.baseline_m == 0.2
+        assert (frame.extrinsics.source, frame.extrinsics.camera_frame_id) == ("calibration", "left_optical")
     with open_source(path, left_topic="/cam1/image_raw", right_topic="/cam0/image_raw", calibration=calib) as swapped:
         np.testing.assert_array_equal(next(swapped.frames()).left, pair_images(0)[1])
     with pytest.raises(InputError, match="'/nope' is not an image topic.*/cam0/image_raw"):

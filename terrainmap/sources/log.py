@@ -23,6 +23,7 @@ import logging
 from abc import abstractmethod
 from collections import deque
 from collections.abc import Iterator
+from dataclasses import replace
 from functools import partial
 from pathlib import Path
 
@@ -87,7 +88,10 @@ class LogSource(Source):
         self.calibration_error: CalibrationError | None = None
         self.calibration: StereoCalibration | None = override[0] if override else self._log_calibration()
         self._static_tf_topics, self.odometry_topics = self._tf_topics()
-        self.extrinsics: Extrinsics | None = (override[1] if override else None) or self._tf_extrinsics()
+        given = override[1] if override else None
+        if given is not None:  # a calibration file names no frames: the camera's is the images'
+            given = replace(given, camera_frame_id=self.frame_id)
+        self.extrinsics: Extrinsics | None = given or self._tf_extrinsics()
 
     @abstractmethod
     def _open_reader(self) -> McapLog | Ros1Bag:
