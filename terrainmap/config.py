@@ -127,7 +127,7 @@ class TerrainConfig:
     alpha_per_iteration: float = 0.5
     """Weighting speed: α = max(1, alpha_per_iteration · iteration), iteration counted from 1."""
     control_weight_min: float = 0.2
-    """Lower bound of the control-point weights R (normalised to mean 1) remapped from W."""
+    """Lower bound of the control-point weights R (normalised to max 1) remapped from W."""
     equalize_tolerance_m: float = 0.05
     """Valid samples less than this above the surface are not equalized (stereo noise band);
     keeps the one-sided equalization from dragging the surface below the terrain."""
@@ -142,7 +142,7 @@ class TerrainConfig:
     slope_noise_iterations: int = 3
     """Where the stereo rig is known, the surfaces of the first this many iterations recompute
     eq. 1's samples with the stereo noise on the terrain's slope instead of level ground
-    (decision 8 in :mod:`terrainmap.terrain`; 0: level ground throughout)."""
+    (decision 7 in :mod:`terrainmap.terrain`; 0: level ground throughout)."""
     epsilon_m: float = 0.005
     """Stop early when no valid sample moved more than this in the last equalization."""
     smoothness: float = 1e-3
@@ -151,7 +151,8 @@ class TerrainConfig:
     filled_weight: float = 0.5
     """Relative weight of cells filled from neighbours (no points of their own)."""
     min_valid_cells: int = 16
-    """Fewer valid cells than this (and than (degree+1)²) → the frame fails with no terrain."""
+    """Fewer observed cells (holding points) than this (and than (degree+1)²) → the frame fails with
+    no terrain."""
 
     def validate(self, grid: GridConfig | None = None) -> None:
         _check(1 <= self.degree <= 5, "terrain.degree", f"must be 1..5, got {self.degree}")

@@ -69,16 +69,6 @@ class HeightGrid:
     def shape(self) -> tuple[int, int]:
         return self.z.shape
 
-    @property
-    def x_centers(self) -> np.ndarray:
-        """Cell-centre x coordinates, (m0,) metres."""
-        return cell_centers(self.config)[0]
-
-    @property
-    def y_centers(self) -> np.ndarray:
-        """Cell-centre y coordinates, (m1,) metres."""
-        return cell_centers(self.config)[1]
-
 
 def cell_centers(config: GridConfig) -> tuple[np.ndarray, np.ndarray]:
     """Cell-centre coordinates ``(x (m0,), y (m1,))`` in metres, vehicle frame."""

@@ -25,8 +25,6 @@ Per cluster (vehicle frame, metres):
 
 from __future__ import annotations
 
-import logging
-
 import numpy as np
 from scipy import ndimage
 
@@ -34,8 +32,6 @@ from .config import GridConfig, ObstacleConfig
 from .errors import InputError
 from .grid import as_points, cell_centers, cell_index
 from .types import Label, Obstacle
-
-logger = logging.getLogger(__name__)
 
 _EIGHT = np.ones((3, 3), dtype=bool)
 

@@ -106,7 +106,7 @@ def map_surface(
     """The surface stage of :func:`map_points`: the terrain fit, its layers (elevation, slope,
     ..., per-cell ``label`` and ``valid``, (m0, m1) each) and the per-cell (above, below)
     labelling thresholds. The cells are labelled against ``terrain.grid``, whose samples the fit
-    recomputed on the terrain's slope (terrain.py, decision 8)."""
+    recomputed on the terrain's slope (terrain.py, decision 7)."""
     terrain = estimate_terrain(grid, config.terrain)
     gradient = (terrain.dz_dx, terrain.dz_dy)
     layers = grid_layers(terrain.elevation, *gradient)

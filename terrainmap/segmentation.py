@@ -119,7 +119,7 @@ def label_cells(
     limits: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> np.ndarray:
     """Per-cell labels (m0, m1) uint8: UNKNOWN where no point fell, OBSTACLE where the cell's top
-    (``grid.z_top``, min(max z, mean + σ)) rises above the surface by the obstacle threshold,
+    (``grid.z_top``, mean + σ) rises above the surface by the obstacle threshold,
     BELOW where its eq.-1 sample lies under it by the below threshold, TERRAIN otherwise.
     ``limits``: per-cell (above, below) thresholds as in :func:`label_points`."""
     above, below = limits or thresholds(grid.config, config)

@@ -2,8 +2,7 @@
 
 The slope angle at (x, y) is ``atan(‖∇S‖)`` (radians, 0 = level), where ∇S = (∂S/∂x, ∂S/∂y)
 comes from the quotient rule on eq. 2 (:meth:`RationalSurface.gradient`), never from finite
-differences. ``aspect`` is the direction of steepest ascent, ``atan2(∂S/∂y, ∂S/∂x)`` (radians,
-0 = uphill straight ahead, +π/2 = uphill to the left).
+differences: :func:`slope_at` at any points, :func:`layers` at the cell centres.
 """
 
 from __future__ import annotations
@@ -11,8 +10,6 @@ from __future__ import annotations
 import numpy as np
 
 from .bspline import RationalSurface
-from .config import GridConfig
-from .grid import cell_centers
 
 
 def slope_angle(gx: np.ndarray, gy: np.ndarray) -> np.ndarray:
@@ -35,9 +32,3 @@ def layers(elevation: np.ndarray, gx: np.ndarray, gy: np.ndarray) -> dict[str, n
         "dz_dx": gx.astype(np.float32),
         "dz_dy": gy.astype(np.float32),
     }
-
-
-def surface_layers(surface: RationalSurface, grid: GridConfig) -> dict[str, np.ndarray]:
-    """:func:`layers` of ``surface`` at the cell centres of ``grid``, arrays (m0, m1)."""
-    xs, ys = cell_centers(grid)
-    return layers(surface.on_grid(xs, ys), *surface.gradient_on_grid(xs, ys))

@@ -47,7 +47,7 @@ property it keeps:
    final net is reached *or* no sample was equalized in the last step. We stop when the net is
    final or no valid sample moved more than ``epsilon_m``; then one last fit on the final net
    with the last W, R and P gives the surface.
-8. **Stereo noise on slopes.** Eq. 1 with the grid's noise discount (:mod:`terrainmap.grid`)
+7. **Stereo noise on slopes.** Eq. 1 with the grid's noise discount (:mod:`terrainmap.grid`)
    needs the terrain's slope, which only the fit knows: a disparity error moves a point on ground
    that slopes towards the camera several times more in height than on level ground, so the
    level-ground discount leaves σ, and the sample's low bias, too large there. Where the grid
@@ -58,7 +58,7 @@ property it keeps:
    do as well as one per iteration, and 1 nearly so). It took the 10–20 m elevation RMSE on the
    simulated 17° climb from 16 to 8 cm and the canyon's terrain F1 from 0.77 to 0.95
    (README, Accuracy).
-9. **Well-posedness.** Each fit adds a small second-difference penalty on Q (see
+8. **Well-posedness.** Each fit adds a small second-difference penalty on Q (see
    :class:`~terrainmap.bspline.TensorFit`), so knot spans without valid samples are bridged
    smoothly instead of making the normal equations singular.
 """
@@ -85,7 +85,7 @@ class TerrainEstimate:
     iteration, (m0, m1) metres (``grid.z`` holds them before). ``weights``: the last sample
     weights W of eq. 3, (m0, m1). ``iterations``: fits before the final one. ``mean_error_m``:
     ē of the last iteration. ``converged``: stopped early because no sample moved more than ε.
-    ``grid``: the grid whose samples the final fit used (decision 8; the input grid when it has
+    ``grid``: the grid whose samples the final fit used (decision 7; the input grid when it has
     no stereo rig).
     """
 
@@ -196,7 +196,7 @@ def estimate_terrain(grid: HeightGrid, config: TerrainConfig) -> TerrainEstimate
     while True:
         iteration += 1
         Q = fit.fit(P, base * W, R, config.smoothness)
-        if iteration <= config.slope_noise_iterations and grid.camera is not None:  # decision 8
+        if iteration <= config.slope_noise_iterations and grid.camera is not None:  # decision 7
             S, gx, gy = fit.evaluate_with_gradient(Q, R)
             grid = grid.on_slope(gx, gy)
         else:

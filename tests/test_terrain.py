@@ -6,6 +6,8 @@ from hypothesis import strategies as st
 from terrainmap.config import GridConfig, TerrainConfig, load_config
 from terrainmap.errors import ConfigError, FrameError
 from terrainmap.grid import cell_centers, quantize
+from terrainmap.slope import layers as slope_layers
+from terrainmap.slope import slope_at
 from terrainmap.synthetic import grid_samples
 from terrainmap.terrain import equalize, estimate_terrain, fitter_for, sample_weights
 from terrainmap.types import StereoCamera
@@ -47,6 +49,10 @@ def test_clean_flat_scene_converges_early_and_exactly():
     est = estimate_terrain(quantize(pts, cfg), TerrainConfig())
     assert est.converged and est.iterations < 4
     np.testing.assert_allclose(est.surface.on_grid(xs, ys), 0.1 + 0.05 * X, atol=1e-3)
+    slope, gx, gy = slope_at(est.surface, np.array([3.0, 20.0]), np.array([-5.0, 2.0]))  # any points
+    np.testing.assert_allclose(slope, np.arctan(0.05), atol=1e-3)
+    layers = slope_layers(est.elevation, est.dz_dx, est.dz_dy)  # and on the grid
+    np.testing.assert_allclose(layers["slope"], np.arctan(0.05), atol=1e-3)
 
 
 def test_noise_alone_leaves_little_bias():
@@ -77,7 +83,7 @@ def test_stereo_noise_below_the_surface_does_not_hold_it_down(seed):
 def test_samples_on_a_slope_facing_the_camera_follow_its_noise():
     """Ground rising 17° ahead of a stereo rig (1.8 m up, f·B = 150 px·m, 0.5 px noise): the
     level-ground noise discount of eq. 1 leaves the samples, and the surface, ~14 cm low at
-    10–20 m; recomputing them on the slope of the early surfaces (decision 8) halves that."""
+    10–20 m; recomputing them on the slope of the early surfaces (decision 7) halves that."""
     rig = StereoCamera(np.array([0.0, 0.0, 1.8]), np.array([1.0, 0.0, 0.0]), 150.0)
     grid_config = GridConfig()
     rng = np.random.default_rng(0)

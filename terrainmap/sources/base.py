@@ -26,8 +26,8 @@ class PairRef:
     load: Callable[[], StereoFrame]
 
 
-def describe_extrinsics(extrinsics: Extrinsics | None) -> dict | str:
-    """``describe()``'s view of the extrinsics: their dict, or a note that they will be estimated."""
+def extrinsics_entry(extrinsics: Extrinsics | None) -> dict | str:
+    """The ``extrinsics`` entry of ``describe()``: their dict, or a note that they will be estimated."""
     return extrinsics.to_dict() if extrinsics is not None else "none (will be estimated from the ground)"
 
 

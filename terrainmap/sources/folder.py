@@ -23,7 +23,7 @@ from pathlib import Path
 from ..errors import CalibrationError, InputError
 from ..types import Extrinsics, StereoCalibration, StereoFrame
 from . import calibration as calib_io
-from .base import DEFAULT_PERIOD_NS, PairRef, Source, describe_extrinsics
+from .base import DEFAULT_PERIOD_NS, PairRef, Source, extrinsics_entry
 from .images import read_image, stereo_pair
 
 logger = logging.getLogger(__name__)
@@ -142,7 +142,7 @@ class FolderSource(Source):
             "right": str(first.right.parent),
             "first_pair": [first.left.name, first.right.name],
             "calibration": calib_io.summary(calib),
-            "extrinsics": describe_extrinsics(extrinsics),
+            "extrinsics": extrinsics_entry(extrinsics),
         }
 
 

@@ -31,7 +31,7 @@ from ..errors import CalibrationError, InputError
 from ..types import Extrinsics, StereoCalibration, StereoFrame
 from . import calibration as calib_io
 from . import messages as msgs
-from .base import PairRef, Source, describe_extrinsics
+from .base import PairRef, Source, extrinsics_entry
 from .images import stereo_pair
 from .pairing import StereoPairer
 from .readers import McapLog, Ros1Bag
@@ -221,7 +221,7 @@ class LogSource(Source):
             "frame_id": self.frame_id,
             "calibration_topics": list(self.calibration_topics),
             "calibration": calib_io.summary(self.calibration) or f"missing: {self.calibration_error}",
-            "extrinsics": describe_extrinsics(self.extrinsics),
+            "extrinsics": extrinsics_entry(self.extrinsics),
             "odometry_topics": self.odometry_topics,
         }
 
