@@ -103,8 +103,8 @@ def label_points(
     # folded in, so z − gx·x − gy·y is compared with the last two columns.
     table = np.stack([gx, gy, np.append(above.ravel(), 0) + c, np.append(-below.ravel(), 0) + c], axis=1)
     rows = table.astype(np.float32).take(index, axis=0)
-    s = pts[:, 2] - rows[:, 0] * pts[:, 0] - rows[:, 1] * pts[:, 1]
-    with np.errstate(invalid="ignore"):
+    with np.errstate(invalid="ignore"):  # non-finite points (cell index: outside) end up UNKNOWN
+        s = pts[:, 2] - rows[:, 0] * pts[:, 0] - rows[:, 1] * pts[:, 1]
         labels = (s > rows[:, 2]).view(np.uint8) + np.uint8(Label.TERRAIN)  # TERRAIN 1, OBSTACLE 2
         labels += (s < rows[:, 3]).view(np.uint8) * np.uint8(Label.BELOW - Label.TERRAIN)  # BELOW 3
     labels *= (index < elevation.size).view(np.uint8)  # UNKNOWN 0 outside the area (and non-finite points)

@@ -1,4 +1,5 @@
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -37,6 +38,7 @@ def test_per_point_surface_matches_exact_evaluation():
     assert err[~corners].max() < 0.05
 
 
+@pytest.mark.filterwarnings("error")  # non-finite points are labelled quietly
 def test_points_are_labelled_against_the_surface():
     config = Config()
     rng = np.random.default_rng(0)
@@ -45,14 +47,14 @@ def test_points_are_labelled_against_the_surface():
     ground = np.column_stack([x, y, rolling_terrain(x, y) + rng.normal(0, 0.02, x.size)])
     pole = np.column_stack([np.full(200, 15.0), np.full(200, 2.0), rolling_terrain(15, 2) + np.linspace(0.6, 2, 200)])
     hole = np.array([[10.0, -3.0, rolling_terrain(10, -3) - 1.0]])
-    outside = np.array([[100.0, 0, 0], [np.nan, 1, 1], [10, 50, 0]])
+    outside = np.array([[100.0, 0, 0], [np.nan, 1, 1], [10, 50, 0], [np.inf, 0, 1], [5, 0, -np.inf]])
     pts = np.vstack([ground, pole, hole, outside]).astype(np.float32)
     labels = map_points(pts, config).point_labels
     n = len(ground)
     assert np.mean(labels[:n] == Label.TERRAIN) > 0.99
     assert np.all(labels[n : n + 200] == Label.OBSTACLE)
     assert labels[n + 200] == Label.BELOW
-    assert np.all(labels[-3:] == Label.UNKNOWN)
+    assert np.all(labels[-5:] == Label.UNKNOWN)
 
 
 def test_thresholds_grow_with_range():

@@ -101,6 +101,8 @@ def test_calibration_toml_extrinsics_and_unrectified(tmp_path):
     [
         ("K_left = [[500, 0, 4]", "K_left = [[nan, 0, 4]", "'K_left' must be a list of finite numbers"),
         ("quaternion_xyzw = [-0.5, 0.5, -0.5, 0.5]", "quaternion_xyzw = [0, 0, 0, 0]", "must not be zero"),
+        ("quaternion_xyzw = [-0.5, 0.5, -0.5, 0.5]", "", "'rotation' is required in extrinsics \\(or quaternion_xyzw\\)$"),
+        ("K_left = [[500, 0, 4], [0, 500, 3], [0, 0, 1]]", "", "'K_left' is required as rectified is false$"),
         ("translation_m = [0.5, 0.0, 1.5]", "translation_m = [nan, 0.0, 1.5]", "'translation_m' must be a list of finite"),
         ("translation_m = [0.5, 0.0, 1.5]", "translation_m = [0.5, 0.0, 1e30]", "translation_m must be within 1 km"),
         ("rectified = false", 'rectified = "false"', "rectified must be true or false"),

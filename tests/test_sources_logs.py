@@ -285,6 +285,26 @@ def test_raw_distorted_images_give_an_unrectified_calibration(tmp_path):
     np.testing.assert_allclose(calib.T, [-0.25, 0, 0])
 
 
+def test_undistorted_raw_images_with_a_rectifying_rotation_are_still_rectified():
+    """D = 0 alone does not make images rectified: a CameraInfo's R (here 2° about y on the left)
+    still has to be applied; an all-zero R is an unset one (monocular drivers publish that)."""
+    from types import SimpleNamespace
+
+    from scipy.spatial.transform import Rotation
+
+    from terrainmap.sources.messages import calibration_from_infos, camera_info
+
+    turn = Rotation.from_euler("y", 2, degrees=True).as_matrix()
+    infos = [camera_info(SimpleNamespace(**ros_info(T0, side, 8, 6, tx, r=r)), side)
+             for side, tx, r in (("left", 0.0, turn), ("right", -100.0, np.eye(3)))]
+    calib = calibration_from_infos(*infos, rectified_images=False, source="test")
+    assert not calib.rectified
+    np.testing.assert_allclose(calib.R, turn, atol=1e-12)
+    unset = [camera_info(SimpleNamespace(**ros_info(T0, side, 8, 6, tx, r=np.zeros((3, 3)))), side)
+             for side, tx in (("left", 0.0), ("right", -100.0))]
+    assert calibration_from_infos(*unset, rectified_images=False, source="test").rectified
+
+
 @pytest.mark.parametrize("log", ["negative/rosbag2_cdr_test", "negative/rosbag2_talker", "negative/grid_map_ros1.bag"])
 def test_logs_without_stereo_say_so(log):
     if not (DATA / log).exists():

@@ -157,7 +157,9 @@ def _whole(text) -> int:
     return int(value)
 
 
-def _array(data: dict, key: str, shape: tuple[int, ...] | None, path: Path) -> np.ndarray:
+def _array(data: dict, key: str, shape: tuple[int, ...] | None, path: Path, needed_when: str = "") -> np.ndarray:
+    """``data[key]`` as a finite float array of ``shape``; a missing key is reported as required
+    ``needed_when`` (e.g. "as rectified is false")."""
     try:
         value = np.asarray(data[key], float)
         value = value.reshape(shape) if shape else value.ravel()
@@ -165,7 +167,7 @@ def _array(data: dict, key: str, shape: tuple[int, ...] | None, path: Path) -> n
             raise ValueError
         return value
     except KeyError:
-        raise CalibrationError(f"{path}: rectified is false, so {key!r} is required") from None
+        raise CalibrationError(f"{path}: {key!r} is required {needed_when}".rstrip()) from None
     except (TypeError, ValueError):
         raise CalibrationError(f"{path}: {key!r} must be a list of finite numbers of shape {shape or '(n,)'}") from None
 
@@ -183,7 +185,7 @@ def extrinsics_from_dict(data: dict, path: Path) -> Extrinsics:
             raise CalibrationError(f"{path}: extrinsics quaternion_xyzw must not be zero")
         rotation = quaternion_to_matrix(quaternion)
     else:
-        rotation = _array(data, "rotation", (3, 3), path)
+        rotation = _array(data, "rotation", (3, 3), path, "in extrinsics (or quaternion_xyzw)")
     if not np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-3) or np.linalg.det(rotation) < 0:
         raise CalibrationError(f"{path}: extrinsics rotation is not a rotation matrix")
     return Extrinsics(rotation=rotation, translation=translation, source="calibration")
@@ -220,7 +222,8 @@ def terrainmap_calibration(path: Path) -> tuple[StereoCalibration, Extrinsics | 
     if not isinstance(rectified, bool):
         raise CalibrationError(f"{path}: rectified must be true or false, got {rectified!r}")
     extra = {} if rectified else {
-        key: _array(data, key, (3, 3) if key in ("K_left", "K_right", "R") else (3,) if key == "T" else None, path)
+        key: _array(data, key, (3, 3) if key in ("K_left", "K_right", "R") else (3,) if key == "T" else None, path,
+                    "as rectified is false")
         for key in _UNRECTIFIED
     }
     calib = StereoCalibration(

@@ -69,7 +69,7 @@ def camera_info(msg, topic: str) -> dict:
     info = {
         "K": K.reshape(3, 3),
         "D": D.ravel(),
-        "R": R.reshape(3, 3) if R.size == 9 else np.eye(3),
+        "R": R.reshape(3, 3) if R.size == 9 and R.any() else np.eye(3),  # all zero: not set (monocular)
         "P": P.reshape(3, 4) if P.size == 12 else None,
         "width": int(msg.width),
         "height": int(msg.height),
@@ -84,12 +84,15 @@ def calibration_from_infos(
 ) -> StereoCalibration:
     """Stereo calibration from the left and right camera infos (ROS stereo convention).
 
-    Rectified images (``image_rect*`` topics, or no distortion): pinhole from P, baseline
+    Rectified images (``image_rect*`` topics, or no distortion and no rectifying rotation R):
+    pinhole from P, baseline
     ``(P_left[0,3] − P_right[0,3]) / fx`` (= ``−P_right[0,3]/P_right[0,0]`` in ROS).
     Raw distorted images: ``rectified=False`` with K, D and the right camera's pose wrt the left,
     ``R = R_rᵀ R_l``, ``T = −R_rᵀ (B, 0, 0)`` (R_l, R_r: the rectifying rotations of the infos).
     """
-    rectified = rectified_images or not (np.any(left["D"]) or np.any(right["D"]))
+    rectified = rectified_images or all(
+        not np.any(info["D"]) and np.allclose(info["R"], np.eye(3), atol=1e-9) for info in (left, right)
+    )
     calib = calib_io.from_projections(
         left["P"], right["P"], source=source, width=left["width"], height=left["height"]
     )
