@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 import os
 import signal
 from collections.abc import Callable, Iterable
+from contextlib import contextmanager
 from pathlib import Path
 
 import click
@@ -38,19 +40,32 @@ class Failed(click.ClickException):
 class GracefulStop:
     """While active, SIGINT (Ctrl-C) and SIGTERM only ask the run to stop: :meth:`check`, called
     between frames, then raises KeyboardInterrupt, so that no output is cut in the middle of a
-    write and every file is finalised. A second signal interrupts at once."""
+    write and every file is finalised. A second signal interrupts at once while no output is open
+    (a run stuck finding its first frame); while outputs are open (:meth:`outputs_open`) every
+    signal only asks, so a quick double Ctrl-C never leaves a file without its summary or with
+    half a frame."""
 
     def __init__(self) -> None:
         self.requested = False
+        self._open = 0
 
     def _handle(self, signum, frame) -> None:
-        if self.requested:
+        if self.requested and not self._open:
             raise KeyboardInterrupt
         self.requested = True
 
     def check(self, *_) -> None:
         if self.requested:
             raise KeyboardInterrupt
+
+    @contextmanager
+    def outputs_open(self):
+        """The block that opens, writes and closes the outputs."""
+        self._open += 1
+        try:
+            yield
+        finally:
+            self._open -= 1
 
     def __enter__(self):
         self._previous = {s: signal.signal(s, self._handle) for s in (signal.SIGINT, signal.SIGTERM)}
@@ -63,7 +78,12 @@ class GracefulStop:
 
 def refuse_overwriting_inputs(outputs: dict[str, Path | None], inputs: Iterable[str | Path | None]) -> None:
     """Raise a UsageError when an output (option name → path) is an input file (also through a
-    link) or lies inside an input folder: a report must never replace the data it reports on."""
+    link) or lies inside an input folder, or when two outputs are one file: a report must never
+    replace the data it reports on, nor another report."""
+    given = {option: Path(path).resolve() for option, path in outputs.items() if path is not None}
+    for (a, path), (b, other) in itertools.combinations(given.items(), 2):
+        if path == other:
+            raise click.UsageError(f"{a} and {b} are the same file {outputs[a]}")
     for option, path in outputs.items():
         if path is None:
             continue
@@ -84,10 +104,26 @@ def write_text(path: Path, text: str) -> None:
         raise Failed(f"cannot write {path}: {exc.strerror or exc}") from exc
 
 
+def writable(path: Path) -> None:
+    """Raise :class:`Failed` naming ``path`` when it cannot be written, without changing it (an
+    existing file is opened for appending; a file created by the probe is removed again)."""
+    if path.is_dir():
+        return
+    existed = path.exists()
+    try:
+        with open(path, "ab"):
+            pass
+    except OSError as exc:
+        raise Failed(f"cannot write {path}: {exc.strerror or exc}") from None
+    if not existed:
+        path.unlink(missing_ok=True)
+
+
 def output_file(*suffixes: str) -> Callable:
-    """A click callback for an output file option: its folder must exist (checked before any work
-    is done), an existing path must be a file or a folder (click's ``dir_okay`` decides which),
-    and, where ``suffixes`` are given, its name must end in one of them. Gives a Path."""
+    """A click callback for an output file option: its folder must exist and it must be writable
+    (:func:`writable`; checked before any work is done), an existing path must be a file or a
+    folder (click's ``dir_okay`` decides which), and, where ``suffixes`` are given, its name must
+    end in one of them. Gives a Path."""
 
     def check(ctx: click.Context, param: click.Parameter, value) -> Path | None:
         if value is None:
@@ -99,6 +135,7 @@ def output_file(*suffixes: str) -> Callable:
             raise click.BadParameter(f"{path} must end in {', '.join(suffixes)}")
         if path.exists() and not (path.is_file() or path.is_dir()):  # a FIFO would block, a device...
             raise click.BadParameter(f"{path} exists and is neither a regular file nor a folder")
+        writable(path)
         return path
 
     return check

@@ -10,7 +10,7 @@ import click
 
 from terrainmap.config import load_config
 
-from .options import Failed, GracefulStop, config_options, output_file, refuse_overwriting_inputs
+from .options import Failed, GracefulStop, config_options, output_file, refuse_overwriting_inputs, writable
 from .source_options import source_options
 
 
@@ -59,25 +59,26 @@ def process(log, output, flavor, compression, rrd, overwrite, source_opts, confi
         if first is None:
             raise Failed(f"no frame of {log} could be processed ({_NOTHING_SELECTED})")
         frames = itertools.chain([first], frames)
-        sinks = [open_mcap_sink(output, flavor, config=config, metadata={"source": str(log)}, compression=compression)]
-        if rrd is not None:
-            from terrainmap.sinks.rerun_recording import RerunSink
+        with stop.outputs_open():
+            sinks = [open_mcap_sink(output, flavor, config=config, metadata={"source": str(log)}, compression=compression)]
+            if rrd is not None:
+                from terrainmap.sinks.rerun_recording import RerunSink
 
+                try:
+                    sinks.append(RerunSink(rrd, config=config))
+                except BaseException:
+                    sinks[0].close()
+                    raise
             try:
-                sinks.append(RerunSink(rrd, config=config))
+                summary = runner.run(frames, config, sinks, on_frame=on_frame)
             except BaseException:
-                sinks[0].close()
+                if progress and progress[0].frames_done:  # the sinks were closed: what they hold reads back
+                    done = progress[0].frames_done
+                    click.echo(f"wrote {done} frame{'s' * (done != 1)} to {', '.join(map(str, outputs))} before stopping")
                 raise
-        try:
-            summary = runner.run(frames, config, sinks, on_frame=on_frame)
-        except BaseException:
-            if progress and progress[0].frames_done:  # the sinks were closed: what they hold reads back
-                done = progress[0].frames_done
-                click.echo(f"wrote {done} frame{'s' * (done != 1)} to {', '.join(map(str, outputs))} before stopping")
-            raise
-        finally:
-            if show:
-                click.echo(err=True)
+            finally:
+                if show:
+                    click.echo(err=True)
     _report(summary, outputs)
     if summary.frames_done == 0:
         raise Failed(f"no frame of {log} could be processed ({_reasons(summary)})")
@@ -90,8 +91,8 @@ def _check_outputs(log: Path, output: Path, rrd: Path | None, overwrite: bool, i
     for path in (output, rrd):
         if path is not None and path.exists() and not overwrite:
             raise click.UsageError(f"{path} exists; pass --overwrite to replace it")
-    if rrd is not None and rrd.resolve() == output.resolve():
-        raise click.UsageError(f"--rrd and -o/--output are the same file {output}")
+    writable(output)  # the default output was not checked with the options; neither is replaced
+    # before both are known to be writable (an unwritable --rrd must not cost an earlier -o)
 
 
 def _progress(summary, frame, result) -> None:

@@ -57,7 +57,8 @@ def simulate(out: Path, fmt: str | None, overwrite: bool, **options) -> None:
 
     with GracefulStop() as stop, click.progressbar(length=config.frames, label=f"simulate {config.scene}",
                                                    file=sys.stderr) as bar:
-        summary = run(out, config, progress=progress)
+        with stop.outputs_open():
+            summary = run(out, config, progress=progress)
     click.echo(
         f"wrote {summary['frames']} frames ({config.width}×{config.height}, scene {config.scene}, seed {config.seed}) "
         f"to {summary['path']}: {summary['bytes'] / 1e6:.1f} MB in {summary['seconds']:.1f} s"

@@ -86,9 +86,10 @@ def run(
     """
     summary = RunSummary()
     start = time.perf_counter()
+    state = PipelineState(config)
+    ahead = _matched_ahead(frames, config, state)
     try:
-        state = PipelineState(config)
-        for frame, matched in _matched_ahead(frames, config, state):
+        for frame, matched in ahead:
             try:
                 if isinstance(matched, FrameError):
                     raise matched
@@ -108,7 +109,10 @@ def run(
                 on_frame(summary, frame, result)
     finally:
         summary.wall_s = time.perf_counter() - start
-        _close_all(sinks)
+        try:
+            ahead.close()  # ends the worker thread now, not whenever the generator is collected
+        finally:
+            _close_all(sinks)
     return summary
 
 

@@ -44,6 +44,14 @@ def test_eval_rejects_bad_lists():
     assert result.exit_code != 0 and "comma-separated numbers" in result.output
 
 
+def test_outputs_are_checked_before_any_work(tmp_path):
+    same = str(tmp_path / "same.out")
+    result = CliRunner().invoke(cli, ["eval", "artificial-obstacle", "--json", same, "--csv", same])
+    assert result.exit_code == 2 and "--json and --csv are the same file" in result.output
+    result = CliRunner().invoke(cli, ["bench", "--json", str(tmp_path)])  # a folder: cannot be written
+    assert result.exit_code == 2 and str(tmp_path) in result.output
+
+
 def test_bench_reports_every_stage(tmp_path):
     result = CliRunner().invoke(cli, ["bench", "--runs", "2", "--json", str(tmp_path / "b.json")])
     assert result.exit_code == 0, result.output

@@ -2,6 +2,7 @@
 
 import os
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -247,6 +248,30 @@ def test_options_or_a_selection_that_fail_before_the_first_frame_leave_an_earlie
         result = CliRunner().invoke(cli, ["process", str(small_log), "-o", str(out), "--overwrite", *extra])
         assert result.exit_code != 0 and message in result.output + str(result.exception), extra
     assert out.read_bytes() == b"an earlier run's output"
+    if Path("/proc").is_dir():  # an --rrd that cannot be created (Linux refuses new files in /proc)
+        rrd = "/proc/terrainmap-test.rrd"
+        result = CliRunner().invoke(cli, ["process", str(small_log), "-o", str(out), "--overwrite", "--rrd", rrd])
+        assert result.exit_code == 2 and f"cannot write {rrd}" in result.output
+        assert out.read_bytes() == b"an earlier run's output"
+
+
+def test_a_second_signal_waits_while_outputs_are_open():
+    """A quick double Ctrl-C: the first asks the run to stop, a second one stops it at once only
+    while no output is open, so none is left unfinished."""
+    import signal
+
+    from terrainmap.cli.options import GracefulStop
+
+    with GracefulStop() as stop:
+        os.kill(os.getpid(), signal.SIGINT)
+        assert stop.requested
+        with stop.outputs_open():
+            os.kill(os.getpid(), signal.SIGTERM)  # ignored: outputs are being written
+            with pytest.raises(KeyboardInterrupt):
+                stop.check()  # between frames: the run stops there
+        with pytest.raises(KeyboardInterrupt):
+            os.kill(os.getpid(), signal.SIGINT)
+            sum(range(1000))  # the handler runs between bytecodes
 
 
 def test_an_output_that_is_no_regular_file_is_refused(small_log, tmp_path):
