@@ -133,6 +133,28 @@ def test_log_cut_after_a_frame_gives_one_error_line_and_that_frame(tmp_path, cap
     assert f"damage:             {cut}: truncated or corrupt after" in captured.out and captured.err == ""
 
 
+def test_log_with_damaged_image_data_stops_there(tmp_path, capsys):
+    """Bytes changed inside a chunk (a bad disk, a broken copy) fail its CRC: the run stops at the
+    damage like a truncated log, instead of processing a frame of wrong pixels."""
+    from terrainmap.cli.main import main
+    from terrainmap.sim import SimConfig, simulate
+
+    log = tmp_path / "sim.mcap"
+    simulate(log, SimConfig(scene="flat", frames=4, seed=1, width=320, height=240, focal_px=250.0))
+    data = bytearray(log.read_bytes())
+    middle = len(data) * 7 // 10
+    data[middle : middle + 16] = bytes(b ^ 0x5A for b in data[middle : middle + 16])
+    bad = tmp_path / "bad.mcap"
+    bad.write_bytes(data)
+    out = tmp_path / "o.mcap"
+    with pytest.raises(SystemExit) as exc:
+        main(["process", str(bad), "-o", str(out)])
+    assert exc.value.code == 2
+    (line,) = capsys.readouterr().err.splitlines()
+    assert line.startswith(f"Error: {bad}: log is truncated or corrupt after") and "CRC" in line.upper()
+    assert 1 <= len(_grids(out)) < 4
+
+
 def test_unusable_calibration_is_reported(shared_data, tmp_path, capsys):
     from terrainmap.cli.main import main
 
