@@ -107,6 +107,19 @@ def check_calibration(calibration: StereoCalibration, *, size_known: bool = True
                 )
         if not np.all(np.isfinite(np.asarray(calibration.T, float))) or np.linalg.norm(calibration.T) <= 0:
             raise CalibrationError(f"{name}: T must be a non-zero finite translation (the baseline)")
+        R = np.asarray(calibration.R, float).reshape(3, 3)
+        if not (np.all(np.isfinite(R)) and np.allclose(R @ R.T, np.eye(3), atol=1e-3) and np.linalg.det(R) > 0):
+            raise CalibrationError(f"{name}: R must be a rotation matrix (orthonormal, determinant 1)")
+        for side in ("left", "right"):
+            K = np.asarray(getattr(calibration, f"K_{side}"), float).reshape(3, 3)
+            if not (np.all(np.isfinite(K)) and K[0, 0] > 0 and K[1, 1] > 0 and np.allclose(K[2], [0, 0, 1])):
+                raise CalibrationError(f"{name}: K_{side} must be a camera matrix: fx, fy > 0 and last row 0 0 1")
+            dist = getattr(calibration, f"dist_{side}")
+            if dist is not None and (np.size(dist) not in (4, 5, 8, 12, 14) or not np.all(np.isfinite(dist))):
+                raise CalibrationError(
+                    f"{name}: dist_{side} must hold 4, 5, 8, 12 or 14 finite coefficients (OpenCV's models), "
+                    f"got {np.size(dist)}"
+                )
     return calibration
 
 

@@ -251,6 +251,11 @@ def test_calibration_override_replaces_the_folder_calibration(tmp_path):
     assert next(open_source(root, calibration=other).frames()).calibration.baseline_m == 0.12
 
 
+def cut_short(root: Path) -> None:
+    path = root / "right" / "000000.png"
+    path.write_bytes(path.read_bytes()[:-30])  # a PNG without its end (IEND)
+
+
 @pytest.mark.parametrize(
     "break_it, error, match",
     [
@@ -263,15 +268,18 @@ def test_calibration_override_replaces_the_folder_calibration(tmp_path):
         (lambda r: write(r / "right" / "000000.png", image(0, (7, 8, 3))), InputError, "differ in size.*8×6.*8×7"),
         (lambda r: write(r / "right" / "000000.png", image(0, (6, 8), np.uint16)), InputError, "differ in bit depth"),
         (lambda r: (r / "left" / "000000.png").write_bytes(b"not a png"), InputError, "000000.png: cannot read the image"),
+        (cut_short, InputError, "000000.png: cannot read the image file \\(not an image, or cut short\\)"),
         (lambda r: (r / "timestamps.txt").write_text("12\nabc\n"), InputError, "timestamps.txt"),
     ],
 )
-def test_bad_folders_raise_one_line_errors(tmp_path, break_it, error, match):
+def test_bad_folders_raise_one_line_errors(tmp_path, capfd, break_it, error, match):
     root = generic_folder(tmp_path, n=1)
     break_it(root)
     with pytest.raises(error, match=match) as info:
         list(open_source(root).frames())
     assert "\n" not in str(info.value)
+    assert capfd.readouterr().err == ""  # nothing from libpng on stderr either
+
 
 
 def test_unknown_and_missing_paths(tmp_path):

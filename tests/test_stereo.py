@@ -178,6 +178,9 @@ def test_to_vehicle_applies_rotation_and_translation():
 
 
 GOOD = StereoCalibration(64, 48, 100.0, 100.0, 32.0, 24.0, 0.5, source="calib.yaml")
+_K = np.array([[100.0, 0, 32], [0, 100, 24], [0, 0, 1]])
+UNRECTIFIED = {"rectified": False, "K_left": _K, "K_right": _K, "dist_left": np.zeros(5), "dist_right": np.zeros(5),
+               "R": np.eye(3), "T": np.array([-0.5, 0, 0])}
 
 
 @pytest.mark.parametrize(
@@ -188,6 +191,9 @@ GOOD = StereoCalibration(64, 48, 100.0, 100.0, 32.0, 24.0, 0.5, source="calib.ya
         ({"fx": 0.0}, "fx must be > 0"),
         ({"fy": float("nan")}, "fy must be > 0"),
         ({"rectified": False}, "rectified is false, so K_left"),
+        ({**UNRECTIFIED, "R": np.arange(9.0).reshape(3, 3)}, "R must be a rotation matrix"),
+        ({**UNRECTIFIED, "K_left": np.zeros((3, 3))}, "K_left must be a camera matrix"),
+        ({**UNRECTIFIED, "dist_right": np.zeros(3)}, "dist_right must hold 4, 5, 8, 12 or 14 finite coefficients"),
     ],
 )
 def test_bad_calibration_is_rejected(changes, message):

@@ -46,21 +46,39 @@ def _check_dtype(image: np.ndarray, name: str) -> np.ndarray:
 def read_image(path: str, name: str | None = None) -> np.ndarray:
     """Read an image file (png, jpg, pgm, ppm...) as mono or RGB, uint8 or uint16.
 
-    Raises :class:`InputError` naming the file when it cannot be decoded.
+    Raises :class:`InputError` naming the file when it cannot be read or decoded.
     """
-    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if image is None:
-        raise InputError(f"{name or path}: cannot read the image file (missing, unreadable or not an image)")
-    return _check_dtype(_to_rgb(image), name or str(path))
+    name = name or str(path)
+    try:
+        data = np.fromfile(path, dtype=np.uint8)
+    except OSError as exc:
+        raise InputError(f"{name}: cannot read the image file ({exc.strerror or exc})") from None
+    return _decode(data, name, "cannot read the image file (not an image, or cut short)")
 
 
 def decode_compressed(data: bytes, name: str) -> np.ndarray:
     """Decode a compressed image (PNG, JPEG...) from bytes; ``name`` (topic) goes in errors."""
     buffer = np.frombuffer(bytes(data), dtype=np.uint8)
-    image = cv2.imdecode(buffer, cv2.IMREAD_UNCHANGED) if buffer.size else None
+    return _decode(buffer, name, f"cannot decode the compressed image ({buffer.size} bytes)")
+
+
+def _decode(buffer: np.ndarray, name: str, failure: str) -> np.ndarray:
+    # A PNG or JPEG cut short is refused before libpng/libjpeg see it: they would print their own
+    # lines to stderr (or decode a grey remainder) before OpenCV gives up.
+    image = cv2.imdecode(buffer, cv2.IMREAD_UNCHANGED) if buffer.size and _complete(buffer) else None
     if image is None:
-        raise InputError(f"{name}: cannot decode the compressed image ({buffer.size} bytes)")
+        raise InputError(f"{name}: {failure}")
     return _check_dtype(_to_rgb(image), name)
+
+
+def _complete(buffer: np.ndarray) -> bool:
+    """False for a PNG without its IEND chunk or a JPEG without its end-of-image marker."""
+    head, tail = buffer[:8].tobytes(), buffer[-64:].tobytes()
+    if head == b"\x89PNG\r\n\x1a\n":
+        return b"IEND" in tail
+    if head[:2] == b"\xff\xd8":
+        return b"\xff\xd9" in tail
+    return True
 
 
 def decode_raw(
