@@ -164,6 +164,12 @@ class TerrainConfig:
                 f"must be at least degree + 1 = {self.degree + 1}, got {value}",
             )
         _check(
+            self.start_control_points <= min(self.control_points_x, self.control_points_y),
+            "terrain.start_control_points",
+            f"must be at most the final net ({self.control_points_x}×{self.control_points_y}), "
+            f"got {self.start_control_points}",
+        )
+        _check(
             1.0 <= self.control_point_growth <= 10,
             "terrain.control_point_growth",
             f"must be in [1, 10], got {self.control_point_growth}",
@@ -684,7 +690,10 @@ def apply_values(config: Config, values: dict[str, Any], source: str = "config",
         for name, value in table.items():
             if name not in names:
                 raise ConfigError(f"{source}: unknown field {section}.{name}")
-            setattr(target, name, _coerce(section, name, getattr(target, name), value, text))
+            try:
+                setattr(target, name, _coerce(section, name, getattr(target, name), value, text))
+            except ConfigError as exc:  # a --set names the value already; a file is named here
+                raise ConfigError(str(exc) if text else f"{source}: {exc}") from None
     return config
 
 

@@ -1,3 +1,5 @@
+import re
+
 import pytest
 
 from terrainmap.config import Config, load_config
@@ -33,6 +35,7 @@ def test_toml_round_trip_and_overrides(tmp_path):
         ("degree=3", "expected section.field=value"),
         ("grid.length_m=33.3", "whole number of cells"),
         ("terrain.start_control_points=2", r"at least degree \+ 1"),
+        ("terrain.start_control_points=30", r"start_control_points: must be at most the final net \(25×25\)"),
         ("grid.cell_size_m=nan", "cannot use 'nan'"),
         ("grid.stereo_noise_px=-0.5", "grid.stereo_noise_px: must be >= 0"),
         ("segmentation.below_tolerance_px=-1", "segmentation.below_tolerance_px: must be >= 0"),
@@ -68,7 +71,7 @@ def test_a_toml_value_must_have_the_fields_kind(tmp_path, toml, message):
     (``--set`` values are text and are converted)."""
     path = tmp_path / "c.toml"
     path.write_text(toml + "\n")
-    with pytest.raises(ConfigError, match=message):
+    with pytest.raises(ConfigError, match=f"^{re.escape(str(path))}: {message}"):
         load_config(path)
 
 
