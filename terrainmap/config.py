@@ -113,7 +113,8 @@ class TerrainConfig:
     control_points_y: int = 25
     """Final number of control points along y, n_max,1 + 1. Paper: 25."""
     start_control_points: int = 4
-    """Control points per axis of the first, non-rational fit ("very few"); at least degree + 1."""
+    """Control points per axis of the first, non-rational fit ("very few"); at least degree + 1,
+    capped at the final net (so a small net needs no change here)."""
     control_point_growth: float = 1.5
     """Net growth per iteration: n ← max(n + 1, round(n · growth)) per axis, capped at the final
     net. 1.0 is the paper's pseudo-code (one control point more per iteration: 22 fits from 4 to
@@ -163,12 +164,6 @@ class TerrainConfig:
                 f"terrain.{name}",
                 f"must be at least degree + 1 = {self.degree + 1}, got {value}",
             )
-        _check(
-            self.start_control_points <= min(self.control_points_x, self.control_points_y),
-            "terrain.start_control_points",
-            f"must be at most the final net ({self.control_points_x}×{self.control_points_y}), "
-            f"got {self.start_control_points}",
-        )
         _check(
             1.0 <= self.control_point_growth <= 10,
             "terrain.control_point_growth",
