@@ -230,6 +230,14 @@ def test_a_log_without_truth_is_an_input_error_naming_the_topics(tiny_log, tmp_p
     _strip_truth(tiny_log, plain)
     with pytest.raises(InputError, match=r"plain\.mcap.*missing topics.*/truth/"):
         acc.evaluate(plain, Config(), methods=["terrainmap"])
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(tiny_log.read_bytes()[: tiny_log.stat().st_size // 2])
+    with pytest.raises(InputError, match=r"cut\.mcap: the log has no summary \(cut short"):
+        acc.evaluate(cut, Config(), methods=["terrainmap"])
+    bag = tmp_path / "drive.bag"
+    bag.write_bytes(b"#ROSBAG V2.0\n" + bytes(100))
+    with pytest.raises(InputError, match=r"drive\.bag: not an MCAP file; the ground truth is read from logs"):
+        acc.evaluate(bag, Config(), methods=["terrainmap"])
 
 
 def test_unknown_method_lists_the_available_ones(tiny_log):

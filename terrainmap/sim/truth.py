@@ -139,6 +139,9 @@ def _open_folder(path: Path) -> Truth:
         return Truth(path, terrain, _description((truth_dir / "scene.json").read_text()), frames)
 
 
+_MCAP_MAGIC = b"\x89MCAP0\r\n"
+
+
 def _mcap_reader(file):
     from mcap.reader import make_reader
     from mcap_ros2.decoder import DecoderFactory
@@ -149,9 +152,19 @@ def _mcap_reader(file):
 def _open_mcap(path: Path) -> Truth:
     try:
         with open(path, "rb") as file:
+            if file.read(len(_MCAP_MAGIC)) != _MCAP_MAGIC:
+                raise InputError(f"{path}: not an MCAP file; the ground truth is read from logs that "
+                                 "terrainmap simulate writes (MCAP or a folder)")
+            file.seek(0)
             reader = _mcap_reader(file)
-            summary = reader.get_summary()
-            topics = {c.topic for c in summary.channels.values()} if summary else set()
+            try:
+                summary = reader.get_summary()
+            except Exception:  # noqa: BLE001 - no footer
+                summary = None
+            if summary is None:
+                raise InputError(f"{path}: the log has no summary (cut short, or still being written); "
+                                 "scoring needs the whole simulated log")
+            topics = {c.topic for c in summary.channels.values()}
             missing = [t for t in TRUTH_TOPICS if t not in topics]
             if missing:
                 raise InputError(f"{path}: not a simulated log with ground truth (missing topics {', '.join(missing)})")
