@@ -51,14 +51,21 @@ def simulate(out: Path, fmt: str | None, overwrite: bool, **options) -> None:
         raise click.UsageError(f"{out} is a file; a folder output must be a folder")
     config = SimConfig(format=fmt, **options)
 
+    done = []
+
     def progress(_) -> None:
+        done.append(1)
         bar.update(1)
         stop.check()  # between frames: the log written so far is finalised
 
     with GracefulStop() as stop, click.progressbar(length=config.frames, label=f"simulate {config.scene}",
                                                    file=sys.stderr) as bar:
         with stop.outputs_open():
-            summary = run(out, config, progress=progress)
+            try:
+                summary = run(out, config, progress=progress)
+            except KeyboardInterrupt:
+                click.echo(f"\nwrote {len(done)} frame{'s' * (len(done) != 1)} to {out} before stopping")
+                raise
     click.echo(
         f"wrote {summary['frames']} frames ({config.width}×{config.height}, scene {config.scene}, seed {config.seed}) "
         f"to {summary['path']}: {summary['bytes'] / 1e6:.1f} MB in {summary['seconds']:.1f} s"
