@@ -383,12 +383,17 @@ def _texture_energy(grey: np.ndarray, config: StereoConfig) -> np.ndarray:
         gx = cv2.Sobel(grey, cv2.CV_32F, 1, 0, ksize=1)  # I(u+1) − I(u−1)
         energy = cv2.boxFilter(gx * gx, cv2.CV_32F, box) * 0.25
     else:
-        mean = cv2.boxFilter(grey, cv2.CV_32F, box)
-        energy = cv2.sqrBoxFilter(grey, cv2.CV_32F, box) - mean * mean
+        energy = _local_variance(grey, config.texture_window)
     if config.texture_margin_px > 0:
         side = 2 * config.texture_margin_px + 1
         energy = cv2.erode(energy, cv2.getStructuringElement(cv2.MORPH_CROSS, (side, side)))
     return energy
+
+
+def _local_variance(grey: np.ndarray, side: int) -> np.ndarray:
+    """Grey-level variance over the side × side window around each pixel: H×W float32."""
+    mean = cv2.boxFilter(grey, cv2.CV_32F, (side, side))
+    return cv2.sqrBoxFilter(grey, cv2.CV_32F, (side, side)) - mean * mean
 
 
 _SKY_WINDOW = 5
@@ -429,9 +434,7 @@ def sky_mask(grey: np.ndarray, pinhole: RectifiedPinhole, extrinsics: Extrinsics
     if rows == 0:
         return sky
     window = grey[: min(rows + _SKY_WINDOW, grey.shape[0])]
-    box = (_SKY_WINDOW, _SKY_WINDOW)
-    mean = cv2.boxFilter(window, cv2.CV_32F, box)
-    flat = cv2.sqrBoxFilter(window, cv2.CV_32F, box) - mean * mean < np.float32(config.min_texture) ** 2
+    flat = _local_variance(window, _SKY_WINDOW) < np.float32(config.min_texture) ** 2
     flat = flat[:rows] & above
     count, labels = cv2.connectedComponents(flat.view(np.uint8), connectivity=8)
     reaches_top = np.zeros(count, bool)
@@ -439,7 +442,7 @@ def sky_mask(grey: np.ndarray, pinhole: RectifiedPinhole, extrinsics: Extrinsics
     reaches_top[0] = False  # label 0: the pixels that are not flat
     grown = np.zeros(window.shape, np.uint8)
     grown[:rows] = reaches_top[labels]
-    sky[: len(window)] = cv2.dilate(grown, np.ones(box, np.uint8)).view(bool)  # by the half-width
+    sky[: len(window)] = cv2.dilate(grown, np.ones((_SKY_WINDOW, _SKY_WINDOW), np.uint8)).view(bool)  # half-width
     return sky
 
 

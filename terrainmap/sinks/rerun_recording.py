@@ -43,6 +43,7 @@ from ..config import Config
 from ..errors import InputError, TerrainmapError
 from ..grid import cell_centers
 from ..types import FrameResult, Label, StereoFrame
+from .base import obstacle_text, yaw_quaternion
 
 LABEL_COLORS = {
     Label.UNKNOWN: (140, 140, 140),
@@ -210,15 +211,14 @@ class RerunSink:
         if not obstacles:
             self._rec.log(f"{VEHICLE}/obstacles", rr.Clear(recursive=False))
             return
-        yaw = np.array([o.yaw_rad for o in obstacles])
         self._rec.log(
             f"{VEHICLE}/obstacles",
             rr.Boxes3D(
                 centers=np.array([o.center_m for o in obstacles]),
                 half_sizes=np.array([o.size_m for o in obstacles]) / 2,
-                quaternions=np.column_stack([np.zeros((len(yaw), 2)), np.sin(yaw / 2), np.cos(yaw / 2)]),
+                quaternions=[yaw_quaternion(o.yaw_rad) for o in obstacles],
                 class_ids=[int(Label.OBSTACLE if o.kind == "positive" else Label.BELOW) for o in obstacles],
-                labels=[f"{o.track_id} {o.kind} {o.height_m:.1f} m" for o in obstacles],
+                labels=[obstacle_text(o) for o in obstacles],
             ),
         )
 
