@@ -128,11 +128,18 @@ class RationalSurface:
         """Analytic gradient on the lattice ``xs × ys``: two arrays (len(xs), len(ys))."""
         Bx, dBx = basis_matrix(self.knots_x, self.degree, xs, derivative=True)
         By, dBy = basis_matrix(self.knots_y, self.degree, ys, derivative=True)
-        R, RQ = self.control_weights, self.control_weights * self.control_points
-        num, den = Bx @ RQ @ By.T, Bx @ R @ By.T
-        gx = ((dBx @ RQ @ By.T) * den - num * (dBx @ R @ By.T)) / den**2
-        gy = ((Bx @ RQ @ dBy.T) * den - num * (Bx @ R @ dBy.T)) / den**2
-        return gx, gy
+        return _on_lattice(Bx, dBx, By, dBy, self.control_points, self.control_weights)[1:]
+
+
+def _on_lattice(Bx, dBx, By, dBy, Q, R) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(S, ∂S/∂x, ∂S/∂y)`` on a lattice, each (m0, m1), by the quotient rule, from the bases
+    ``Bx`` (m0, n0), ``By`` (m1, n1), their derivatives, control points Q and weights R (n0, n1)."""
+    RQ = R * Q
+    num_y, den_y = RQ @ By.T, R @ By.T  # (n0, m1)
+    num, den = Bx @ num_y, Bx @ den_y
+    gx = ((dBx @ num_y) * den - num * (dBx @ den_y)) / den**2
+    gy = ((Bx @ RQ @ dBy.T) * den - num * (Bx @ R @ dBy.T)) / den**2
+    return num / den, gx, gy
 
 
 class TensorFit:
@@ -200,12 +207,7 @@ class TensorFit:
             self._dB = (basis_matrix(self.knots_x, self.degree, self.xs, derivative=True)[1],
                         basis_matrix(self.knots_y, self.degree, self.ys, derivative=True)[1])
         dBx, dBy = self._dB
-        RQ = R * Q
-        num_y, den_y = RQ @ self.By.T, R @ self.By.T  # (n0, m1)
-        num, den = self.Bx @ num_y, self.Bx @ den_y
-        gx = ((dBx @ num_y) * den - num * (dBx @ den_y)) / den**2
-        gy = ((self.Bx @ RQ @ dBy.T) * den - num * (self.Bx @ R @ dBy.T)) / den**2
-        return num / den, gx, gy
+        return _on_lattice(self.Bx, dBx, self.By, dBy, Q, R)
 
     def remap(self, W: np.ndarray) -> np.ndarray:
         """Down-sample lattice values W (m0×m1) to the control net: the basis-weighted mean of W
