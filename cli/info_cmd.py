@@ -44,10 +44,21 @@ def format_description(description: dict) -> str:
 @click.option("--json", "as_json", is_flag=True, help="Print the description as JSON.")
 def info(log: str, source_opts: SourceOptions, as_json: bool) -> None:
     """Describe LOG (an MCAP file, rosbag2 or ROS 1 bag, or an image folder): topics, the chosen
-    stereo pair, calibration and extrinsics."""
-    with source_opts.open(log) as source:
-        description = source.describe()
+    stereo pair, calibration and extrinsics. A log without a stereo pair (terrainmap's own output,
+    say) is described too, with the reason process cannot use it."""
+    from terrainmap.errors import NoStereoError
+
+    try:
+        with source_opts.open(log) as source:
+            description = source.describe()
+    except NoStereoError as exc:
+        description = {**exc.contents, "stereo_pair": f"none, so process cannot use it ({_reason(exc, log)})"}
     click.echo(json.dumps(_json_safe(description), indent=2) if as_json else format_description(description))
+
+
+def _reason(exc: Exception, log: str) -> str:
+    """The error's message without the path it starts with (the description shows the path)."""
+    return str(exc).removeprefix(f"{log}: ")
 
 
 def _json_safe(value):

@@ -20,6 +20,15 @@ class InputError(TerrainmapError):
     """A file, folder, log or topic that cannot be used (names the path or topic)."""
 
 
+class NoStereoError(InputError):
+    """A log without a usable pair of stereo image topics; ``contents`` holds what it does hold
+    (format, files, damage, topics with their types and counts) for ``terrainmap info``."""
+
+    def __init__(self, message: str, contents: dict):
+        super().__init__(message)
+        self.contents = contents
+
+
 class CalibrationError(InputError):
     """Calibration missing or nonsensical (zero baseline, non-positive focal length...)."""
 

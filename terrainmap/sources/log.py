@@ -27,7 +27,7 @@ from dataclasses import replace
 from functools import partial
 from pathlib import Path
 
-from ..errors import CalibrationError, InputError
+from ..errors import CalibrationError, InputError, NoStereoError
 from ..types import Extrinsics, StereoCalibration, StereoFrame
 from . import calibration as calib_io
 from . import messages as msgs
@@ -77,7 +77,7 @@ class LogSource(Source):
             self.left_topic, self.right_topic = stereo_topics(self.reader.types, left_topic, right_topic, str(self.path))
         except InputError as exc:
             damage = self.reader.damage
-            raise InputError(f"{damage}; {exc}" if damage else str(exc)) from None
+            raise NoStereoError(f"{damage}; {exc}" if damage else str(exc), self._contents()) from None
         if self.left_topic == self.right_topic:
             raise InputError(f"{self.path}: left and right topic are the same ({self.left_topic})")
         self.pair_tolerance_ns = int(pair_tolerance_ns)
@@ -205,15 +205,22 @@ class LogSource(Source):
             odometry_frame_id=odometry_frame_id,
         )
 
-    def describe(self) -> dict:
+    def _contents(self) -> dict:
+        """What the log holds, whatever its topics: format, files, damage, topics."""
         counts = self.reader.counts
-        pairs = min(counts.get(self.left_topic) or 0, counts.get(self.right_topic) or 0)
         return {
             "format": self.format,
             "path": str(self.path),
             "files": [str(p) for p in self.reader.paths],
             "damage": self.reader.damage,
             "topics": [{"topic": t, "type": k, "count": counts.get(t)} for t, k in sorted(self.reader.types.items())],
+        }
+
+    def describe(self) -> dict:
+        counts = self.reader.counts
+        pairs = min(counts.get(self.left_topic) or 0, counts.get(self.right_topic) or 0)
+        return {
+            **self._contents(),
             "left_topic": self.left_topic,
             "right_topic": self.right_topic,
             "frames": pairs,
