@@ -91,8 +91,9 @@ def _check_outputs(log: Path, output: Path, rrd: Path | None, overwrite: bool, i
     for path in (output, rrd):
         if path is not None and path.exists() and not overwrite:
             raise click.UsageError(f"{path} exists; pass --overwrite to replace it")
-    writable(output)  # the default output was not checked with the options; neither is replaced
-    # before both are known to be writable (an unwritable --rrd must not cost an earlier -o)
+    # The default output was not checked with the options. Both are checked before either is
+    # replaced: an unwritable --rrd must not cost an earlier -o.
+    writable(output)
 
 
 def _progress(summary, frame, result) -> None:

@@ -282,6 +282,17 @@ def test_bad_folders_raise_one_line_errors(tmp_path, capfd, break_it, error, mat
 
 
 
+@pytest.mark.parametrize("ext", [".png", ".jpg"])
+def test_compressed_images_cut_short_are_refused_and_trailing_data_is_not(ext, capfd):
+    from terrainmap.sources.images import decode_compressed
+
+    data = cv2.imencode(ext, image(0, (48, 64, 3)))[1].tobytes()
+    assert decode_compressed(data + bytes(300), "/cam").shape == (48, 64, 3)  # some cameras pad
+    with pytest.raises(InputError, match="/cam: cannot decode the compressed image"):
+        decode_compressed(data[: len(data) // 2], "/cam")
+    assert capfd.readouterr().err == ""
+
+
 def test_unknown_and_missing_paths(tmp_path):
     with pytest.raises(InputError, match="does not exist"):
         open_source(tmp_path / "nope")

@@ -1,8 +1,8 @@
 """MCAP output with Foxglove protobuf schemas (the default flavour): opens in Foxglove with no setup.
 
 Topics, all in the vehicle frame (``Extrinsics.vehicle_frame_id``: ``base_link``, or
-``base_footprint`` where the log's tf has only that) and stamped with the source image's ``stamp_ns`` (log time,
-publish time and message timestamp):
+``base_footprint`` where the log's tf has only that) and stamped with the source image's
+``stamp_ns`` (log time, publish time and message timestamp):
 
 - ``/terrainmap/grid`` ``foxglove.Grid``: fields ``elevation`` (float32, m, NaN = no data),
   ``slope`` (float32, rad), ``cost`` (float32, when computed), ``label`` (uint8 Label),

@@ -1,7 +1,8 @@
 """MCAP output with ROS 2 messages (CDR, profile ``ros2``) for ROS users.
 
 Topics, all in the vehicle frame (``Extrinsics.vehicle_frame_id``: ``base_link``, or
-``base_footprint`` where the log's tf has only that) and stamped with the source image's ``stamp_ns``:
+``base_footprint`` where the log's tf has only that) and stamped with the source image's
+``stamp_ns``:
 
 - ``/terrainmap/grid_map`` ``grid_map_msgs/msg/GridMap``: layers ``elevation`` (m, NaN = no
   data; the only basic layer), ``slope`` (rad), ``cost`` (when computed), ``label`` and

@@ -72,12 +72,13 @@ def _decode(buffer: np.ndarray, name: str, failure: str) -> np.ndarray:
 
 
 def _complete(buffer: np.ndarray) -> bool:
-    """False for a PNG without its IEND chunk or a JPEG without its end-of-image marker."""
-    head, tail = buffer[:8].tobytes(), buffer[-64:].tobytes()
-    if head == b"\x89PNG\r\n\x1a\n":
-        return b"IEND" in tail
-    if head[:2] == b"\xff\xd8":
-        return b"\xff\xd9" in tail
+    """False for a PNG without its IEND chunk or a JPEG without an end-of-image marker (searched
+    in the whole file, so that data a camera appends after the end never fails a good image)."""
+    data = buffer.tobytes()
+    if data.startswith(b"\x89PNG\r\n\x1a\n"):
+        return b"IEND" in data
+    if data.startswith(b"\xff\xd8"):
+        return b"\xff\xd9" in data
     return True
 
 
