@@ -303,6 +303,9 @@ def test_undistorted_raw_images_with_a_rectifying_rotation_are_still_rectified()
     unset = [camera_info(SimpleNamespace(**ros_info(T0, side, 8, 6, tx, r=np.zeros((3, 3)))), side)
              for side, tx in (("left", 0.0), ("right", -100.0))]
     assert calibration_from_infos(*unset, rectified_images=False, source="test").rectified
+    no_tx = [camera_info(SimpleNamespace(**ros_info(T0, side, 8, 6, 0.0)), side) for side in ("left", "right")]
+    with pytest.raises(CalibrationError, match="test: the right camera's projection P has the same Tx.*--calibration"):
+        calibration_from_infos(*no_tx, rectified_images=True, source="test")
 
 
 @pytest.mark.parametrize("log", ["negative/rosbag2_cdr_test", "negative/rosbag2_talker", "negative/grid_map_ros1.bag"])

@@ -90,6 +90,11 @@ def calibration_from_infos(
     Raw distorted images: ``rectified=False`` with K, D and the right camera's pose wrt the left,
     ``R = R_rᵀ R_l``, ``T = −R_rᵀ (B, 0, 0)`` (R_l, R_r: the rectifying rotations of the infos).
     """
+    if left["P"][0, 3] == right["P"][0, 3]:  # a driver that leaves Tx at 0 (mono calibrations)
+        raise CalibrationError(
+            f"{source}: the right camera's projection P has the same Tx as the left, so the baseline is unknown "
+            "(ROS stereo: Tx = −fx·baseline); pass --calibration with baseline_m"
+        )
     rectified = rectified_images or all(
         not np.any(info["D"]) and np.allclose(info["R"], np.eye(3), atol=1e-9) for info in (left, right)
     )
