@@ -119,3 +119,22 @@ def test_moving_pedestrian_crosses_and_static_obstacles_stay():
         expected = np.linalg.norm(box.velocity_mps[:2]) * 10 / renderer.fps
         assert moved == pytest.approx(expected, abs=1e-9)
     assert any(np.linalg.norm(b.velocity_mps) > 0.5 for b in walker.values())
+
+
+def test_truth_height_is_the_top_above_the_ground_at_the_centre():
+    """An ellipsoid on a slope is centred on the lowest ground under it, so its top stands less
+    than its nominal height above the ground at its centre: the truth height says how much."""
+    from terrainmap.sim.heightfield import Heightfield
+    from terrainmap.sim.obstacles import ObstacleSpec
+
+    x = np.arange(100) * 0.1
+    slope = Heightfield(np.repeat(0.3 * x[:, None], 100, axis=1).astype(np.float32), 0.0, 0.0, 0.1)  # 17°
+    flat = Heightfield(np.zeros((100, 100), np.float32), 0.0, 0.0, 0.1)
+    rock = ObstacleSpec(1, "rock", (5.0, 5.0), size_m=(0.7, 0.6, 0.5))
+    car = ObstacleSpec(2, "car", (5.0, 5.0))
+    assert rock.at(flat, 0.0).height_m == pytest.approx(0.5, abs=1e-6)
+    on_slope = rock.at(slope, 0.0)
+    top = on_slope.center_m[2] + on_slope.size_m[2] / 2
+    assert on_slope.height_m == pytest.approx(top - slope.height(5.0, 5.0), abs=1e-6)
+    assert on_slope.height_m == pytest.approx(0.5 - 0.3 * 0.35, abs=0.01)  # sunk by the slope over half its length
+    assert car.at(slope, 0.0).height_m == pytest.approx(1.5, abs=1e-6)  # a box's top is placed that high

@@ -77,7 +77,7 @@ def obstacles_from_markers(msg, terrain: Heightfield, velocities: dict[int, np.n
         size = np.array([m.scale.x, m.scale.y, m.scale.z])
         shape = "box" if m.type == MARKER_CUBE else "ellipsoid"
         ground = float(terrain.height(center[0], center[1]))
-        height = center[2] + size[2] / 2 - ground if shape == "box" else size[2] / 2
+        height = center[2] + size[2] / 2 - ground  # top above the terrain at the centre, as ObstacleBox
         boxes.append(ObstacleBox(
             id=int(m.id), kind=m.ns, shape=shape, center_m=center, size_m=size, yaw_rad=yaw,
             height_m=float(height), velocity_mps=velocities.get(int(m.id), np.zeros(3)),

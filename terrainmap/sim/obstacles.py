@@ -7,8 +7,9 @@ gives the :class:`ObstacleBox` that is both rendered and written as ground truth
 
 Placement: a box's bottom is 5 cm below the lowest terrain point under its footprint and its
 top ``height_m`` above the terrain at its centre; an ellipsoid is centred on the lowest of the
-terrain heights at its centre and at its four axis ends, with vertical semi-axis ``height_m``
-(so about its upper half shows). Moving obstacles keep their heading along their velocity.
+terrain heights at its centre and at its four axis ends, with vertical semi-axis the nominal
+height (so about its upper half shows, less on sloping ground). The truth height of either is
+that of its top above the terrain at its centre. Moving obstacles keep their heading along their velocity.
 """
 
 from __future__ import annotations
@@ -38,7 +39,8 @@ class ObstacleBox:
 
     ``center_m`` (3,) centre of the solid; ``size_m`` (3,) its extent along its own x (heading
     ``yaw_rad`` about world z), y and z; the solid is the box itself (``shape == "box"``) or the
-    ellipsoid inscribed in it (``"ellipsoid"``). ``height_m``: nominal height above the ground.
+    ellipsoid inscribed in it (``"ellipsoid"``). ``height_m``: its top's height above the terrain
+    at its centre (an ellipsoid sunk on sloping ground stands less than its nominal size).
     ``velocity_mps`` (3,) world velocity. ``id`` ≥ 1 is stable over the frames.
     """
 
@@ -161,6 +163,6 @@ class ObstacleSpec:
             center_m=np.array([x, y, center_z]),
             size_m=np.array([length, width, size_z]),
             yaw_rad=yaw,
-            height_m=float(height),
+            height_m=float(center_z + size_z / 2 - ground[-1]),
             velocity_mps=np.array([velocity[0], velocity[1], 0.0]),
         )
