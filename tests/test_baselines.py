@@ -45,3 +45,19 @@ def test_optional_methods_are_listed_only_when_installed(monkeypatch):
     real = importlib.util.find_spec
     monkeypatch.setattr(importlib.util, "find_spec", lambda n: None if n in ("CSF", "pypatchworkpp") else real(n))
     assert available_methods() == ["terrainmap", "bspline_single", "ransac_plane", "lowest_point"]
+
+
+def test_baselines_label_with_terrainmaps_thresholds_for_the_rig(scene):
+    """Given the stereo rig, a baseline labels against its surface with terrainmap's thresholds
+    and their disparity-error floors, so that only the surfaces differ between the methods."""
+    from terrainmap.segmentation import label_points, thresholds
+    from terrainmap.types import StereoCamera
+
+    config, points, _ = scene
+    camera = StereoCamera(np.array([0.0, 0.0, 1.8]), np.array([1.0, 0.0, 0.0]), 60.0)  # a short baseline
+    out = METHODS["ransac_plane"](points, config, None, camera)
+    gx, gy = np.gradient(out.elevation, config.grid.cell_size_m)  # exact on a plane
+    limits = thresholds(config.grid, config.segmentation, camera, out.elevation, gx, gy)
+    expected = label_points(points, out.elevation, gx, gy, config.grid, config.segmentation, limits=limits)
+    np.testing.assert_array_equal(out.point_labels, expected)
+    assert (out.point_labels != METHODS["ransac_plane"](points, config, None).point_labels).any()

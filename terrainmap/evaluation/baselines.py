@@ -5,6 +5,11 @@ terrain elevation on the grid (NaN where the method says nothing), slope where i
 and a per-point terrain/obstacle label. Methods whose package is missing are reported by
 :func:`available_methods` and skipped, never faked.
 
+Given the stereo rig of the points (``camera``), the methods that label points against a surface
+(the single fit, the plane, the lowest-point grid) use terrainmap's labelling thresholds with
+their stereo floors, and the single fit terrainmap's grid (eq. 1 with the rig's noise taken out
+of σ): what then differs from terrainmap is only how the surface is estimated.
+
 - ``terrainmap``: the full estimator (Algorithm V-B.1) with its point labels.
 - ``bspline_single``: one unweighted, non-rational fit of the same net (the paper's Fig. 5a).
 - ``ransac_plane``: a RANSAC plane through the points (the flat-ground assumption).
@@ -28,10 +33,10 @@ import numpy as np
 from ..config import Config
 from ..grid import cell_centers, cell_index, quantize
 from ..pipeline import map_points
-from ..segmentation import label_points
+from ..segmentation import label_points, thresholds
 from ..slope import slope_angle
 from ..terrain import fitter_for
-from ..types import Extrinsics, Label
+from ..types import Extrinsics, Label, StereoCamera
 
 
 @dataclass
@@ -44,30 +49,36 @@ class MethodOutput:
     point_labels: np.ndarray | None
 
 
-Method = Callable[[np.ndarray, Config, Extrinsics | None], MethodOutput]
+Method = Callable[..., MethodOutput]
+"""``method(points, config, extrinsics=None, camera=None) -> MethodOutput``."""
 
 
-def _from_surface(points, elevation, gx, gy, config: Config) -> MethodOutput:
-    labels = label_points(points, elevation, gx, gy, config.grid, config.segmentation)
-    return MethodOutput(elevation, slope_angle(gx, gy), labels)
+def _labels(points, elevation, gx, gy, config: Config, camera: StereoCamera | None, index=None) -> np.ndarray:
+    """terrainmap's point labels against a surface (its thresholds, with the rig's floors)."""
+    limits = thresholds(config.grid, config.segmentation, camera, elevation, gx, gy)
+    return label_points(points, elevation, gx, gy, config.grid, config.segmentation, index=index, limits=limits)
 
 
-def terrainmap_method(points, config: Config, extrinsics=None) -> MethodOutput:
-    result = map_points(points, config)
+def _from_surface(points, elevation, gx, gy, config: Config, camera: StereoCamera | None) -> MethodOutput:
+    return MethodOutput(elevation, slope_angle(gx, gy), _labels(points, elevation, gx, gy, config, camera))
+
+
+def terrainmap_method(points, config: Config, extrinsics=None, camera=None) -> MethodOutput:
+    result = map_points(points, config, camera=camera)
     return MethodOutput(result.layers["elevation"].astype(float), result.layers["slope"], result.point_labels)
 
 
-def bspline_single(points, config: Config, extrinsics=None) -> MethodOutput:
-    grid = quantize(points, config.grid)
+def bspline_single(points, config: Config, extrinsics=None, camera=None) -> MethodOutput:
+    grid = quantize(points, config.grid, camera=camera)
     t = config.terrain
     fit = fitter_for(config.grid, t.control_points_x, t.control_points_y, t.degree)
     R = np.ones(fit.shape)
     Q = fit.fit(grid.z, np.where(grid.observed, 1.0, np.where(grid.valid, t.filled_weight, 0.0)), R, t.smoothness)
-    return _from_surface(points, *fit.evaluate_with_gradient(Q, R), config)
+    return _from_surface(points, *fit.evaluate_with_gradient(Q, R), config, camera)
 
 
-def ransac_plane(points, config: Config, extrinsics=None, *, iterations: int = 200, threshold_m: float = 0.1,
-                 seed: int = 0) -> MethodOutput:
+def ransac_plane(points, config: Config, extrinsics=None, camera=None, *, iterations: int = 200,
+                 threshold_m: float = 0.1, seed: int = 0) -> MethodOutput:
     idx = cell_index(points, config.grid)
     pts = np.asarray(points, float)[idx < config.grid.shape[0] * config.grid.shape[1]]
     rng = np.random.default_rng(seed)
@@ -88,18 +99,17 @@ def ransac_plane(points, config: Config, extrinsics=None, *, iterations: int = 2
     xs, ys = cell_centers(config.grid)
     elevation = c + gx * xs[:, None] + gy * ys[None, :]
     full = np.ones_like(elevation)
-    return _from_surface(points, elevation, gx * full, gy * full, config)
+    return _from_surface(points, elevation, gx * full, gy * full, config, camera)
 
 
-def lowest_point(points, config: Config, extrinsics=None) -> MethodOutput:
+def lowest_point(points, config: Config, extrinsics=None, camera=None) -> MethodOutput:
     m0, m1 = config.grid.shape
     idx = cell_index(points, config.grid)
     zmin = np.full(m0 * m1 + 1, np.inf)
     np.minimum.at(zmin, idx, np.asarray(points[:, 2], float))
     elevation = np.where(np.isfinite(zmin[:-1]), zmin[:-1], np.nan).reshape(m0, m1)
     gx, gy = np.gradient(elevation, config.grid.cell_size_m)
-    labels = label_points(points, np.nan_to_num(elevation), np.nan_to_num(gx), np.nan_to_num(gy),
-                          config.grid, config.segmentation, index=idx)
+    labels = _labels(points, *(np.nan_to_num(a) for a in (elevation, gx, gy)), config, camera, index=idx)
     labels[np.isnan(np.append(elevation.ravel(), np.nan)[idx])] = Label.UNKNOWN
     return MethodOutput(elevation, slope_angle(gx, gy), labels)
 
@@ -132,7 +142,7 @@ def _quiet_stdout():
         os.close(saved)
 
 
-def patchworkpp(points, config: Config, extrinsics: Extrinsics | None = None) -> MethodOutput:
+def patchworkpp(points, config: Config, extrinsics: Extrinsics | None = None, camera=None) -> MethodOutput:
     import pypatchworkpp
 
     height = float(np.asarray(extrinsics.translation)[2]) if extrinsics is not None else 1.5
@@ -151,7 +161,7 @@ def patchworkpp(points, config: Config, extrinsics: Extrinsics | None = None) ->
     return _ground_to_output(points, ground, config)
 
 
-def csf(points, config: Config, extrinsics=None) -> MethodOutput:
+def csf(points, config: Config, extrinsics=None, camera=None) -> MethodOutput:
     import CSF
 
     cloth = CSF.CSF()
