@@ -12,8 +12,10 @@ obstacles placed in view. All have fine relief (a few cm at 1–8 m) on top of t
 - ``mounds``: gravel mounds (1.5–3.5 m high) beside the track; a pedestrian crossing (moving),
   a car, rocks and a low wide mound.
 - ``canyon``: a gravel floor between 5 m walls that meander; a truck ahead, a pedestrian, rocks.
-- ``climb``: a 9 m hill the vehicle drives up (slopes to ~17°, pitched camera); a pedestrian
-  walking down towards the vehicle (moving), rocks, a pole.
+- ``climb``: a 9 m hill rising from 8 to 53 m ahead (slopes to ~17°) that the camera looks up;
+  a drive longer than 20 frames at the default 4 m/s reaches it and climbs it, pitching the
+  vehicle and camera (20 frames stop at its foot); a pedestrian walking down towards the
+  vehicle (moving), rocks, a pole.
 """
 
 from __future__ import annotations
