@@ -490,7 +490,7 @@ class TrackingConfig:
     """A confirmed track matched again after more than this many consecutive misses keeps its id
     but is an obstacle again only once it has been matched in ``confirm_hits`` frames in a row,
     like a new track: a false detection that happens to fall near a track kept that long is not
-    reported at once. With 10 and 3 (against 3 and no such rule) the `--seed 2` mound keeps its
+    reported at once. With 10 and 3 (against 3 and no such rule) the ``--seed 2`` mound keeps its
     id through ten missed frames and the false obstacles on the simulated drives went from 0.80
     and 2.55 to 0.80 and 2.35 per frame summed; reporting such a track at once gave 0.95 and 2.60."""
     report_misses: int = 0
