@@ -31,7 +31,8 @@ TERRAIN_PIXEL = 1
 @dataclass
 class TruthObstacle:
     """A truth obstacle in the vehicle frame: ``center_m`` (3,), ``size_m`` (3,) box extent along
-    its heading ``yaw_rad`` (about base z), ``height_m`` above the ground, ``pixels`` (its pixels
+    its heading ``yaw_rad`` (about base z), ``height_m`` of its top above the terrain at its
+    centre, ``pixels`` (its pixels
     that both cameras see, :func:`truth_obstacles`) and ``range_m`` (horizontal distance of the
     centre)."""
 
