@@ -118,7 +118,8 @@ class TerrainConfig:
     control_point_growth: float = 1.5
     """Net growth per iteration: n ← max(n + 1, round(n · growth)) per axis, capped at the final
     net. 1.0 is the paper's pseudo-code (one control point more per iteration: 22 fits from 4 to
-    25); the default 1.5 reaches 25 in 5 fits with the same accuracy (see the tests)."""
+    25); the default 1.5 reaches 25 in 6 (4, 6, 9, 14, 21, 25) with the same accuracy (see the
+    tests)."""
     weight_max: float = 100.0
     """Upper bound of the sample weight W of eq. 3 (W is infinite at Δz = 0 otherwise)."""
     threshold_factor: float = 2.0

@@ -1,8 +1,7 @@
 """Terrain estimation: Algorithm V-B.1 of the paper (iterative re-weighted rational B-spline
 fitting with equalization).
 
-Decisions where the paper's text is garbled or silent (see ``DESIGN.md`` §4), each with the
-property it keeps:
+Decisions where the paper's text is garbled or silent, each with the property it keeps:
 
 1. **Schedule.** The first fit uses ``start_control_points`` per axis, R ≡ 1 and W ≡ 1 (a plain,
    unweighted, non-rational spline). Each iteration grows the net per axis to

@@ -59,7 +59,8 @@ def make_frame(index: int, *, grid: GridConfig = GRID, points: int = 50, source:
     extrinsics = Extrinsics(CAM_ROTATION, np.array([0.2, -0.1, 1.6]), source=source, camera_frame_id="left_optical")
     obstacles = [
         Obstacle(np.array([4.0, 0.5, 0.4]), np.array([1.0, 0.6, 0.8]), 0.3, 0.8, 40, 4.0, "positive", 7, True),
-        Obstacle(np.array([5.0, -0.5, -0.2]), np.array([0.5, 0.5, 0.3]), -1.0, 0.3, 9, 5.0, "negative", -1, False),
+        Obstacle(np.array([5.0, -0.5, -0.2]), np.array([0.5, 0.5, 0.3]), -1.0, 0.3, 9, 5.0, "negative", 8, True),
+        Obstacle(np.array([3.0, 1.0, 0.3]), np.array([0.4, 0.4, 0.6]), 0.0, 0.6, 12, 3.0, "positive", 9, False),
     ]
     result = FrameResult(
         index=index,
@@ -71,7 +72,7 @@ def make_frame(index: int, *, grid: GridConfig = GRID, points: int = 50, source:
         grid=height_grid,
         terrain=None,
         layers=make_layers(grid, cost=cost),
-        obstacles=obstacles[: index % 3],  # 0, 1, 2 obstacles: entities must be replaced
+        obstacles=[obstacles[k] for k in ([], [0, 2], [0, 1, 2])[index % 3]],  # replaced each frame; #9 tentative
     )
     calibration = StereoCalibration(width=4, height=3, fx=1.0, fy=1.0, cx=2.0, cy=1.5, baseline_m=0.5)
     image = np.zeros((3, 4), np.uint8)
@@ -201,8 +202,9 @@ def test_foxglove_obstacles_replace_previous_entities(fox_file):
     updates = read_messages(path, ProtobufDecoderFactory())["/terrainmap/obstacles"]
     for (_, _, update), (_frame, result) in zip(updates, frames, strict=True):
         assert [d.type for d in update.deletions] == [1]  # ALL
-        assert len(update.entities) == len(result.obstacles)
-        for entity, obstacle in zip(update.entities, result.obstacles, strict=True):
+        shown = [o for o in result.obstacles if o.confirmed]  # a tentative track is no obstacle yet
+        assert len(update.entities) == len(shown)
+        for entity, obstacle in zip(update.entities, shown, strict=True):
             cube, text = entity.cubes[0], entity.texts[0]
             assert entity.frame_id == "base_link"
             np.testing.assert_allclose([cube.pose.position.x, cube.pose.position.y, cube.pose.position.z], obstacle.center_m)
@@ -210,7 +212,7 @@ def test_foxglove_obstacles_replace_previous_entities(fox_file):
             yaw = 2 * math.atan2(cube.pose.orientation.z, cube.pose.orientation.w)
             assert yaw == pytest.approx(obstacle.yaw_rad)
             assert text.text == f"{obstacle.track_id} {obstacle.kind} {obstacle.height_m:.2f} m"
-        if len(result.obstacles) == 2:
+        if len(shown) == 2:
             assert update.entities[0].id == "obstacle/7"
             assert update.entities[0].cubes[0].color.r > update.entities[0].cubes[0].color.b  # positive: red
             assert update.entities[1].cubes[0].color.b > update.entities[1].cubes[0].color.r  # negative: blue

@@ -139,8 +139,9 @@ def test_marker_array(ros_file):
         for msg in (mcap_topics["/terrainmap/obstacles"][k][2], rosbags_topics["/terrainmap/obstacles"][k]):
             first, *markers = msg.markers
             assert first.action == 3  # DELETEALL
-            assert len(markers) == 2 * len(result.obstacles)
-            for cube, text, obstacle in zip(markers[::2], markers[1::2], result.obstacles, strict=True):
+            shown = [o for o in result.obstacles if o.confirmed]  # a tentative track is no obstacle yet
+            assert len(markers) == 2 * len(shown)
+            for cube, text, obstacle in zip(markers[::2], markers[1::2], shown, strict=True):
                 assert (cube.type, cube.action, cube.ns, text.type, text.ns) == (1, 0, "obstacles", 9, "obstacle_labels")
                 assert cube.header.frame_id == "base_link" and stamp_ns(cube.header) == frame.stamp_ns
                 np.testing.assert_allclose([cube.pose.position.x, cube.pose.position.y, cube.pose.position.z],
@@ -149,8 +150,8 @@ def test_marker_array(ros_file):
                 assert 2 * math.atan2(cube.pose.orientation.z, cube.pose.orientation.w) == pytest.approx(obstacle.yaw_rad)
                 assert text.text == f"{obstacle.track_id} {obstacle.kind} {obstacle.height_m:.2f} m"
                 assert text.pose.position.z > cube.pose.position.z and text.pose.orientation.w == 1.0
-            if len(result.obstacles) == 2:
-                assert [m.id for m in markers] == [7, 7, 1, 1]  # track id, else the obstacle's index
+            if len(shown) == 2:
+                assert [m.id for m in markers] == [7, 7, 8, 8]  # the track ids
 
 
 def test_tf_static_once_and_stamps(ros_file):

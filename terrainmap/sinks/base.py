@@ -33,7 +33,7 @@ FLOAT_LAYERS = frozenset({"elevation", "slope", "cost"})
 """float32 layers; the others (``label``, ``valid``) are written as uint8."""
 POINT_DTYPE = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("label", "u1")])
 """Packed point record of both flavours: 13 bytes, x, y, z in metres (vehicle frame), Label."""
-OBSTACLE_RGBA = {"positive": (1.0, 0.35, 0.1, 0.6), "negative": (0.3, 0.3, 1.0, 0.6)}
+OBSTACLE_RGBA = {"positive": (1.0, 0.35, 0.1, 0.85), "negative": (0.3, 0.3, 1.0, 0.85)}
 """Box colour by :attr:`Obstacle.kind` (others: grey)."""
 
 
@@ -214,6 +214,11 @@ def obstacle_text(obstacle: Obstacle) -> str:
 
 
 def obstacle_rgba(obstacle: Obstacle) -> tuple[float, float, float, float]:
-    """Box colour (r, g, b, a in [0, 1]) by kind; confirmed tracks are more opaque."""
-    r, g, b, a = OBSTACLE_RGBA.get(obstacle.kind, (0.6, 0.6, 0.6, 0.6))
-    return (r, g, b, 0.85 if obstacle.confirmed else a)
+    """Box colour (r, g, b, a in [0, 1]) by kind."""
+    return OBSTACLE_RGBA.get(obstacle.kind, (0.6, 0.6, 0.6, 0.85))
+
+
+def confirmed_obstacles(result: FrameResult) -> list[Obstacle]:
+    """The obstacles every output shows: the confirmed tracks (a detection seen in one frame
+    only, or a track not yet confirmed, is not an obstacle; :mod:`terrainmap.tracking`)."""
+    return [o for o in result.obstacles if o.confirmed]

@@ -12,7 +12,8 @@ Topics, all in the vehicle frame (``Extrinsics.vehicle_frame_id``: ``base_link``
   the grid's corner ``(x_min_m, y_min_m, 0)`` with identity orientation.
 - ``/terrainmap/points`` ``foxglove.PointCloud``: x, y, z float32 and uint8 ``label``.
 - ``/terrainmap/obstacles`` ``foxglove.SceneUpdate``: deletes all previous entities, then one
-  entity per obstacle with a cube (coloured by kind) and a text ``"<id> <kind> <height> m"``.
+  entity per confirmed obstacle with a cube (coloured by kind) and a text
+  ``"<id> <kind> <height> m"``.
 - ``/tf`` and ``/tf_static`` ``foxglove.FrameTransforms``: ``base_link`` → camera frame, and on
   ``/tf`` each frame's ``odom → base_link`` where the source gave the vehicle pose (so Foxglove
   can show the drive in the odometry frame).
@@ -49,6 +50,7 @@ from .base import (
     METADATA_NAME,
     POINT_DTYPE,
     McapSink,
+    confirmed_obstacles,
     grid_layers,
     obstacle_rgba,
     obstacle_text,
@@ -131,7 +133,7 @@ def _varint(value: int) -> bytes:
             return bytes(out)
 
 
-def _entity(obstacle: Obstacle, index: int, stamp: Timestamp, frame_id: str) -> SceneEntity:
+def _entity(obstacle: Obstacle, stamp: Timestamp, frame_id: str) -> SceneEntity:
     center = np.asarray(obstacle.center_m, float)
     size = np.asarray(obstacle.size_m, float)
     r, g, b, a = obstacle_rgba(obstacle)
@@ -139,7 +141,7 @@ def _entity(obstacle: Obstacle, index: int, stamp: Timestamp, frame_id: str) -> 
     return SceneEntity(
         timestamp=stamp,
         frame_id=frame_id,
-        id=f"obstacle/{obstacle.track_id if obstacle.track_id >= 0 else f'u{index}'}",
+        id=f"obstacle/{obstacle.track_id}",
         cubes=[
             CubePrimitive(
                 pose=_pose(center, yaw_quaternion(obstacle.yaw_rad)),
@@ -161,13 +163,13 @@ def _entity(obstacle: Obstacle, index: int, stamp: Timestamp, frame_id: str) -> 
 
 
 def obstacles_message(result: FrameResult) -> SceneUpdate:
-    """``foxglove.SceneUpdate`` that deletes every earlier entity and adds this frame's obstacles."""
+    """``foxglove.SceneUpdate`` that deletes every earlier entity and adds this frame's confirmed
+    obstacles (entity id ``obstacle/<track id>``)."""
     stamp = _timestamp(result.stamp_ns)
+    frame_id = result.extrinsics.vehicle_frame_id
     return SceneUpdate(
         deletions=[SceneEntityDeletion(timestamp=stamp, type=SceneEntityDeletion.ALL)],
-        entities=[
-            _entity(obstacle, i, stamp, result.extrinsics.vehicle_frame_id) for i, obstacle in enumerate(result.obstacles)
-        ],
+        entities=[_entity(obstacle, stamp, frame_id) for obstacle in confirmed_obstacles(result)],
     )
 
 

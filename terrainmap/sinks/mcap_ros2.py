@@ -13,7 +13,8 @@ Topics, all in the vehicle frame (``Extrinsics.vehicle_frame_id``: ``base_link``
   ``dim[1]`` = ``row_index`` of size m0, as grid_map_ros writes it).
 - ``/terrainmap/points`` ``sensor_msgs/msg/PointCloud2``: x, y, z FLOAT32 (7), label UINT8 (2).
 - ``/terrainmap/obstacles`` ``visualization_msgs/msg/MarkerArray``: a DELETEALL marker, then per
-  obstacle a CUBE (namespace ``obstacles``) and a TEXT_VIEW_FACING label (``obstacle_labels``).
+  confirmed obstacle a CUBE (namespace ``obstacles``) and a TEXT_VIEW_FACING label
+  (``obstacle_labels``), marker id = track id.
 - ``/tf`` and ``/tf_static`` ``tf2_msgs/msg/TFMessage``: ``base_link`` → camera frame, and on
   ``/tf`` each frame's ``odom → base_link`` where the source gave the vehicle pose.
 - metadata record ``terrainmap``: version, config (TOML), extrinsics (JSON), source...
@@ -45,6 +46,7 @@ from .base import (
     METADATA_NAME,
     POINT_DTYPE,
     McapSink,
+    confirmed_obstacles,
     grid_layers,
     obstacle_rgba,
     obstacle_text,
@@ -118,11 +120,12 @@ def _markers(obstacle: Obstacle, marker_id: int, stamp_ns: int, frame_id: str) -
 
 
 def marker_array_message(result: FrameResult) -> dict:
-    """MarkerArray dict: DELETEALL, then a cube and a text marker per obstacle (id = track id or index)."""
+    """MarkerArray dict: DELETEALL, then a cube and a text marker (id = track id) per confirmed
+    obstacle."""
     frame_id = result.extrinsics.vehicle_frame_id
     markers = [{"header": header(result.stamp_ns, frame_id), "action": MARKER_DELETEALL}]
-    for i, obstacle in enumerate(result.obstacles):
-        markers += _markers(obstacle, obstacle.track_id if obstacle.track_id >= 0 else i, result.stamp_ns, frame_id)
+    for obstacle in confirmed_obstacles(result):
+        markers += _markers(obstacle, obstacle.track_id, result.stamp_ns, frame_id)
     return {"markers": markers}
 
 

@@ -43,7 +43,7 @@ from ..config import Config
 from ..errors import InputError, TerrainmapError
 from ..grid import cell_centers
 from ..types import FrameResult, Label, StereoFrame
-from .base import obstacle_text, yaw_quaternion
+from .base import confirmed_obstacles, obstacle_text, yaw_quaternion
 
 LABEL_COLORS = {
     Label.UNKNOWN: (140, 140, 140),
@@ -207,7 +207,7 @@ class RerunSink:
             rec.log(f"{VEHICLE}/terrain/{name}", mesh)
 
     def _log_obstacles(self, result: FrameResult) -> None:
-        obstacles = [o for o in result.obstacles if o.confirmed]
+        obstacles = confirmed_obstacles(result)
         if not obstacles:
             self._rec.log(f"{VEHICLE}/obstacles", rr.Clear(recursive=False))
             return
