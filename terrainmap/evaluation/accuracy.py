@@ -24,8 +24,8 @@ layers, point labels and tracked obstacles) and every other method of
   UNKNOWN are not scored; OBSTACLE **and BELOW** count as predicted not-terrain (a terrain point
   the surface passes above is a terrain point the method missed).
 - ``obstacle_recall`` (terrainmap only): per frame, the truth obstacles whose top stands at
-  least ``obstacle_min_height_m`` above the terrain at their centre, with at least ``min_visible_pixels`` pixels that both cameras
-  see (:func:`.truth_grid.truth_obstacles`), centre within ``obstacle_range_m`` and inside the
+  least ``obstacle_min_height_m`` above the terrain at their centre, with at least
+  ``min_visible_pixels`` pixels that both cameras see (:func:`.truth_grid.truth_obstacles`), centre within ``obstacle_range_m`` and inside the
   grid area, that are matched by a *confirmed* positive terrainmap obstacle whose centre lies in
   the truth footprint dilated by ``obstacle_margin_m`` (vehicle frame); summed over frames.
   Bands by the truth centre's range.

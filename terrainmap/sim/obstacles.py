@@ -9,7 +9,8 @@ Placement: a box's bottom is 5 cm below the lowest terrain point under its footp
 top ``height_m`` above the terrain at its centre; an ellipsoid is centred on the lowest of the
 terrain heights at its centre and at its four axis ends, with vertical semi-axis the nominal
 height (so about its upper half shows, less on sloping ground). The truth height of either is
-that of its top above the terrain at its centre. Moving obstacles keep their heading along their velocity.
+that of its top above the terrain at its centre. Moving obstacles keep their heading along
+their velocity.
 """
 
 from __future__ import annotations
