@@ -23,12 +23,12 @@ layers, point labels and tracked obstacles) and every other method of
   label at the point's pixel is terrain". Points on sky pixels and points the method leaves
   UNKNOWN are not scored; OBSTACLE **and BELOW** count as predicted not-terrain (a terrain point
   the surface passes above is a terrain point the method missed).
-- ``obstacle_recall`` (terrainmap only): per frame, the truth obstacles whose top stands at
-  least ``obstacle_min_height_m`` above the terrain at their centre, with at least
-  ``min_visible_pixels`` pixels that both cameras see (:func:`.truth_grid.truth_obstacles`), centre within ``obstacle_range_m`` and inside the
-  grid area, that are matched by a *confirmed* positive terrainmap obstacle whose centre lies in
-  the truth footprint dilated by ``obstacle_margin_m`` (vehicle frame); summed over frames.
-  Bands by the truth centre's range.
+- ``obstacle_recall`` (terrainmap only): per frame, the truth obstacles whose top stands at least
+  ``obstacle_min_height_m`` above the terrain at their centre, with at least ``min_visible_pixels``
+  pixels that both cameras see (:func:`.truth_grid.truth_obstacles`), centre within
+  ``obstacle_range_m`` and inside the grid area, that are matched by a *confirmed* positive
+  terrainmap obstacle whose centre lies in the truth footprint dilated by ``obstacle_margin_m``
+  (vehicle frame); summed over frames. Bands by the truth centre's range.
 - ``false_obstacles_per_frame`` (terrainmap only): confirmed positive obstacles matching no truth
   footprint (of any height), plus confirmed negative obstacles where the truth shows no
   depression (:func:`.truth_grid.depression_depth` below half of ``obstacles.min_depth_m``,
