@@ -2,9 +2,11 @@ import json
 import os
 import tomllib
 
+import pytest
 from click.testing import CliRunner
 
 from terrainmap.cli.main import cli, main
+from terrainmap.errors import ConfigError
 
 
 def test_config_prints_effective_toml():
@@ -15,12 +17,33 @@ def test_config_prints_effective_toml():
 
 
 def test_bad_override_is_a_one_line_error(capsys):
-    try:
+    with pytest.raises(SystemExit) as exc:
         main(["config", "--set", "terrain.degree=0"])
-    except SystemExit as exc:
-        assert exc.code == 2
+    assert exc.value.code == 2
     err = capsys.readouterr().err
     assert err.strip() == "Error: terrain.degree: must be 1..5, got 0"
+    with pytest.raises(ConfigError, match="terrain.degree"):  # --verbose, before the command: the traceback
+        main(["-v", "config", "--set", "terrain.degree=0"])
+
+
+@pytest.mark.parametrize(
+    ("error", "code", "line"),
+    [
+        (KeyboardInterrupt(), 130, "Interrupted."),
+        (PermissionError(13, "Permission denied", "/reports/x.json"), 2, "Error: /reports/x.json: Permission denied"),
+    ],
+)
+def test_interruptions_and_os_errors_end_with_one_line(monkeypatch, capsys, error, code, line):
+    from terrainmap.cli import main as main_module
+
+    def fail(*args, **kwargs):
+        raise error
+
+    monkeypatch.setattr(main_module.cli, "main", fail)
+    with pytest.raises(SystemExit) as exc:
+        main(["config"])
+    assert exc.value.code == code
+    assert capsys.readouterr().err.splitlines() == [line]
 
 
 def test_eval_artificial_obstacle_writes_json_csv_and_plot(tmp_path):

@@ -57,7 +57,7 @@ def test_formula_on_hand_built_cells():
     assert cost[1, 1] == pytest.approx(0.5) and cost[1, 2] == 1  # step at ½ and at the limit
     assert cost[1, 3] == 0  # unknown step counts as none
     assert np.isnan(cost[2, 0])  # no data
-    assert cost[1, 0] == pytest.approx(np.maximum(smoothstep(5 / 20), 0.0))
+    assert smoothstep(0.25) == pytest.approx(cost[1, 0])  # the README's s(t), as a function
 
 
 def test_cost_is_the_max_of_the_terms():

@@ -104,6 +104,7 @@ def test_empty_cells_take_the_mean_of_observed_neighbours_else_invalid():
     g = quantize(pts, cfg)
     assert g.valid[0, 1] and not g.observed[0, 1]
     assert g.z[0, 1] == pytest.approx(2.0)  # neighbours (0,0) and (1,0)
+    assert g.z_top[0, 1] == g.z[0, 1]  # a filled cell's top is its sample
     assert g.z[2, 1] == pytest.approx(3.0)  # only (1,0) is a neighbour
     assert not g.valid[4, 4] and g.z[4, 4] == 0.0  # INVALID, Z := 0
     assert g.valid.sum() == 2 + 4  # the two observed cells and their four empty neighbours

@@ -94,7 +94,10 @@ def test_output_is_finalised_when_the_run_fails_part_way(shared_data, tmp_path):
     assert len(_grids(out)) == 1  # summary and index written: the file reads back whole
 
 
-def test_truncated_log_keeps_what_was_written(shared_data, tmp_path, capsys):
+def test_a_log_cut_before_its_first_pair_names_the_damage_and_writes_nothing(shared_data, tmp_path, capsys):
+    """Half of the KITTI rosbag2 file holds the left image but not the right one: one error line
+    that names the damage and the missing pair, and no output file (a log cut after some frames
+    keeps them: the next test)."""
     from terrainmap.cli.main import main
 
     log = tmp_path / "cut.mcap"
@@ -102,10 +105,10 @@ def test_truncated_log_keeps_what_was_written(shared_data, tmp_path, capsys):
     log.write_bytes(src.read_bytes()[: src.stat().st_size // 2])
     with pytest.raises(SystemExit) as exc:
         main(["process", str(log), "-o", str(tmp_path / "o.mcap")])
-    assert exc.value.code in (1, 2)
-    assert capsys.readouterr().err.strip().splitlines()[-1].startswith("Error: ")
-    if (tmp_path / "o.mcap").exists():
-        _grids(tmp_path / "o.mcap")  # whatever was written reads back
+    assert exc.value.code == 2
+    (line,) = capsys.readouterr().err.strip().splitlines()
+    assert line.startswith(f"Error: {log}: truncated or corrupt after") and "no stereo image topics found" in line
+    assert not (tmp_path / "o.mcap").exists()
 
 
 def test_log_cut_after_a_frame_gives_one_error_line_and_that_frame(tmp_path, capsys):

@@ -1,4 +1,6 @@
-"""The README's promises: its two set-up commands exist, and every command it shows runs."""
+"""The README's promises: its two set-up commands exist and CI runs the test one, every command it
+shows is a command of the CLI, and every config field it names exists. (The commands themselves
+run in the CLI, process and evaluation tests.)"""
 
 import re
 from pathlib import Path

@@ -71,13 +71,16 @@ def test_cell_labels():
     pts = np.array(
         [[0.5, -0.5, 0.0], [0.5, -0.5, 0.02],  # terrain
          [1.5, -0.5, 0.0], [1.5, -0.5, 1.5], [1.5, -0.5, 1.6],  # something standing up
-         [2.5, -0.5, -0.8]]  # hole
+         [2.5, -0.5, -0.8],  # hole
+         [3.5, -0.5, 0.0], [3.5, -0.5, 0.0], [3.5, -0.5, 0.0], [3.5, -0.5, 0.0], [3.5, -0.5, -2.0]]  # a pit
     )
     grid = quantize(pts, grid_cfg)
     labels = label_cells(grid, np.zeros(grid.shape), SegmentationConfig())
     assert labels[0, 0] == Label.TERRAIN
     assert labels[1, 0] == Label.OBSTACLE
     assert labels[2, 0] == Label.BELOW
+    # below goes by eq. 1's Z (mean − σ = −1.2 m here), although the cell's top (mean + σ) is 0.4 m up
+    assert grid.z_top[3, 0] > 0.25 and labels[3, 0] == Label.BELOW
     assert labels[3, 1] == Label.UNKNOWN  # no point
 
 

@@ -48,6 +48,8 @@ def test_clean_flat_scene_converges_early_and_exactly():
     pts = np.column_stack([X.ravel(), Y.ravel(), 0.1 + 0.05 * X.ravel()])
     est = estimate_terrain(quantize(pts, cfg), TerrainConfig())
     assert est.converged and est.iterations < 4
+    full = estimate_terrain(quantize(pts, cfg), TerrainConfig(epsilon_m=0.0))  # stops only at the final net
+    assert not full.converged and full.iterations == 6  # 4, 6, 9, 14, 21, 25 control points
     np.testing.assert_allclose(est.surface.on_grid(xs, ys), 0.1 + 0.05 * X, atol=1e-3)
     slope, gx, gy = slope_at(est.surface, np.array([3.0, 20.0]), np.array([-5.0, 2.0]))  # any points
     np.testing.assert_allclose(slope, np.arctan(0.05), atol=1e-3)
