@@ -200,6 +200,8 @@ def test_overlapped_runner_gives_the_sequential_results(tmp_path):
         expected = [process_frame(frame, config, state) for frame in source.frames()]
     assert summary.frames_done == 4
     for got, want in zip(keep.results, expected, strict=True):
+        # the stereo rig reaches the terrain stage (eq. 1's noise discount, the labelling floors)
+        assert got.grid.camera is not None and got.grid.height_per_px is not None
         np.testing.assert_array_equal(got.point_labels, want.point_labels)
         np.testing.assert_array_equal(got.layers["elevation"], want.layers["elevation"])
         assert [o.track_id for o in got.obstacles] == [o.track_id for o in want.obstacles]

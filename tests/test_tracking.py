@@ -180,6 +180,25 @@ def test_world_frame_tracking_with_vehicle_pose():
     assert a.track_id == 1 and b.track_id == 1
 
 
+def test_with_a_pose_a_moving_obstacle_is_reported_with_vehicle_frame_heading_and_velocity():
+    """Tracks live in the world frame; what is reported goes back to the vehicle's axes: the box's
+    heading as detected, and the velocity over ground turned into the vehicle frame."""
+    import dataclasses
+
+    tracker = ObstacleTracker(TrackingConfig())
+    yaw = 0.3
+    rot = np.array([[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]])  # vehicle → world
+    velocity_world = np.array([1.0, 0.5])
+    for k in range(10):
+        t = k * 0.1
+        vehicle_xy = rot[:, 0] * 5.0 * t
+        local = rot.T @ (np.array([25.0, 10.0]) + velocity_world * t - vehicle_xy)
+        det = dataclasses.replace(detection(*local), yaw_rad=0.2)  # the box's heading, vehicle frame
+        (out,) = tracker.update([det], k * DT_NS, pose(*vehicle_xy, yaw))
+    assert out.yaw_rad == pytest.approx(0.2, abs=1e-6)
+    np.testing.assert_allclose(out.velocity_mps[:2], rot.T @ velocity_world, atol=0.15)
+
+
 def test_positive_and_negative_obstacles_do_not_associate():
     tracker = ObstacleTracker(TrackingConfig())
     (pos,) = tracker.update([detection(10, 0, "positive")], 0)
