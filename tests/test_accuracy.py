@@ -184,6 +184,30 @@ def test_a_pipeline_equal_to_the_truth_scores_perfectly(tiny_log, monkeypatch):
     assert all(v == 0 for v in report["obstacles"]["id_switches"].values())
 
 
+def test_late_confirmations_id_switches_and_false_obstacles_are_counted(tiny_log, monkeypatch):
+    """The oracle again, but nothing confirmed in the first frame, every track id changed in the
+    third, and one confirmed obstacle 11 m away where the truth has none, in every frame."""
+    import dataclasses
+
+    oracle = _oracle(tiny_log, Config())
+
+    def flawed(frame, cfg, state):
+        result = oracle(frame, cfg, state)
+        obstacles = [dataclasses.replace(o, track_id=k + 50 * (frame.index == 2), confirmed=frame.index > 0)
+                     for k, o in enumerate(result.obstacles)]
+        ghost = Obstacle(np.array([8.0, -8.0, 0.5]), np.array([1.0, 1.0, 1.0]), 0.0, 1.0, 40, 11.3, confirmed=True)
+        return dataclasses.replace(result, obstacles=[*obstacles, ghost])
+
+    monkeypatch.setattr(acc, "process_frame", flawed)
+    report = acc.evaluate(tiny_log, Config(), methods=["terrainmap"])
+    confirmation, switches = report["obstacles"]["frames_to_confirmation"], report["obstacles"]["id_switches"]
+    assert confirmation["2 pedestrian"] == 1  # eligible in frame 0, confirmed in frame 1
+    assert max(confirmation.values()) == 1  # (the rock becomes eligible later: 0)
+    assert switches["2 pedestrian"] == 1  # matched in frames 1 and 2 under two ids
+    assert report["methods"]["terrainmap"]["10-20"]["false_obstacles_per_frame"] == 1
+    assert report["methods"]["terrainmap"]["0-10"]["false_obstacles_per_frame"] == 0
+
+
 def test_report_schema_on_a_simulated_log(tiny_log):
     report = acc.evaluate(tiny_log, Config(), methods=["terrainmap", "ransac_plane"], max_frames=2)
     json.dumps(report)  # JSON-able
