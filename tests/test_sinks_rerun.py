@@ -136,3 +136,50 @@ def test_camera_and_depth_use_the_rectified_pinhole(log, tmp_path):
     seen = np.isfinite(disparity) & (disparity > 0)
     expected = result.pinhole.fx * result.pinhole.baseline_m / disparity[seen]
     np.testing.assert_allclose(depth[seen], expected, rtol=1e-5)
+
+
+def _columns(path: Path, entity: str, column: str) -> dict[int, list]:
+    """frame → the column's value in that frame's row of ``entity`` (a list of instances)."""
+    out = {}
+    for chunk in RrdReader(str(path)).store().stream().to_chunks():
+        if str(chunk.entity_path) != entity or chunk.is_static:
+            continue
+        batch = chunk.to_record_batch()
+        if column in batch.schema.names:
+            out.update(zip(batch.column("frame").to_pylist(), batch.column(column).to_pylist(), strict=True))
+    return out
+
+
+def test_what_the_recording_shows_is_what_was_computed(log, tmp_path):
+    """Read back, per frame: the terrain mesh's heights are the elevation layer, the equalized
+    samples are the fit's, the boxes are the confirmed obstacles (half their size), and the label
+    image holds each point's label at its pixel."""
+    import numpy as np
+
+    class Keep:
+        results = []
+
+        def write(self, frame, result):
+            self.results.append(result)
+
+        def close(self):
+            pass
+
+    rrd = tmp_path / "content.rrd"
+    keep = Keep()
+    with open_source(log) as source:
+        runner.run(source.frames(), Config(), [keep, RerunSink(rrd, config=Config())])
+    mesh = _columns(rrd, "/world/vehicle/terrain/elevation", "Mesh3D:vertex_positions")
+    equalized = _columns(rrd, "/world/vehicle/grid/equalized", "Points3D:positions")
+    boxes = _columns(rrd, "/world/vehicle/obstacles", "Boxes3D:half_sizes")
+    labels = _columns(rrd, "/world/vehicle/camera/image/labels", "SegmentationImage:buffer")
+    assert len(keep.results) == 3 and any(boxes.values())
+    for k, result in enumerate(keep.results):
+        np.testing.assert_allclose(np.array(mesh[k])[:, 2], result.layers["elevation"].ravel(), atol=1e-6)
+        valid = result.grid.valid
+        np.testing.assert_allclose(np.array(equalized[k])[:, 2], result.terrain.samples[valid], atol=1e-6)
+        confirmed = [o for o in result.obstacles if o.confirmed]
+        shown = np.array(boxes.get(k) or []).reshape(-1, 3)
+        np.testing.assert_allclose(shown, [o.size_m / 2 for o in confirmed] or np.zeros((0, 3)), atol=1e-6)
+        image = np.array(labels[k][0], np.uint8).reshape(result.image.shape[:2])  # one image, its bytes
+        np.testing.assert_array_equal(image[result.pixels[:, 1], result.pixels[:, 0]], result.point_labels)
