@@ -59,6 +59,22 @@ def test_ditch_is_a_negative_obstacle_with_its_depth():
     assert extract_obstacles(points, labels, GRID, plane, ObstacleConfig(negative=False)) == []
 
 
+def test_obstacles_come_positive_first_each_kind_sorted_by_range():
+    """A box far out to the side is found (labelled) before a nearer one straight ahead: the
+    result is still in range order, and a pit nearer than both comes after them."""
+    plane = Plane()
+    ground = terrain_points(plane)
+    pit = (np.abs(ground[:, 0] - 8.0) < 0.6) & (np.abs(ground[:, 1]) < 1.0)
+    ground[pit, 2] -= 0.7
+    side = box_points(plane, (12.0, -9.0), 1.0, 1.0, 1.0)  # 15 m away, at a lower x
+    ahead = box_points(plane, (14.0, 0.0), 1.0, 1.0, 1.0)  # 13.5 m away
+    points, labels = labelled(plane, ground, side, ahead)
+    found = extract_obstacles(points, labels, GRID, plane, ObstacleConfig())
+    assert [o.kind for o in found] == ["positive", "positive", "negative"]
+    np.testing.assert_allclose([o.center_m[0] for o in found[:2]], [14.0, 12.0], atol=0.1)
+    assert found[0].range_m < found[1].range_m
+
+
 def test_frame_without_obstacles_gives_none():
     plane = Plane(gx=0.1)
     points, labels = labelled(plane, terrain_points(plane))
