@@ -319,3 +319,14 @@ def test_a_kitti_folder_without_its_calibration_folder_takes_calibration(tmp_pat
     (tmp_path / "calib.yaml").write_text(CALIB_YAML)
     frame = next(open_source(root, calibration=tmp_path / "calib.yaml").frames())
     assert frame.calibration.fx == 500.0
+
+
+def test_a_colour_image_paired_with_a_mono_one_makes_a_mono_pair():
+    from terrainmap.sources.images import stereo_pair
+
+    colour = image(1, (6, 8, 3))
+    left, right = stereo_pair(colour, image(2, (6, 8)), "left.png", "right.png")
+    assert left.shape == right.shape == (6, 8) and left.dtype == right.dtype == np.uint8
+    np.testing.assert_array_equal(left, cv2.cvtColor(colour, cv2.COLOR_RGB2GRAY))
+    left16, right16 = stereo_pair(np.full((6, 8), 1000, np.uint16), np.full((6, 8), 2000, np.uint16), "l", "r")
+    assert (left16.max(), right16.max()) == (128, 255)  # one scale for both: 255 / the pair's peak
