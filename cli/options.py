@@ -76,6 +76,11 @@ class GracefulStop:
             signal.signal(s, handler)
 
 
+def wrote_before_stopping(frames: int, paths) -> str:
+    """``wrote N frame(s) to A, B before stopping``: what a run that ends early leaves behind."""
+    return f"wrote {frames} frame{'s' * (frames != 1)} to {', '.join(map(str, paths))} before stopping"
+
+
 def refuse_overwriting_inputs(outputs: dict[str, Path | None], inputs: Iterable[str | Path | None]) -> None:
     """Raise a UsageError when an output (option name → path) is an input file (also through a
     link) or lies inside an input folder, or when two outputs are one file: a report must never

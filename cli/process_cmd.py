@@ -10,7 +10,15 @@ import click
 
 from terrainmap.config import load_config
 
-from .options import Failed, GracefulStop, config_options, output_file, refuse_overwriting_inputs, writable
+from .options import (
+    Failed,
+    GracefulStop,
+    config_options,
+    output_file,
+    refuse_overwriting_inputs,
+    writable,
+    wrote_before_stopping,
+)
 from .source_options import source_options
 
 
@@ -39,7 +47,9 @@ def process(log, output, flavor, compression, rrd, overwrite, source_opts, confi
     from terrainmap.sinks import open_mcap_sink
 
     config = load_config(config_path, overrides)
-    output = output or default_output(log)
+    if output is None:  # a given -o was checked writable with the options; the default is checked here
+        output = default_output(log)
+        writable(output)
     _check_outputs(log, output, rrd, overwrite, [source_opts.calibration, config_path])
     show = sys.stderr.isatty()
     outputs = [output] + ([rrd] if rrd else [])
@@ -73,8 +83,7 @@ def process(log, output, flavor, compression, rrd, overwrite, source_opts, confi
                 summary = runner.run(frames, config, sinks, on_frame=on_frame)
             except BaseException:
                 if progress and progress[0].frames_done:  # the sinks were closed: what they hold reads back
-                    done = progress[0].frames_done
-                    click.echo(f"wrote {done} frame{'s' * (done != 1)} to {', '.join(map(str, outputs))} before stopping")
+                    click.echo(wrote_before_stopping(progress[0].frames_done, outputs))
                 raise
             finally:
                 if show:
@@ -91,9 +100,6 @@ def _check_outputs(log: Path, output: Path, rrd: Path | None, overwrite: bool, i
     for path in (output, rrd):
         if path is not None and path.exists() and not overwrite:
             raise click.UsageError(f"{path} exists; pass --overwrite to replace it")
-    # The default output was not checked with the options. Both are checked before either is
-    # replaced: an unwritable --rrd must not cost an earlier -o.
-    writable(output)
 
 
 def _progress(summary, frame, result) -> None:

@@ -9,7 +9,7 @@ import click
 
 from terrainmap.sim.scenes import SCENES
 
-from .options import GracefulStop, output_file
+from .options import GracefulStop, output_file, wrote_before_stopping
 
 
 @click.command()
@@ -64,7 +64,7 @@ def simulate(out: Path, fmt: str | None, overwrite: bool, **options) -> None:
             try:
                 summary = run(out, config, progress=progress)
             except KeyboardInterrupt:
-                click.echo(f"\nwrote {len(done)} frame{'s' * (len(done) != 1)} to {out} before stopping")
+                click.echo("\n" + wrote_before_stopping(len(done), [out]))
                 raise
     click.echo(
         f"wrote {summary['frames']} frames ({config.width}×{config.height}, scene {config.scene}, seed {config.seed}) "

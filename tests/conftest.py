@@ -14,6 +14,24 @@ def shared_data() -> Path:
     return SHARED_DATA
 
 
+class KeepSink:
+    """A sink that keeps every result it is given, in ``results``."""
+
+    def __init__(self) -> None:
+        self.results = []
+
+    def write(self, frame, result) -> None:
+        self.results.append(result)
+
+    def close(self) -> None:
+        pass
+
+
+@pytest.fixture
+def keep_sink() -> KeepSink:
+    return KeepSink()
+
+
 def load_kitti():
     """(left RGB, right RGB, GT disparity (NaN = unknown), StereoCalibration) of KITTI 000005_10,
     read directly with OpenCV (independent of terrainmap's sources); skips when absent."""

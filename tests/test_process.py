@@ -174,25 +174,15 @@ def test_unusable_calibration_is_reported(shared_data, tmp_path, capsys):
     assert "baseline" in capsys.readouterr().err
 
 
-def test_overlapped_runner_gives_the_sequential_results(tmp_path):
+def test_overlapped_runner_gives_the_sequential_results(tmp_path, keep_sink):
     from terrainmap.pipeline import PipelineState, process_frame
     from terrainmap.sim import SimConfig, simulate
 
     log = tmp_path / "sim.mcap"
     simulate(log, SimConfig(scene="mounds", frames=4, seed=2, width=320, height=240, focal_px=250.0))
 
-    class Keep:
-        def __init__(self):
-            self.results = []
-
-        def write(self, frame, result):
-            self.results.append(result)
-
-        def close(self):
-            pass
-
     config = Config()
-    keep = Keep()
+    keep = keep_sink
     with open_source(log) as source:
         summary = runner.run(source.frames(), config, [keep])
     state = PipelineState(config)

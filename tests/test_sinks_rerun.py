@@ -150,23 +150,14 @@ def _columns(path: Path, entity: str, column: str) -> dict[int, list]:
     return out
 
 
-def test_what_the_recording_shows_is_what_was_computed(log, tmp_path):
+def test_what_the_recording_shows_is_what_was_computed(log, tmp_path, keep_sink):
     """Read back, per frame: the terrain mesh's heights are the elevation layer, the equalized
     samples are the fit's, the boxes are the confirmed obstacles (half their size), and the label
     image holds each point's label at its pixel."""
     import numpy as np
 
-    class Keep:
-        results = []
-
-        def write(self, frame, result):
-            self.results.append(result)
-
-        def close(self):
-            pass
-
     rrd = tmp_path / "content.rrd"
-    keep = Keep()
+    keep = keep_sink
     with open_source(log) as source:
         runner.run(source.frames(), Config(), [keep, RerunSink(rrd, config=Config())])
     mesh = _columns(rrd, "/world/vehicle/terrain/elevation", "Mesh3D:vertex_positions")

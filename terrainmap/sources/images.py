@@ -7,6 +7,8 @@ until :func:`stereo_pair` scales the left and right image of a pair with one com
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import cv2
 import numpy as np
 
@@ -50,7 +52,7 @@ def read_image(path: str, name: str | None = None) -> np.ndarray:
     """
     name = name or str(path)
     try:
-        data = np.fromfile(path, dtype=np.uint8)
+        data = Path(path).read_bytes()
     except OSError as exc:
         raise InputError(f"{name}: cannot read the image file ({exc.strerror or exc})") from None
     return _decode(data, name, "cannot read the image file (not an image, or cut short)")
@@ -58,23 +60,23 @@ def read_image(path: str, name: str | None = None) -> np.ndarray:
 
 def decode_compressed(data: bytes, name: str) -> np.ndarray:
     """Decode a compressed image (PNG, JPEG...) from bytes; ``name`` (topic) goes in errors."""
-    buffer = np.frombuffer(bytes(data), dtype=np.uint8)
-    return _decode(buffer, name, f"cannot decode the compressed image ({buffer.size} bytes)")
+    data = bytes(data)
+    return _decode(data, name, f"cannot decode the compressed image ({len(data)} bytes)")
 
 
-def _decode(buffer: np.ndarray, name: str, failure: str) -> np.ndarray:
+def _decode(data: bytes, name: str, failure: str) -> np.ndarray:
     # A PNG or JPEG cut short is refused before libpng/libjpeg see it: they would print their own
     # lines to stderr (or decode a grey remainder) before OpenCV gives up.
-    image = cv2.imdecode(buffer, cv2.IMREAD_UNCHANGED) if buffer.size and _complete(buffer) else None
+    buffer = np.frombuffer(data, dtype=np.uint8)  # a view of the bytes, no copy
+    image = cv2.imdecode(buffer, cv2.IMREAD_UNCHANGED) if data and _complete(data) else None
     if image is None:
         raise InputError(f"{name}: {failure}")
     return _check_dtype(_to_rgb(image), name)
 
 
-def _complete(buffer: np.ndarray) -> bool:
+def _complete(data: bytes) -> bool:
     """False for a PNG without its IEND chunk or a JPEG without an end-of-image marker (searched
     in the whole file, so that data a camera appends after the end never fails a good image)."""
-    data = buffer.tobytes()
     if data.startswith(b"\x89PNG\r\n\x1a\n"):
         return b"IEND" in data
     if data.startswith(b"\xff\xd8"):
