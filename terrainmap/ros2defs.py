@@ -69,6 +69,11 @@ _BODIES: dict[str, str] = {
         "std_msgs/Header header\nGridMapInfo info\nstring[] layers\nstring[] basic_layers\n"
         "std_msgs/Float32MultiArray[] data\nuint16 outer_start_index\nuint16 inner_start_index"
     ),
+    "nav_msgs/MapMetaData": (
+        "builtin_interfaces/Time map_load_time\nfloat32 resolution\nuint32 width\nuint32 height\n"
+        "geometry_msgs/Pose origin"
+    ),
+    "nav_msgs/OccupancyGrid": "std_msgs/Header header\nMapMetaData info\nint8[] data",
     "visualization_msgs/UVCoordinate": "float32 u\nfloat32 v",
     "visualization_msgs/MeshFile": "string filename\nuint8[] data",
     "visualization_msgs/Marker": (
@@ -163,6 +168,7 @@ SCHEMAS: dict[str, str] = {
         "geometry_msgs/msg/PoseStamped",
         "geometry_msgs/msg/TransformStamped",
         "grid_map_msgs/msg/GridMap",
+        "nav_msgs/msg/OccupancyGrid",
         "visualization_msgs/msg/Marker",
         "visualization_msgs/msg/MarkerArray",
         "std_msgs/msg/Float32MultiArray",

@@ -119,6 +119,36 @@ def test_grid_map_layout_matches_a_real_grid_map_bag():
     assert ours["info"]["length_x"] == pytest.approx(info.length_x)
 
 
+def test_costmap_is_the_cost_layer_as_an_occupancy_grid(ros_file):
+    """nav_msgs/OccupancyGrid: row-major from the (x_min, y_min) corner, 0..100, −1 unknown."""
+    _path, frames, mcap_topics, rosbags_topics = ros_file
+    m0, m1 = GRID.shape
+    for k, (frame, result) in enumerate(frames):
+        cost = result.layers["cost"]
+        for msg in (mcap_topics["/terrainmap/costmap"][k][2], rosbags_topics["/terrainmap/costmap"][k]):
+            assert msg.header.frame_id == "base_link" and stamp_ns(msg.header) == frame.stamp_ns
+            info = msg.info
+            assert (info.resolution, info.width, info.height) == (0.5, m0, m1)
+            assert (info.origin.position.x, info.origin.position.y, info.origin.orientation.w) == (2.0, -1.0, 1.0)
+            data = np.asarray(msg.data, np.int8)
+            assert data.size == m0 * m1
+            for x, y in [(2.1, -0.9), (5.9, 1.9), (3.3, 1.2), (4.2, -0.4)]:
+                ix, iy = cell_of(GRID, x, y)
+                index = math.floor((y - info.origin.position.y) / info.resolution) * info.width + math.floor(
+                    (x - info.origin.position.x) / info.resolution
+                )
+                expected = -1 if np.isnan(cost[ix, iy]) else round(100 * float(cost[ix, iy]))
+                assert data[index] == expected
+            assert (data.reshape(m1, m0)[1] == -1).all()  # the row of unknown cost (iy = 1)
+
+
+def test_no_costmap_without_a_cost_layer(tmp_path):
+    path = tmp_path / "out.mcap"
+    write_frames(path, "ros2", [make_frame(0, cost=False)])
+    topics = read_messages(path, DecoderFactory())
+    assert "/terrainmap/grid_map" in topics and "/terrainmap/costmap" not in topics
+
+
 def test_point_cloud2(ros_file):
     _path, frames, mcap_topics, rosbags_topics = ros_file
     for k, (_frame, result) in enumerate(frames):

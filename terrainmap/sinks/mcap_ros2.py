@@ -11,6 +11,11 @@ Topics, all in the vehicle frame (``Extrinsics.vehicle_frame_id``: ``base_link``
   So the terrainmap cell ``[ix, iy]`` is grid_map cell ``(i, j) = (m0−1−ix, m1−1−iy)``, at flat
   position ``j·m0 + i`` of each layer's data (``dim[0]`` = ``column_index`` of size m1,
   ``dim[1]`` = ``row_index`` of size m0, as grid_map_ros writes it).
+- ``/terrainmap/costmap`` ``nav_msgs/msg/OccupancyGrid`` (when the cost is computed): the
+  ``cost`` layer as nav2 reads an occupancy grid, ``round(100 · cost)`` in 0..100 (100 = a
+  confirmed obstacle's footprint or ground at least ``cost.max_slope_deg`` steep), −1 where the
+  cost is unknown; row-major from the cell at ``(x_min, y_min)``, ``width`` = cells along x,
+  origin at that cell's corner.
 - ``/terrainmap/points`` ``sensor_msgs/msg/PointCloud2``: x, y, z FLOAT32 (7), label UINT8 (2).
 - ``/terrainmap/obstacles`` ``visualization_msgs/msg/MarkerArray``: a DELETEALL marker, then per
   confirmed obstacle a CUBE (namespace ``obstacles``) and a TEXT_VIEW_FACING label
@@ -39,6 +44,7 @@ from ..ros2defs import (
     grid_map_layer,
     header,
     pose,
+    stamp,
     transform_stamped,
 )
 from ..types import FrameResult, Obstacle, StereoFrame
@@ -53,7 +59,7 @@ from .base import (
     points_record,
     yaw_quaternion,
 )
-from .cdr import encode_grid_map, point_cloud2_head_tail
+from .cdr import encode_grid_map, encode_occupancy_grid, point_cloud2_head_tail
 
 
 def grid_map_message(result: FrameResult) -> dict:
@@ -68,6 +74,29 @@ def grid_map_message(result: FrameResult) -> dict:
         "data": [grid_map_layer(a) for a in layers.values()],
         "outer_start_index": 0,
         "inner_start_index": 0,
+    }
+
+
+def occupancy_grid_message(result: FrameResult) -> dict | None:
+    """OccupancyGrid dict of the ``cost`` layer (data an int8 numpy array, for
+    :func:`~terrainmap.sinks.cdr.encode_occupancy_grid`), None where the frame has no cost."""
+    cost = grid_layers(result).get("cost")
+    if cost is None:
+        return None
+    grid = result.grid.config
+    occupancy = np.full(cost.shape, -1, np.int8)
+    known = np.isfinite(cost)
+    occupancy[known] = np.rint(100 * np.clip(cost[known], 0, 1))
+    return {
+        "header": header(result.stamp_ns, result.extrinsics.vehicle_frame_id),
+        "info": {
+            "map_load_time": stamp(result.stamp_ns),
+            "resolution": grid.cell_size_m,
+            "width": cost.shape[0],
+            "height": cost.shape[1],
+            "origin": pose((grid.x_min_m, grid.y_min_m, 0.0)),
+        },
+        "data": occupancy.T.ravel(),  # [iy, ix]: rows along y, each row along x
     }
 
 
@@ -178,6 +207,10 @@ class Ros2McapSink(McapSink):
             self._log(topic, "tf2_msgs/msg/TFMessage", tf_message(t, transform), t)
         grid_schema = self._schema("grid_map_msgs/msg/GridMap")
         self._writer.write_encoded("/terrainmap/grid_map", grid_schema, encode_grid_map(grid_map_message(result)), t)
+        costmap = occupancy_grid_message(result)
+        if costmap is not None:
+            schema = self._schema("nav_msgs/msg/OccupancyGrid")
+            self._writer.write_encoded("/terrainmap/costmap", schema, encode_occupancy_grid(costmap), t)
         cloud_schema = self._schema("sensor_msgs/msg/PointCloud2")
         self._writer.write_encoded("/terrainmap/points", cloud_schema, encode_point_cloud2(result), t)
         self._log("/terrainmap/obstacles", "visualization_msgs/msg/MarkerArray", marker_array_message(result), t)
