@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import sys
 
 import click
 
@@ -42,18 +43,39 @@ def format_description(description: dict) -> str:
 @click.argument("log", type=click.Path())
 @open_options
 @click.option("--json", "as_json", is_flag=True, help="Print the description as JSON.")
-def info(log: str, source_opts: SourceOptions, as_json: bool) -> None:
+@click.option(
+    "--check", is_flag=True,
+    help="Also read and decode every stereo pair process would read (no matching) and say whether the "
+    "log reads to its end (chunk CRCs, images, calibration); exit code 1 if it does not.",
+)
+def info(log: str, source_opts: SourceOptions, as_json: bool, check: bool) -> None:
     """Describe LOG (an MCAP file, rosbag2 or ROS 1 bag, or an image folder): topics, the chosen
     stereo pair, calibration and extrinsics. A log without a stereo pair (terrainmap's own output,
     say) is described too, with the reason process cannot use it."""
-    from terrainmap.errors import NoStereoError
+    from terrainmap.errors import InputError, NoStereoError
 
+    readable = True
     try:
         with source_opts.open(log) as source:
             description = source.describe()
+            if check:
+                pairs = 0
+                try:
+                    for _frame in source.frames():
+                        pairs += 1
+                    description["check"] = f"{_pairs(pairs)} read and decoded, to the end"
+                except InputError as exc:
+                    readable = False
+                    description["check"] = f"fails after {_pairs(pairs)}: {_reason(exc, log)}"
     except NoStereoError as exc:
         description = {**exc.contents, "stereo_pair": f"none, so process cannot use it ({_reason(exc, log)})"}
     click.echo(json.dumps(_json_safe(description), indent=2) if as_json else format_description(description))
+    if not readable:
+        sys.exit(1)
+
+
+def _pairs(count: int) -> str:
+    return f"{count} stereo pair{'' if count == 1 else 's'}"
 
 
 def _reason(exc: Exception, log: str) -> str:

@@ -87,3 +87,32 @@ def test_json_output_has_no_nan():
     from terrainmap.cli.info_cmd import _json_safe
 
     assert _json_safe({"fx": float("nan"), "P": [1.0, float("inf")], "name": "x"}) == {"fx": None, "P": [1.0, None], "name": "x"}
+
+
+def test_check_reads_every_stereo_pair_and_finds_a_damaged_chunk_the_index_does_not_show(tmp_path):
+    """An indexed MCAP with a corrupt chunk looks intact to ``info`` (its summary is whole);
+    ``--check`` reads the pairs as process would, finds the damage and exits 1."""
+    from mcap.reader import make_reader
+
+    from terrainmap.sim import SimConfig
+    from terrainmap.sim.simulate import simulate
+
+    log = tmp_path / "sim.mcap"
+    simulate(log, SimConfig(scene="flat", frames=3, seed=1, width=320, height=240, focal_px=250.0))  # 3 chunks
+    intact = CliRunner().invoke(info, ["--check", str(log)])
+    assert intact.exit_code == 0, intact.output
+    assert "check:" in intact.output and "3 stereo pairs read and decoded, to the end" in intact.output
+
+    with open(log, "rb") as f:
+        last = max(make_reader(f).get_summary().chunk_indexes, key=lambda c: c.chunk_start_offset)
+    data = bytearray(log.read_bytes())
+    middle = last.chunk_start_offset + last.chunk_length // 2
+    data[middle : middle + 16] = bytes(b ^ 0xFF for b in data[middle : middle + 16])
+    log.write_bytes(bytes(data))
+    unchecked = CliRunner().invoke(info, [str(log)])
+    assert unchecked.exit_code == 0 and "check:" not in unchecked.output
+    damaged = CliRunner().invoke(info, ["--json", "--check", str(log)])
+    assert damaged.exit_code == 1
+    check = json.loads(damaged.output)["check"]
+    assert check.startswith(("fails after 1 stereo pair:", "fails after 2 stereo pairs:")), check
+    assert "log is truncated or corrupt" in check and "\n" not in check
