@@ -48,15 +48,11 @@ class CdrBuffer:
         for text in texts:
             self.string(text)
 
-    def float32_array(self, values: np.ndarray) -> None:
-        data = np.ascontiguousarray(values, dtype="<f4").tobytes()
-        self.pack("I", len(data) // 4)
-        self._put(data)  # already 4-aligned after the count
-
-    def int8_array(self, values: np.ndarray) -> None:
-        data = np.ascontiguousarray(values, dtype=np.int8).tobytes()
-        self.pack("I", len(data))
-        self._put(data)
+    def array(self, values: np.ndarray, dtype: str) -> None:
+        """A sequence of one primitive of at most 4 bytes (``dtype``: ``"<f4"``, ``"i1"``...)."""
+        data = np.ascontiguousarray(values, dtype=dtype)
+        self.pack("I", data.size)
+        self._put(data.tobytes())  # aligned after the 4-byte count
 
     def pose(self, pose: dict) -> None:
         """A ``geometry_msgs/Pose`` dict (see :func:`terrainmap.ros2defs.pose`)."""
@@ -93,7 +89,7 @@ def encode_grid_map(msg: dict) -> bytes:
             buf.string(dim["label"])
             buf.pack("II", dim["size"], dim["stride"])
         buf.pack("I", array["layout"]["data_offset"])
-        buf.float32_array(array["data"])
+        buf.array(array["data"], "<f4")
     buf.pack("HH", msg["outer_start_index"], msg["inner_start_index"])
     return buf.getvalue()
 
@@ -108,7 +104,7 @@ def encode_occupancy_grid(msg: dict) -> bytes:
     buf.pack("f", info["resolution"])
     buf.pack("II", info["width"], info["height"])
     buf.pose(info["origin"])
-    buf.int8_array(msg["data"])
+    buf.array(msg["data"], "i1")
     return buf.getvalue()
 
 
