@@ -53,6 +53,7 @@ class RunSummary:
 
     @property
     def fps(self) -> float:
+        """Frames read per second of wall time, failed frames included (the run's throughput)."""
         return (self.frames_done + self.frames_failed) / self.wall_s if self.wall_s > 0 else 0.0
 
     def add_timings(self, timings_ms: dict[str, float]) -> None:
