@@ -8,6 +8,7 @@ import sys
 
 import click
 
+from .options import counted
 from .source_options import SourceOptions, open_options
 
 
@@ -63,19 +64,15 @@ def info(log: str, source_opts: SourceOptions, as_json: bool, check: bool) -> No
                 try:
                     for _frame in source.frames():
                         pairs += 1
-                    description["check"] = f"{_pairs(pairs)} read and decoded, to the end"
+                    description["check"] = f"{counted(pairs, 'stereo pair')} read and decoded, to the end"
                 except InputError as exc:
                     readable = False
-                    description["check"] = f"fails after {_pairs(pairs)}: {_reason(exc, log)}"
+                    description["check"] = f"fails after {counted(pairs, 'stereo pair')}: {_reason(exc, log)}"
     except NoStereoError as exc:
         description = {**exc.contents, "stereo_pair": f"none, so process cannot use it ({_reason(exc, log)})"}
     click.echo(json.dumps(_json_safe(description), indent=2) if as_json else format_description(description))
     if not readable:
         sys.exit(1)
-
-
-def _pairs(count: int) -> str:
-    return f"{count} stereo pair{'' if count == 1 else 's'}"
 
 
 def _reason(exc: Exception, log: str) -> str:

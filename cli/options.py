@@ -76,9 +76,14 @@ class GracefulStop:
             signal.signal(s, handler)
 
 
+def counted(count: int, noun: str) -> str:
+    """``1 frame``, ``2 frames``: a count with its noun in the right number."""
+    return f"{count} {noun}{'s' * (count != 1)}"
+
+
 def wrote_before_stopping(frames: int, paths) -> str:
     """``wrote N frame(s) to A, B before stopping``: what a run that ends early leaves behind."""
-    return f"wrote {frames} frame{'s' * (frames != 1)} to {', '.join(map(str, paths))} before stopping"
+    return f"wrote {counted(frames, 'frame')} to {', '.join(map(str, paths))} before stopping"
 
 
 def refuse_overwriting_inputs(outputs: dict[str, Path | None], inputs: Iterable[str | Path | None]) -> None:

@@ -51,10 +51,11 @@ def simulate(out: Path, fmt: str | None, overwrite: bool, **options) -> None:
         raise click.UsageError(f"{out} is a file; a folder output must be a folder")
     config = SimConfig(format=fmt, **options)
 
-    done = []
+    written = 0
 
-    def progress(_) -> None:
-        done.append(1)
+    def progress(index: int) -> None:
+        nonlocal written
+        written = index + 1
         bar.update(1)
         stop.check()  # between frames: the log written so far is finalised
 
@@ -64,7 +65,7 @@ def simulate(out: Path, fmt: str | None, overwrite: bool, **options) -> None:
             try:
                 summary = run(out, config, progress=progress)
             except KeyboardInterrupt:
-                click.echo("\n" + wrote_before_stopping(len(done), [out]))
+                click.echo("\n" + wrote_before_stopping(written, [out]))
                 raise
     click.echo(
         f"wrote {summary['frames']} frames ({config.width}×{config.height}, scene {config.scene}, seed {config.seed}) "

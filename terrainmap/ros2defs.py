@@ -213,6 +213,11 @@ def transform_stamped(stamp_ns: int, parent: str, child: str, translation_m, qua
     }
 
 
+def yaw_quaternion(yaw_rad: float) -> tuple[float, float, float, float]:
+    """Quaternion (x, y, z, w) of a rotation by ``yaw_rad`` about z."""
+    return (0.0, 0.0, float(np.sin(yaw_rad / 2)), float(np.cos(yaw_rad / 2)))
+
+
 def quaternion_from_matrix(rotation: np.ndarray) -> tuple[float, float, float, float]:
     """Unit quaternion ``(x, y, z, w)`` (w ≥ 0) of a 3×3 rotation matrix (Shepperd's method)."""
     m = np.asarray(rotation, dtype=np.float64)

@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import InputError
-from ..ros2defs import grid_map_frame, grid_map_layer, header, pose, quaternion_from_matrix
+from ..ros2defs import grid_map_frame, grid_map_layer, header, pose, quaternion_from_matrix, yaw_quaternion
 from .heightfield import Heightfield
 from .obstacles import KINDS, ObstacleBox
 
@@ -47,10 +47,6 @@ def image_array(msg, topic: str) -> np.ndarray:
     return flat.reshape((msg.height, msg.width, channels) if channels > 1 else (msg.height, msg.width))
 
 
-def _yaw_quaternion(yaw_rad: float) -> tuple[float, float, float, float]:
-    return (0.0, 0.0, float(np.sin(yaw_rad / 2)), float(np.cos(yaw_rad / 2)))
-
-
 def marker_array_message(boxes: list[ObstacleBox], stamp_ns: int, frame_id: str) -> dict:
     """``visualization_msgs/MarkerArray`` dict of the obstacles (module docstring)."""
     markers = []
@@ -60,7 +56,7 @@ def marker_array_message(boxes: list[ObstacleBox], stamp_ns: int, frame_id: str)
         markers.append({
             "header": header(stamp_ns, frame_id), "ns": box.kind, "id": box.id,
             "type": MARKER_CUBE if box.shape == "box" else MARKER_SPHERE, "action": 0,
-            "pose": pose(box.center_m, _yaw_quaternion(box.yaw_rad)),
+            "pose": pose(box.center_m, yaw_quaternion(box.yaw_rad)),
             "scale": {"x": sx, "y": sy, "z": sz}, "color": {"r": r, "g": g, "b": b, "a": 0.8},
             "frame_locked": False,
         })

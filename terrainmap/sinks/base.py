@@ -203,11 +203,6 @@ def points_record(result: FrameResult, head: bytes, tail: bytes = b"") -> bytear
     return record
 
 
-def yaw_quaternion(yaw_rad: float) -> tuple[float, float, float, float]:
-    """Quaternion (x, y, z, w) of a rotation by ``yaw_rad`` about z."""
-    return (0.0, 0.0, float(np.sin(yaw_rad / 2)), float(np.cos(yaw_rad / 2)))
-
-
 def obstacle_text(obstacle: Obstacle) -> str:
     """Label shown next to an obstacle: ``"<track id> <kind> <height> m"``."""
     return f"{obstacle.track_id} {obstacle.kind} {obstacle.height_m:.2f} m"

@@ -44,6 +44,7 @@ from mcap.writer import CompressionType
 from mcap_protobuf.schema import register_schema
 from mcap_protobuf.writer import Writer
 
+from ..ros2defs import yaw_quaternion
 from ..types import FrameResult, Obstacle, StereoFrame
 from .base import (
     FLOAT_LAYERS,
@@ -55,7 +56,6 @@ from .base import (
     obstacle_rgba,
     obstacle_text,
     points_record,
-    yaw_quaternion,
 )
 
 FLOAT32 = PackedElementField.FLOAT32  # 7

@@ -46,6 +46,7 @@ from ..ros2defs import (
     pose,
     stamp,
     transform_stamped,
+    yaw_quaternion,
 )
 from ..types import FrameResult, Obstacle, StereoFrame
 from .base import (
@@ -57,7 +58,6 @@ from .base import (
     obstacle_rgba,
     obstacle_text,
     points_record,
-    yaw_quaternion,
 )
 from .cdr import encode_grid_map, encode_occupancy_grid, point_cloud2_head_tail
 

@@ -42,8 +42,9 @@ import rerun.blueprint as rrb
 from ..config import Config
 from ..errors import InputError, TerrainmapError
 from ..grid import cell_centers
+from ..ros2defs import yaw_quaternion
 from ..types import FrameResult, Label, StereoFrame
-from .base import confirmed_obstacles, obstacle_text, yaw_quaternion
+from .base import confirmed_obstacles, obstacle_text
 
 LABEL_COLORS = {
     Label.UNKNOWN: (140, 140, 140),
