@@ -60,9 +60,15 @@ def extrinsics_from_calibration(
         raise CalibrationError(f"{name}: rotation must be 3×3 and translation 3 numbers") from None
     if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))):
         raise CalibrationError(f"{name}: rotation and translation must be finite")
-    if np.abs(R @ R.T - np.eye(3)).max() > 1e-3 or np.linalg.det(R) < 0:
+    if not is_rotation(R):
         raise CalibrationError(f"{name}: rotation is not a proper rotation matrix (orthonormal, det +1)")
     return Extrinsics(rotation=R, translation=t, source=source)
+
+
+def is_rotation(matrix: np.ndarray) -> bool:
+    """Whether a 3×3 matrix is a proper rotation: finite, orthonormal within 1e-3, determinant +1."""
+    R = np.asarray(matrix, np.float64).reshape(3, 3)
+    return bool(np.all(np.isfinite(R)) and np.allclose(R @ R.T, np.eye(3), atol=1e-3) and np.linalg.det(R) > 0)
 
 
 def extrinsics_from_pose(

@@ -31,6 +31,7 @@ import numpy as np
 
 from .config import StereoConfig
 from .errors import CalibrationError, InputError
+from .extrinsics import is_rotation
 from .types import Extrinsics, StereoCalibration
 
 log = logging.getLogger(__name__)
@@ -107,8 +108,7 @@ def check_calibration(calibration: StereoCalibration, *, size_known: bool = True
                 )
         if not np.all(np.isfinite(np.asarray(calibration.T, float))) or np.linalg.norm(calibration.T) <= 0:
             raise CalibrationError(f"{name}: T must be a non-zero finite translation (the baseline)")
-        R = np.asarray(calibration.R, float).reshape(3, 3)
-        if not (np.all(np.isfinite(R)) and np.allclose(R @ R.T, np.eye(3), atol=1e-3) and np.linalg.det(R) > 0):
+        if not is_rotation(calibration.R):
             raise CalibrationError(f"{name}: R must be a rotation matrix (orthonormal, determinant 1)")
         for side in ("left", "right"):
             K = np.asarray(getattr(calibration, f"K_{side}"), float).reshape(3, 3)

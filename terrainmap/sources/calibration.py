@@ -33,6 +33,7 @@ import numpy as np
 import yaml
 
 from ..errors import CalibrationError
+from ..extrinsics import is_rotation
 from ..stereo import check_calibration as stereo_check
 from ..types import Extrinsics, StereoCalibration
 from .tf import quaternion_to_matrix, usable
@@ -186,7 +187,7 @@ def extrinsics_from_dict(data: dict, path: Path) -> Extrinsics:
         rotation = quaternion_to_matrix(quaternion)
     else:
         rotation = _array(data, "rotation", (3, 3), path, "in extrinsics (or quaternion_xyzw)")
-    if not np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-3) or np.linalg.det(rotation) < 0:
+    if not is_rotation(rotation):
         raise CalibrationError(f"{path}: extrinsics rotation is not a rotation matrix")
     return Extrinsics(rotation=rotation, translation=translation, source="calibration")
 
