@@ -80,9 +80,9 @@ def grid_map_message(result: FrameResult) -> dict:
 def occupancy_grid_message(result: FrameResult) -> dict | None:
     """OccupancyGrid dict of the ``cost`` layer (data an int8 numpy array, for
     :func:`~terrainmap.sinks.cdr.encode_occupancy_grid`), None where the frame has no cost."""
-    cost = grid_layers(result).get("cost")
-    if cost is None:
+    if "cost" not in result.layers:
         return None
+    cost = np.asarray(result.layers["cost"], np.float32)  # its shape checked by grid_map_message
     grid = result.grid.config
     occupancy = np.full(cost.shape, -1, np.int8)
     known = np.isfinite(cost)
