@@ -48,6 +48,12 @@ def generic_folder(root: Path, n: int = 5, calib: str = CALIB_YAML, suffix: str 
     return root
 
 
+def test_a_stray_mcap_file_does_not_make_an_image_folder_a_log(tmp_path):
+    root = generic_folder(tmp_path)
+    (root / "notes.mcap").write_bytes(b"not a log")
+    assert source_class(root) is GenericFolder
+
+
 def test_generic_folder_yields_rgb_pairs_with_calibration(tmp_path):
     root = generic_folder(tmp_path)
     with open_source(root) as source:

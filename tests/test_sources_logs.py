@@ -225,6 +225,18 @@ def test_rosbag2_directory_of_several_files(tmp_path):
         assert len(list(source.frames())) == 4
 
 
+def test_rosbag2_directory_without_metadata_is_read_in_file_order(tmp_path):
+    """A recording killed before rosbag2 wrote metadata.yaml leaves only its .mcap files."""
+    bag = tmp_path / "bag"
+    bag.mkdir()
+    write_ros2_log(bag / "bag_0.mcap", n=2)
+    write_ros2_log(bag / "bag_1.mcap", n=2, tf=False, camera_info=False)
+    with open_source(bag) as source:
+        info = source.describe()
+        assert info["format"] == "rosbag2" and [Path(f).name for f in info["files"]] == ["bag_0.mcap", "bag_1.mcap"]
+        assert len(list(source.frames())) == 4
+
+
 @pytest.mark.parametrize(
     "encode, expect",
     [

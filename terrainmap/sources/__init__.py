@@ -19,6 +19,10 @@
 ``folder``         ``left/``, ``right/``, ``calibration.yaml`` (format in :mod:`.calibration`)
 =================  ===================================================================
 
+A directory of ``.mcap`` files without ``metadata.yaml`` that no layout above matches is read as a
+rosbag2 whose recording was cut before it wrote its metadata (its files in name order); a stray
+``.mcap`` in an image folder does not make the folder a log.
+
 Every source yields uint8 images (RGB or mono, left and right of one size) with a
 :class:`~terrainmap.types.StereoCalibration` and, when the source has them, extrinsics.
 Bad input raises :class:`~terrainmap.errors.InputError` / ``CalibrationError`` with a one-line
@@ -58,6 +62,8 @@ def source_class(path: str | Path) -> type[Source]:
     for cls in SOURCES:
         if cls.matches(path):
             return cls
+    if path.is_dir() and any(path.glob("*.mcap")):  # a rosbag2 without metadata.yaml (module docstring)
+        return McapSource
     if path.is_dir() and any(path.glob("*.db3")):
         raise InputError(f"{path}: rosbag2 with sqlite3 storage is not supported; convert it with "
                          "`ros2 bag convert` to MCAP storage")

@@ -234,12 +234,14 @@ class LogSource(Source):
 
 
 class McapSource(LogSource):
-    """An ``.mcap`` file, or a rosbag2 directory (``metadata.yaml`` + ``.mcap`` files)."""
+    """An ``.mcap`` file, or a rosbag2 directory (``metadata.yaml`` + ``.mcap`` files; a directory
+    of ``.mcap`` files without ``metadata.yaml``, as a recording that was killed leaves it, is read
+    as one too when no image-folder layout matches it, see :func:`terrainmap.sources.source_class`)."""
 
     @classmethod
     def matches(cls, path: Path) -> bool:
         if path.is_dir():
-            return any(path.glob("*.mcap"))
+            return (path / "metadata.yaml").is_file() and any(path.glob("*.mcap"))
         return path.suffix.lower() == ".mcap" or _starts_with(path, MCAP_MAGIC)
 
     @property
