@@ -345,6 +345,29 @@ def test_close_twice_and_write_after_close(tmp_path, flavor):
         sink.write(*make_frame(1))
 
 
+@pytest.mark.parametrize("flavor", ["foxglove", "ros2"])
+@pytest.mark.parametrize("stamp", [-1, 1.7e18, 2**64, True])
+def test_a_bad_stamp_is_refused_and_the_frames_before_it_are_kept(tmp_path, flavor, stamp):
+    path = tmp_path / "stamp.mcap"
+    with open_mcap_sink(path, flavor, config=Config()) as sink:
+        sink.write(*make_frame(0))
+        frame, result = make_frame(1)
+        frame.stamp_ns = result.stamp_ns = stamp
+        with pytest.raises(InputError, match="stamp must be a whole number of nanoseconds"):
+            sink.write(frame, result)
+    assert read_metadata(path)["frames"] == "1"
+    with open(path, "rb") as f:
+        assert len(list(make_reader(f).iter_messages())) > 0
+
+
+def test_point_labels_must_match_the_points(tmp_path):
+    frame, result = make_frame(0)
+    result.point_labels = result.point_labels[:-1]
+    with open_mcap_sink(tmp_path / "bad.mcap", config=Config()) as sink:
+        with pytest.raises(TerrainmapError, match="points but point labels of shape"):
+            sink.write(frame, result)
+
+
 def test_empty_run_is_readable(tmp_path):
     path = tmp_path / "empty.mcap"
     open_mcap_sink(path, "ros2", config=Config()).close()

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import logging
+import numbers
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Protocol, runtime_checkable
@@ -90,6 +91,13 @@ class McapSink:
         """Write all messages of one frame, stamped ``frame.stamp_ns``."""
         if self._closed:
             raise TerrainmapError(f"MCAP output {self.path} is already closed")
+        for stamp in {frame.stamp_ns, result.stamp_ns}:  # checked before any message of the frame is written
+            if isinstance(stamp, bool) or not isinstance(stamp, numbers.Integral) or not 0 <= stamp < 2**64:
+                raise InputError(f"MCAP output {self.path}: frame {result.index}: the stamp must be a whole number "
+                                 f"of nanoseconds in [0, 2^64), got {stamp!r}")
+        if np.shape(result.point_labels) != (len(result.points_vehicle),):
+            raise TerrainmapError(f"frame {result.index}: {len(result.points_vehicle)} points but point labels "
+                                  f"of shape {np.shape(result.point_labels)}")
         if self._extrinsics is None:
             self._extrinsics = result.extrinsics
         self._write_frame(frame, result)
