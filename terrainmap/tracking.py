@@ -47,6 +47,7 @@ over ground with one, in vehicle axes.
 from __future__ import annotations
 
 import logging
+import numbers
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
@@ -135,6 +136,7 @@ class ObstacleTracker:
             Copies carrying ``track_id``, ``confirmed`` and ``velocity_mps``, vehicle frame.
         """
         rot, trans = _pose(vehicle_pose)
+        _check_detections(obstacles, stamp_ns)
         if self._world is not None and self._world != (vehicle_pose is not None):
             logger.warning("tracking: vehicle poses started or stopped; tracks reset")
             self.reset()
@@ -378,6 +380,25 @@ class ObstacleTracker:
                 )
             )
         return out
+
+
+_MAX_COORDINATE_M = 1e6
+"""Detections and stamps are checked before they reach the filters: a NaN or astronomically far
+centre would otherwise only fail in a later frame, deep in the association's k-d tree."""
+
+
+def _check_detections(obstacles, stamp_ns) -> None:
+    """:class:`InputError` unless ``stamp_ns`` is a whole number and every detection's centre, size
+    and yaw are finite (centre within ±1e6 m)."""
+    if isinstance(stamp_ns, bool) or not isinstance(stamp_ns, numbers.Integral):
+        raise InputError(f"tracking: the stamp must be a whole number of nanoseconds, got {stamp_ns!r}")
+    try:
+        items = list(obstacles)
+        values = np.array([[*o.center_m, *o.size_m, o.yaw_rad] for o in items], float).reshape(len(items), 7)
+    except (TypeError, ValueError, AttributeError) as exc:
+        raise InputError(f"tracking: detections must be a list of Obstacle with 3-vector centre and size ({exc})") from exc
+    if values.size and (not np.isfinite(values).all() or np.abs(values[:, :3]).max() > _MAX_COORDINATE_M):
+        raise InputError("tracking: every detection needs a finite centre (within ±1e6 m), size and yaw")
 
 
 def _pose(vehicle_pose: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:

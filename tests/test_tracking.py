@@ -286,6 +286,21 @@ def test_bad_pose_raises_input_error():
         ObstacleTracker(TrackingConfig()).update([], 0, np.eye(3))
 
 
+@pytest.mark.parametrize("x", [np.nan, np.inf, 1e300])
+def test_a_detection_that_is_not_finite_is_refused_before_it_reaches_a_track(x):
+    tracker = ObstacleTracker(TrackingConfig())
+    with pytest.raises(InputError, match="finite centre"):
+        tracker.update([detection(x, 0)], 0)
+    assert tracker.track_count == 0
+    assert len(tracker.update([detection(10, 0)], DT_NS)) == 1  # the tracker goes on
+
+
+@pytest.mark.parametrize("stamp", [None, "abc", 1.5, True])
+def test_a_stamp_that_is_not_whole_nanoseconds_is_refused(stamp):
+    with pytest.raises(InputError, match="stamp"):
+        ObstacleTracker(TrackingConfig()).update([detection(10, 0)], stamp)
+
+
 def test_many_detections_are_tracked_quickly():
     rng = np.random.default_rng(2)
     xy = rng.uniform([3, -10], [35, 10], (300, 2))
