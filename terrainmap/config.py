@@ -29,6 +29,8 @@ def _check(ok: bool, name: str, message: str) -> None:
 
 MAX_CELLS_PER_AXIS = 2000
 """Upper bound on m0 and m1 (a 1 km square at 0.5 m): beyond it a grid is a typo, not a map."""
+MAX_OFFSET_M = 10_000.0
+"""Upper bound on the area's offsets and height limits from the vehicle, metres: likewise."""
 
 
 @dataclass
@@ -69,6 +71,9 @@ class GridConfig:
     """Empty cells take the mean height of their observed 8-neighbours (paper Sec. IV)."""
 
     def validate(self) -> None:
+        for name in ("x_min_m", "y_center_m", "z_min_m", "z_max_m"):
+            value = getattr(self, name)
+            _check(abs(value) <= MAX_OFFSET_M, f"grid.{name}", f"must be within ±{MAX_OFFSET_M:g} m, got {value}")
         for name in ("length_m", "width_m", "cell_size_m"):
             value = getattr(self, name)
             _check(math.isfinite(value) and value > 0, f"grid.{name}", f"must be > 0, got {value}")
@@ -113,8 +118,8 @@ class TerrainConfig:
     control_points_y: int = 25
     """Final number of control points along y, n_max,1 + 1. Paper: 25."""
     start_control_points: int = 4
-    """Control points per axis of the first, non-rational fit ("very few"); at least degree + 1,
-    capped at the final net (so a small net needs no change here)."""
+    """Control points per axis of the first, non-rational fit ("very few"); raised to degree + 1
+    where lower and capped at the final net (so another degree or a small net needs no change here)."""
     control_point_growth: float = 1.5
     """Net growth per iteration: n ← max(n + 1, round(n · growth)) per axis, capped at the final
     net. 1.0 is the paper's pseudo-code (one control point more per iteration: 22 fits from 4 to
@@ -158,7 +163,8 @@ class TerrainConfig:
 
     def validate(self, grid: GridConfig | None = None) -> None:
         _check(1 <= self.degree <= 5, "terrain.degree", f"must be 1..5, got {self.degree}")
-        for name in ("control_points_x", "control_points_y", "start_control_points"):
+        _check(self.start_control_points >= 1, "terrain.start_control_points", "must be >= 1")
+        for name in ("control_points_x", "control_points_y"):
             value = getattr(self, name)
             _check(
                 value >= self.degree + 1,
@@ -170,7 +176,7 @@ class TerrainConfig:
             "terrain.control_point_growth",
             f"must be in [1, 10], got {self.control_point_growth}",
         )
-        _check(self.weight_max > 1, "terrain.weight_max", "must be > 1")
+        _check(1 < self.weight_max <= 1e6, "terrain.weight_max", f"must be in (1, 1e6], got {self.weight_max}")
         _check(self.threshold_factor > 0, "terrain.threshold_factor", "must be > 0")
         _check(self.threshold_min_m > 0, "terrain.threshold_min_m", "must be > 0")
         _check(self.alpha_per_iteration > 0, "terrain.alpha_per_iteration", "must be > 0")
@@ -180,7 +186,7 @@ class TerrainConfig:
         _check(self.trust_below_px >= 0, "terrain.trust_below_px", "must be >= 0")
         _check(0 <= self.slope_noise_iterations <= 100, "terrain.slope_noise_iterations", "must be in 0..100")
         _check(self.epsilon_m > 0, "terrain.epsilon_m", "must be > 0")
-        _check(self.smoothness > 0, "terrain.smoothness", "must be > 0")
+        _check(0 < self.smoothness <= 1e3, "terrain.smoothness", f"must be in (0, 1000], got {self.smoothness}")
         _check(0 <= self.filled_weight <= 1, "terrain.filled_weight", "must be in [0, 1]")
         _check(self.min_valid_cells >= 0, "terrain.min_valid_cells", "must be >= 0")
         if grid is not None:
@@ -607,6 +613,8 @@ class Config:
 
     def validate(self) -> Config:
         """Check every section; raise :class:`ConfigError` naming the first bad field."""
+        for section in fields(self):
+            _check_kinds(section.name, getattr(self, section.name))
         self.grid.validate()
         self.terrain.validate(self.grid)
         self.segmentation.validate()
@@ -625,6 +633,24 @@ class Config:
             lines.extend(f"{key} = {_toml_value(value)}" for key, value in values.items())
             lines.append("")
         return "\n".join(lines)
+
+
+_KINDS = {"bool": ((bool,), "true or false"), "int": ((int,), "an integer"), "float": ((int, float), "a number"),
+          "str": ((str,), "a string")}
+"""Declared field type → (accepted Python types, how a message names it)."""
+
+
+def _check_kinds(name: str, section: Any) -> None:
+    """Every field of ``section`` holds a value of its declared kind (an int where a float is
+    declared is fine), and every number is finite: what TOML and ``--set`` ensure for a loaded
+    config, checked here for one built in code."""
+    for f in fields(section):
+        value, kind = getattr(section, f.name), str(f.type)
+        types, what = _KINDS[kind]
+        ok = isinstance(value, types) and (kind == "bool" or not isinstance(value, bool))
+        _check(ok, f"{name}.{f.name}", f"must be {what}, got {value!r}")
+        if kind == "float":
+            _check(math.isfinite(value), f"{name}.{f.name}", f"must be finite, got {value!r}")
 
 
 def _toml_value(value: Any) -> str:
@@ -668,7 +694,7 @@ def _coerce(section: str, name: str, current: Any, value: Any, text: bool) -> An
             return type(current)(_coerce(section, name, current[0], v, text) for v in items)
         return str(value)
     except (TypeError, ValueError):
-        kind = {bool: "true or false", int: "an integer", float: "a number", str: "a string"}.get(type(current), type(current).__name__)
+        kind = _KINDS[type(current).__name__][1]
         raise ConfigError(f"{key}: cannot use {value!r}, expected {kind}") from None
 
 

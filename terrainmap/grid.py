@@ -136,7 +136,8 @@ def quantize(
     InputError
         ``points_vehicle`` is not an N×3 array.
     FrameError
-        (reason ``no_points_in_area``) no finite point lies in the area of interest.
+        (reason ``no_points_in_area``) no finite point lies in the area of interest between the
+        height limits ``z_min_m`` and ``z_max_m``.
     """
     points_vehicle = as_points(points_vehicle)
     m0, m1 = config.shape
@@ -151,7 +152,8 @@ def quantize(
 
     count = per_cell()
     if not count.any():
-        raise FrameError("no_points_in_area", "no finite point lies in the grid area")
+        raise FrameError("no_points_in_area", "no finite point lies in the grid area between its height limits "
+                         f"(grid.z_min_m {config.z_min_m:g} m, z_max_m {config.z_max_m:g} m)")
     n = np.maximum(count, 1)
     mean = per_cell(z) / n
     variance = np.maximum(per_cell(z * z) / n - mean * mean, 0.0)

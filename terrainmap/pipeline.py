@@ -83,9 +83,12 @@ def map_points(
 
     Raises
     ------
+    ConfigError
+        ``config`` does not validate (:meth:`Config.validate`).
     FrameError
         No terrain can be found (no points in the area, too few cells, fit failure).
     """
+    config.validate()
     watch = watch or Stopwatch()
     with watch("grid"):
         idx = cell_index(points_vehicle, config.grid)
@@ -135,6 +138,7 @@ class PipelineState:
     tracked_matcher: StereoMatcher | None = None
 
     def __post_init__(self) -> None:
+        self.config.validate()  # a config built in code: ConfigError here, not a numpy error mid-run
         if self.tracker is None:
             self.tracker = make_tracker(self.config)
 

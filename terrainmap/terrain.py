@@ -3,8 +3,8 @@ fitting with equalization).
 
 Decisions where the paper's text is garbled or silent, each with the property it keeps:
 
-1. **Schedule.** The first fit uses ``start_control_points`` per axis, R ≡ 1 and W ≡ 1 (a plain,
-   unweighted, non-rational spline). Each iteration grows the net per axis to
+1. **Schedule.** The first fit uses ``start_control_points`` per axis (at least degree + 1),
+   R ≡ 1 and W ≡ 1 (a plain, unweighted, non-rational spline). Each iteration grows the net per axis to
    ``max(n + 1, round(n · control_point_growth))``, capped at the final net
    (``control_points_x/y``); growth 1.0 is the pseudo-code's ``δn ← δn + 1``. R is remapped onto
    the net of the next fit.
@@ -187,7 +187,8 @@ def estimate_terrain(grid: HeightGrid, config: TerrainConfig) -> TerrainEstimate
     base = np.where(grid.observed, 1.0, np.where(valid, config.filled_weight, 0.0))
     P = grid.z.astype(np.float64)
     final = (config.control_points_x, config.control_points_y)
-    n = (min(config.start_control_points, final[0]), min(config.start_control_points, final[1]))
+    start = max(config.start_control_points, config.degree + 1)
+    n = (min(start, final[0]), min(start, final[1]))
     fit = fitter_for(gcfg, *n, config.degree)
     W = np.ones_like(P)
     R = np.ones(n)

@@ -1,9 +1,14 @@
+import math
 import re
 
+import numpy as np
 import pytest
 
 from terrainmap.config import Config, load_config
 from terrainmap.errors import ConfigError
+from terrainmap.grid import quantize
+from terrainmap.synthetic import cloud
+from terrainmap.terrain import estimate_terrain
 
 
 def test_defaults_are_the_papers():
@@ -34,7 +39,11 @@ def test_toml_round_trip_and_overrides(tmp_path):
         ("nope.x=1", "unknown section"),
         ("degree=3", "expected section.field=value"),
         ("grid.length_m=33.3", "whole number of cells"),
-        ("terrain.start_control_points=2", r"at least degree \+ 1"),
+        ("terrain.start_control_points=0", "terrain.start_control_points: must be >= 1"),
+        ("terrain.control_points_x=3", r"at least degree \+ 1"),
+        ("grid.x_min_m=1e30", r"grid.x_min_m: must be within ±10000 m"),
+        ("terrain.weight_max=1e308", r"terrain.weight_max: must be in \(1, 1e6\]"),
+        ("terrain.smoothness=1e300", r"terrain.smoothness: must be in \(0, 1000\]"),
         ("grid.cell_size_m=nan", "cannot use 'nan'"),
         ("grid.stereo_noise_px=-0.5", "grid.stereo_noise_px: must be >= 0"),
         ("segmentation.below_tolerance_px=-1", "segmentation.below_tolerance_px: must be >= 0"),
@@ -72,6 +81,45 @@ def test_a_toml_value_must_have_the_fields_kind(tmp_path, toml, message):
     path.write_text(toml + "\n")
     with pytest.raises(ConfigError, match=f"^{re.escape(str(path))}: {message}"):
         load_config(path)
+
+
+@pytest.mark.parametrize(
+    "section, values, message",
+    [
+        ("grid", {"z_min_m": -math.inf}, "grid.z_min_m: must be finite"),
+        ("grid", {"x_min_m": math.nan}, "grid.x_min_m: must be finite"),
+        ("terrain", {"degree": "3"}, "terrain.degree: must be an integer, got '3'"),
+        ("terrain", {"degree": 3.0}, "terrain.degree: must be an integer"),
+        ("grid", {"fill_empty": 1}, "grid.fill_empty: must be true or false"),
+        ("terrain", {"weight_max": math.inf}, "terrain.weight_max: must be finite"),
+    ],
+)
+def test_a_config_built_in_code_is_checked_for_kinds_and_finite_numbers(section, values, message):
+    config = Config()
+    for name, value in values.items():
+        setattr(getattr(config, section), name, value)
+    with pytest.raises(ConfigError, match=message):
+        config.validate()
+
+
+def test_the_pipeline_checks_a_config_built_in_code():
+    from terrainmap.pipeline import PipelineState, map_points
+
+    config = Config()
+    config.grid.cell_size_m = 0.0
+    with pytest.raises(ConfigError, match="grid.cell_size_m: must be > 0"):
+        map_points(cloud(1000, grid=Config().grid), config)
+    config = Config()
+    config.terrain.degree = 0
+    with pytest.raises(ConfigError, match="terrain.degree: must be 1..5"):
+        PipelineState(config)
+
+
+def test_another_degree_needs_no_other_setting():
+    """The first net is raised to degree + 1 control points: degree 5 runs with the defaults."""
+    config = load_config(overrides=["terrain.degree=5"])
+    terrain = estimate_terrain(quantize(cloud(20_000, grid=config.grid), config.grid), config.terrain)
+    assert terrain.surface.control_points.shape == (25, 25) and np.isfinite(terrain.elevation).all()
 
 
 def test_bad_files(tmp_path):

@@ -47,9 +47,9 @@ def open_mcap_sink(
         The file cannot be created.
     """
     if flavor not in MCAP_FLAVORS:
-        raise ConfigError(f"--mcap-flavor: must be one of {', '.join(MCAP_FLAVORS)}, got {flavor!r}")
-    if compression.lower() not in ("zstd", "lz4", "none"):
-        raise ConfigError(f"--mcap-compression: must be zstd, lz4 or none, got {compression!r}")
+        raise ConfigError(f"MCAP flavor (--flavor): must be one of {', '.join(MCAP_FLAVORS)}, got {flavor!r}")
+    if str(compression).lower() not in ("zstd", "lz4", "none"):
+        raise ConfigError(f"MCAP compression (--compression): must be zstd, lz4 or none, got {compression!r}")
     if flavor == "ros2":
         from .mcap_ros2 import Ros2McapSink as cls
     else:
