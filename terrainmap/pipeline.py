@@ -15,7 +15,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from .config import Config
-from .extrinsics import estimate_extrinsics
+from .extrinsics import estimate_extrinsics, extrinsics_from_calibration
 from .grid import HeightGrid, cell_index, quantize
 from .obstacle_stage import make_tracker, run_obstacle_stage
 from .segmentation import label_cells, label_points, thresholds
@@ -171,6 +171,9 @@ def match_frame(frame: StereoFrame, config: Config, state: PipelineState) -> Mat
             if state.matcher is not None:  # another camera or scene (a folder of KITTI or Middlebury
                 state.extrinsics = None  # scenes): the pose estimated before does not hold for it
             state.matcher = StereoMatcher(frame.calibration, config.stereo)
+        if frame.extrinsics is not None:  # CalibrationError for a pose that is no rigid motion
+            extrinsics_from_calibration(frame.extrinsics.rotation, frame.extrinsics.translation,
+                                        name=f"frame {frame.index}: extrinsics")
         extrinsics = frame.extrinsics or state.extrinsics
         stereo = state.matcher.compute(frame.left, frame.right, extrinsics)  # drops the sky if it can
     with watch("points"):

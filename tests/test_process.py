@@ -230,6 +230,22 @@ def test_a_new_calibration_starts_the_camera_pose_and_the_tracks_afresh(small_lo
     assert again.obstacles and not any(o.confirmed for o in again.obstacles)  # seen once so far
 
 
+@pytest.mark.parametrize("rotation, translation", [(np.eye(3) * 5, [0, 0, 1.5]), (np.full((3, 3), np.nan), [0, 0, 1.5]),
+                                                   (np.eye(3), [0, 1.5])])
+def test_a_frame_whose_extrinsics_are_no_rigid_motion_is_refused(small_log, rotation, translation):
+    import dataclasses
+
+    from terrainmap.errors import CalibrationError
+    from terrainmap.pipeline import PipelineState, process_frame
+    from terrainmap.types import Extrinsics
+
+    with open_source(small_log) as source:
+        frame = next(iter(source.frames()))
+    frame = dataclasses.replace(frame, extrinsics=Extrinsics(np.asarray(rotation), np.asarray(translation, float)))
+    with pytest.raises(CalibrationError, match="frame 0: extrinsics"):
+        process_frame(frame, Config(), PipelineState(Config()))
+
+
 def test_outputs_never_replace_the_input_or_each_other(small_log, tmp_path):
     log = tmp_path / "in.mcap"
     shutil.copy(small_log, log)
