@@ -32,6 +32,7 @@ from scipy import ndimage
 
 from .config import CostConfig, GridConfig
 from .errors import InputError
+from .grid import check_shapes
 from .types import Obstacle
 
 
@@ -145,6 +146,7 @@ def step_height(samples: np.ndarray, elevation: np.ndarray, observed: np.ndarray
         Cells whose sample describes the terrain: holding points of their own
         (``HeightGrid.observed``), less those labelled OBSTACLE in the pipeline.
     """
+    check_shapes("step_height", np.shape(samples), elevation=elevation, observed=observed)
     observed = np.asarray(observed, bool) & np.isfinite(samples) & np.isfinite(elevation)
     relief = np.where(observed, np.asarray(samples, float) - elevation, 0.0)
     footprint = np.ones((3, 3), bool)

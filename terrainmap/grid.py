@@ -85,6 +85,14 @@ def as_points(points) -> np.ndarray:
     return array
 
 
+def check_shapes(what: str, shape: tuple, **arrays) -> None:
+    """:class:`InputError` naming ``what`` and the array unless every given array (None: skipped)
+    has ``shape``: per-cell layers are (m0, m1), per-point arrays (N,)."""
+    for name, array in arrays.items():
+        if array is not None and np.shape(array) != tuple(shape):
+            raise InputError(f"{what}: {name} must have shape {tuple(shape)}, got {np.shape(array)}")
+
+
 def cell_index(points: np.ndarray, config: GridConfig) -> np.ndarray:
     """Flat cell index ``ix·m1 + iy`` of each point (N,), or ``m0·m1`` for points outside the
     area, outside ``[z_min_m, z_max_m]`` or not finite. ``points`` is N×3 (vehicle frame, m)."""
@@ -142,6 +150,7 @@ def quantize(
     points_vehicle = as_points(points_vehicle)
     m0, m1 = config.shape
     ncell = m0 * m1
+    check_shapes("quantize", (len(points_vehicle),), index=index)
     idx = cell_index(points_vehicle, config) if index is None else index
     z = points_vehicle[:, 2].astype(np.float64)  # non-finite z only ever lands in the trash bin
 

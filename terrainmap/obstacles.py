@@ -30,7 +30,7 @@ from scipy import ndimage
 
 from .config import GridConfig, ObstacleConfig
 from .errors import InputError
-from .grid import as_points, cell_centers, cell_index
+from .grid import as_points, cell_centers, cell_index, check_shapes
 from .types import Label, Obstacle
 
 _EIGHT = np.ones((3, 3), dtype=bool)
@@ -90,7 +90,10 @@ def extract_obstacles(
             f"obstacles: expected {len(points_vehicle)} point labels, got shape {point_labels.shape}"
         )
     if elevation is None:
+        if surface is None:
+            raise InputError("obstacles: give the terrain as elevation (or a surface)")
         elevation = surface.on_grid(*cell_centers(grid_config))
+    check_shapes("obstacles", grid_config.shape, elevation=elevation, cell_counts=cell_counts, steep=steep)
     kinds = [(Label.OBSTACLE, "positive", config.min_height_m)]
     if config.negative:
         kinds.append((Label.BELOW, "negative", config.min_depth_m))

@@ -28,7 +28,7 @@ from __future__ import annotations
 import numpy as np
 
 from .config import GridConfig, SegmentationConfig
-from .grid import HeightGrid, cell_centers, cell_index
+from .grid import HeightGrid, as_points, cell_centers, cell_index, check_shapes
 from .types import Label, StereoCamera
 
 
@@ -94,7 +94,9 @@ def label_points(
     limits : (above, below) of (m0, m1) arrays, optional
         Per-cell thresholds from :func:`thresholds` (the fixed ones of ``config`` if omitted).
     """
-    pts = np.asarray(points_vehicle, dtype=np.float32)
+    pts = np.asarray(as_points(points_vehicle), dtype=np.float32)
+    check_shapes("label_points", grid.shape, elevation=elevation, dz_dx=dz_dx, dz_dy=dz_dy)
+    check_shapes("label_points", (len(pts),), index=index)
     if index is None:
         index = cell_index(pts, grid)
     above, below = limits or thresholds(grid, config)

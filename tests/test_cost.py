@@ -245,3 +245,8 @@ def test_low_relief_on_ground_too_steep_to_drive_is_no_obstacle_and_the_cost_is_
     assert bump_track.confirmed and bump_track.height_m == pytest.approx(0.55, abs=0.02)
     np.testing.assert_array_equal(results[True][1], results[False][1])
     assert np.all(results[True][1][np.isfinite(results[True][1])] == 1)
+
+
+def test_step_height_names_a_layer_of_the_wrong_shape():
+    with pytest.raises(InputError, match=r"step_height: elevation must have shape \(3, 3\), got \(3, 4\)"):
+        step_height(np.zeros((3, 3)), np.zeros((3, 4)), np.ones((3, 3), bool))

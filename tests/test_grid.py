@@ -156,3 +156,8 @@ def test_grid_does_not_depend_on_the_order_of_the_points():
     inside = idx < reference.size
     np.add.at(reference.reshape(-1), idx[inside], 1)
     np.testing.assert_array_equal(a.count, reference)
+
+
+def test_an_index_of_the_wrong_length_is_named():
+    with pytest.raises(InputError, match=r"quantize: index must have shape \(3,\), got \(5,\)"):
+        quantize(np.ones((3, 3)), GridConfig(), index=np.zeros(5, np.intp))

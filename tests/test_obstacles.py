@@ -312,3 +312,15 @@ def test_low_clusters_on_steep_ground_are_dropped_tall_ones_stay():
     assert centres() == {(12, 5), (12, -5), (20, 0)}
     assert centres(steep=steep) == {(12, -5), (20, 0)}
     assert centres(steep=np.zeros(GRID.shape, bool)) == centres()
+
+
+def test_terrain_layers_of_the_wrong_shape_or_none_are_named():
+    points = np.array([[10.0, 0.0, 1.0]])
+    labels = np.array([Label.OBSTACLE], np.uint8)
+    with pytest.raises(InputError, match="give the terrain as elevation"):
+        extract_obstacles(points, labels, GRID, None, ObstacleConfig())
+    with pytest.raises(InputError, match=r"obstacles: elevation must have shape"):
+        extract_obstacles(points, labels, GRID, None, ObstacleConfig(), elevation=np.zeros((3, 3)))
+    with pytest.raises(InputError, match=r"obstacles: cell_counts must have shape"):
+        extract_obstacles(points, labels, GRID, None, ObstacleConfig(), elevation=np.zeros(GRID.shape),
+                          cell_counts=np.zeros((3, 3)))

@@ -135,3 +135,17 @@ def test_the_below_threshold_has_its_own_wider_floor():
     only_above = SegmentationConfig(below_tolerance_px=0.0)
     assert np.array_equal(thresholds(grid, only_above, CAMERA, flat, rising, flat)[1], fixed_below)
     assert np.array_equal(thresholds(grid, only_above, CAMERA, flat, rising, flat)[0], above)
+
+
+def test_layers_and_index_of_the_wrong_shape_are_named():
+    from terrainmap.errors import InputError
+
+    grid, config = GridConfig(), SegmentationConfig()
+    pts = cloud(1000, grid=grid)
+    flat = np.zeros(grid.shape)
+    with pytest.raises(InputError, match=r"label_points: elevation must have shape \(68, 44\), got \(3, 3\)"):
+        label_points(pts, np.zeros((3, 3)), flat, flat, grid, config)
+    with pytest.raises(InputError, match=r"label_points: index must have shape \(1000,\)"):
+        label_points(pts, flat, flat, flat, grid, config, index=np.zeros(5, np.intp))
+    with pytest.raises(InputError, match="N×3"):
+        label_points(pts[:, :2], flat, flat, flat, grid, config)
