@@ -83,6 +83,12 @@ def test_selection_start_end_every_max_and_index_from_source_start(tmp_path):
         assert next(source.frames(start_s=0.2)).stamp_ns == 1_200_000_000
         with pytest.raises(ConfigError, match="every"):
             list(source.frames(every=0))
+        for bad, message in (({"start_s": float("nan")}, "start: must be a finite number"),
+                             ({"end_s": "1"}, "end: must be a finite number"),
+                             ({"every": 2.5}, "every: must be a whole number"),
+                             ({"max_frames": 1.0}, "max_frames: must be a whole number")):
+            with pytest.raises(ConfigError, match=message):
+                list(source.frames(**bad))
 
 
 def test_calibration_toml_extrinsics_and_unrectified(tmp_path):

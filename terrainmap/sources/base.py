@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import logging
+import math
+import numbers
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -33,6 +35,13 @@ def extrinsics_entry(extrinsics: Extrinsics | None) -> dict | str:
 
 def check_selection(start_s: float | None, end_s: float | None, every: int, max_frames: int | None) -> None:
     """Raise :class:`ConfigError` naming the option for a selection that makes no sense."""
+    for name, value in (("start", start_s), ("end", end_s)):
+        if value is not None and (isinstance(value, bool) or not isinstance(value, numbers.Real)
+                                  or not math.isfinite(value)):
+            raise ConfigError(f"{name}: must be a finite number of seconds, got {value!r}")
+    for name, value in (("every", every), ("max_frames", max_frames)):
+        if value is not None and (isinstance(value, bool) or not isinstance(value, numbers.Integral)):
+            raise ConfigError(f"{name}: must be a whole number, got {value!r}")
     if every < 1:
         raise ConfigError(f"every: must be >= 1, got {every}")
     if max_frames is not None and max_frames < 0:
