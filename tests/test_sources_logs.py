@@ -225,6 +225,17 @@ def test_rosbag2_directory_of_several_files(tmp_path):
         assert len(list(source.frames())) == 4
 
 
+def test_files_that_give_a_topic_two_types_are_not_read_as_one_log(tmp_path):
+    bag = tmp_path / "bag"
+    bag.mkdir()
+    write_ros2_log(bag / "a.mcap", n=2)
+    with open(bag / "b.mcap", "wb") as f, ProtobufWriter(f) as writer:
+        writer.write_message("/tf_static", FrameTransforms(), log_time=T0, publish_time=T0)
+    with pytest.raises(InputError, match=r"topic /tf_static is tf2_msgs/msg/TFMessage in a.mcap but "
+                                         r"foxglove.FrameTransforms in b.mcap: these files are not one log"):
+        open_source(bag)
+
+
 def test_rosbag2_directory_without_metadata_is_read_in_file_order(tmp_path):
     """A recording killed before rosbag2 wrote metadata.yaml leaves only its .mcap files."""
     bag = tmp_path / "bag"

@@ -158,8 +158,13 @@ class McapLog:
         self.counts: dict[str, int | None] = {}
         self.damage = next((f.damage for f in self.files if f.damage), None)
         self.paths = [f.path for f in self.files]
+        where: dict[str, Path] = {}
         for f in self.files:
-            self.types.update(f.types)
+            for topic, kind in f.types.items():
+                if self.types.setdefault(topic, kind) != kind:
+                    raise InputError(f"{path}: topic {topic} is {self.types[topic]} in {where[topic].name} but {kind} "
+                                     f"in {f.path.name}: these files are not one log; give one of them")
+                where.setdefault(topic, f.path)
             for topic, n in f.counts.items():
                 self.counts[topic] = (self.counts.get(topic) or 0) + (n or 0)
 
