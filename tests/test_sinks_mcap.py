@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import os
 import tomllib
 from pathlib import Path
 
@@ -358,6 +359,15 @@ def test_a_bad_stamp_is_refused_and_the_frames_before_it_are_kept(tmp_path, flav
     assert read_metadata(path)["frames"] == "1"
     with open(path, "rb") as f:
         assert len(list(make_reader(f).iter_messages())) > 0
+
+
+@pytest.mark.parametrize("flavor", ["foxglove", "ros2"])
+def test_a_source_path_that_is_not_utf8_is_kept_escaped_in_the_metadata(tmp_path, flavor):
+    path = tmp_path / "escaped.mcap"
+    name = os.fsdecode(b"/logs/bad\xffname.mcap")  # how Python sees a file name that is not UTF-8
+    with open_mcap_sink(path, flavor, config=Config(), metadata={"source": name}) as sink:
+        sink.write(*make_frame(0))
+    assert read_metadata(path)["source"] == "/logs/bad\\udcffname.mcap"
 
 
 def test_point_labels_must_match_the_points(tmp_path):

@@ -38,6 +38,12 @@ OBSTACLE_RGBA = {"positive": (1.0, 0.35, 0.1, 0.85), "negative": (0.3, 0.3, 1.0,
 """Box colour by :attr:`Obstacle.kind` (others: grey)."""
 
 
+def _utf8(value) -> str:
+    """``str(value)`` that UTF-8 can encode: a path whose name is not UTF-8 reaches Python with
+    surrogate escapes, which would break the MCAP metadata record; they are written as ``\\udcff``."""
+    return str(value).encode("utf-8", "backslashreplace").decode("utf-8")
+
+
 @runtime_checkable
 class Sink(Protocol):
     """Receives each processed frame; ``close`` finalises the output (idempotent)."""
@@ -63,7 +69,7 @@ class McapSink:
     def __init__(self, path: str | Path, *, config: Config, metadata: Mapping[str, str] | None = None):
         self.path = Path(path)
         self._config = config
-        self._metadata = {str(k): str(v) for k, v in (metadata or {}).items()}
+        self._metadata = {_utf8(k): _utf8(v) for k, v in (metadata or {}).items()}
         self._extrinsics: Extrinsics | None = None
         self._last_static: tuple | None = None
         self.frames_written = 0
