@@ -56,15 +56,16 @@ def grid_samples(
     empty_fraction: float = 0.3,
     seed: int = 0,
 ) -> tuple[HeightGrid, np.ndarray]:
-    """One sample per cell of ``rolling_terrain`` with noise, gross outliers above the ground and
-    empty cells (filled from neighbours as in Sec. IV). Returns the grid and the true heights."""
+    """One sample per cell of ``rolling_terrain`` with noise, gross outliers 0.2 m (or
+    ``outlier_max_m`` where lower) to ``outlier_max_m`` above the ground and empty cells (filled
+    from neighbours as in Sec. IV). Returns the grid and the true heights."""
     grid = grid or GridConfig()
     rng = np.random.default_rng(seed)
     xs, ys = cell_centers(grid)
     truth = rolling_terrain(xs[:, None], ys[None, :])
     z = truth + rng.normal(0, noise_m, truth.shape)
     outliers = rng.random(truth.shape) < outlier_fraction
-    z[outliers] += rng.uniform(0.2, outlier_max_m, outliers.sum())
+    z[outliers] += rng.uniform(min(0.2, outlier_max_m), outlier_max_m, outliers.sum())
     count = (rng.random(truth.shape) >= empty_fraction).astype(np.int64)
     z = np.where(count > 0, z, 0.0)
     return _fill(z, z.copy(), count, grid), truth

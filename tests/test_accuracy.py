@@ -310,7 +310,8 @@ def test_credited_track_keeps_a_matching_track_and_switches_only_when_it_is_lost
 
 @pytest.mark.parametrize(
     "damaged, content",
-    [("scene.json", b"\xff\xfe garbage"), ("scene.json", b"{}"), ("terrain.npz", b"garbage"), ("000000.npz", b"x")],
+    [("scene.json", b"\xff\xfe garbage"), ("scene.json", b"{}"), ("terrain.npz", b"garbage"), ("000000.npz", b"x"),
+     ("terrain.npz", "cut"), ("000000.npz", "cut")],  # cut: the file's first 300 bytes (no zip directory)
 )
 def test_damaged_truth_files_are_named(tmp_path, damaged, content):
     from terrainmap.errors import InputError
@@ -318,7 +319,8 @@ def test_damaged_truth_files_are_named(tmp_path, damaged, content):
 
     log = tmp_path / "log"
     simulate(log, SimConfig(scene="flat", frames=1, seed=1, width=64, height=48, format="folder"))
-    (log / "truth" / damaged).write_bytes(content)
+    file = log / "truth" / damaged
+    file.write_bytes(file.read_bytes()[:300] if content == "cut" else content)
     with pytest.raises(InputError, match=f"truth/{damaged}: damaged ground truth"):
         with open_truth(log) as truth:
             list(truth.frames())

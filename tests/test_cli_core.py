@@ -126,3 +126,8 @@ def test_eval_robustness_reports_both_fits():
     result = CliRunner().invoke(cli, ["eval", "robustness", "--seeds", "2"])
     assert result.exit_code == 0, result.output
     assert "iterative (Algorithm V-B.1) RMSE" in result.output and "single unweighted fit" in result.output
+
+
+def test_eval_robustness_takes_outliers_lower_than_the_usual_20_cm():
+    result = CliRunner().invoke(cli, ["eval", "robustness", "--seeds", "1", "--outlier-max", "0.1"])
+    assert result.exit_code == 0, result.output

@@ -17,6 +17,7 @@ read are those written by :mod:`terrainmap.sim.mcap_log` and :mod:`terrainmap.si
 from __future__ import annotations
 
 import json
+import zipfile
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -186,7 +187,7 @@ def _damaged(path: Path):
     """Turn the errors of reading a damaged truth file into one InputError naming it."""
     try:
         yield
-    except (OSError, ValueError, KeyError, TypeError) as exc:  # npz and json raise these on garbage
+    except (OSError, ValueError, KeyError, TypeError, EOFError, zipfile.BadZipFile) as exc:  # npz, json on garbage
         raise InputError(f"{path}: damaged ground truth ({type(exc).__name__}: {exc})") from exc
 
 
