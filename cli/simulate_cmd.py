@@ -9,7 +9,7 @@ import click
 
 from terrainmap.sim.scenes import SCENES
 
-from .options import GracefulStop, output_file, wrote_before_stopping
+from .options import GracefulStop, counted, output_file, wrote_before_stopping
 
 
 @click.command()
@@ -60,7 +60,7 @@ def simulate(out: Path, fmt: str | None, overwrite: bool, **options) -> None:
         stop.check()  # between frames: the log written so far is finalised
 
     with GracefulStop() as stop, click.progressbar(length=config.frames, label=f"simulate {config.scene}",
-                                                   file=sys.stderr) as bar:
+                                                   file=sys.stderr, hidden=not sys.stderr.isatty()) as bar:
         with stop.outputs_open():
             try:
                 summary = run(out, config, progress=progress)
@@ -68,6 +68,6 @@ def simulate(out: Path, fmt: str | None, overwrite: bool, **options) -> None:
                 click.echo("\n" + wrote_before_stopping(written, [out]))
                 raise
     click.echo(
-        f"wrote {summary['frames']} frames ({config.width}×{config.height}, scene {config.scene}, seed {config.seed}) "
+        f"wrote {counted(summary['frames'], 'frame')} ({config.width}×{config.height}, scene {config.scene}, seed {config.seed}) "
         f"to {summary['path']}: {summary['bytes'] / 1e6:.1f} MB in {summary['seconds']:.1f} s"
     )

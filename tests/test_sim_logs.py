@@ -196,6 +196,7 @@ def test_cli_simulate_writes_a_log_and_guards_existing_output(tmp_path):
     folder = CliRunner().invoke(cli, ["simulate", str(tmp_path / "run"), "--frames", "1", "--width", "32",
                                       "--height", "24", "--focal-px", "25"])
     assert folder.exit_code == 0, folder.output
+    assert folder.output.startswith("wrote 1 frame (32×24")  # no progress bar off a terminal
     assert (tmp_path / "run" / "calibration.yaml").is_file() and (tmp_path / "run" / "truth" / "000000.npz").is_file()
     bad = CliRunner().invoke(cli, ["simulate", str(tmp_path / "x.mcap"), "--scene", "moon"])
     assert bad.exit_code != 0 and "moon" in bad.output
