@@ -730,7 +730,7 @@ def parse_override(text: str) -> dict[str, dict[str, str]]:
 
 def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str, ...] = ()) -> Config:
     """Defaults, then the TOML file at ``path`` (if any), then ``overrides``; validated."""
-    config = Config()
+    config, data = Config(), {}
     if path is not None:
         path = Path(path)
         try:
@@ -742,6 +742,15 @@ def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str
         except tomllib.TOMLDecodeError as exc:
             raise ConfigError(f"{path}: not valid TOML ({exc})") from None
         apply_values(config, data, source=str(path))
+    set_keys = set()
     for text in overrides:
-        apply_values(config, parse_override(text), source=f"--set {text}", text=True)
-    return config.validate()
+        values = parse_override(text)
+        apply_values(config, values, source=f"--set {text}", text=True)
+        set_keys |= {f"{section}.{name}" for section, table in values.items() for name in table}
+    try:
+        return config.validate()
+    except ConfigError as exc:  # a value the file gave (and no --set replaced) is named with the file
+        file_keys = {f"{section}.{name}" for section, table in data.items() for name in table}
+        if str(exc).partition(":")[0] in file_keys - set_keys:
+            raise ConfigError(f"{path}: {exc}") from None
+        raise

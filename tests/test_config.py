@@ -129,6 +129,12 @@ def test_bad_files(tmp_path):
     bad.write_text("[grid\n")
     with pytest.raises(ConfigError, match="not valid TOML"):
         load_config(bad)
+    zero = tmp_path / "zero.toml"
+    zero.write_text("[terrain]\ndegree = 0\n")
+    with pytest.raises(ConfigError, match=r"^.*zero.toml: terrain.degree: must be 1..5, got 0$"):
+        load_config(zero)
+    with pytest.raises(ConfigError, match=r"^terrain.degree: must be 1..5, got 9$"):  # the --set is to blame
+        load_config(zero, overrides=["terrain.degree=9"])
 
 
 def test_the_accuracy_example_loads_and_sets_what_it_says():
