@@ -47,7 +47,7 @@ def format_description(description: dict) -> str:
 @click.option(
     "--check", is_flag=True,
     help="Also read and decode every stereo pair process would read (no matching) and say whether the "
-    "log reads to its end (chunk CRCs, images, calibration); exit code 1 if it does not.",
+    "log reads to its end (chunk CRCs, images, calibration); exit code 1 if it does not or holds no stereo pair.",
 )
 def info(log: str, source_opts: SourceOptions, as_json: bool, check: bool) -> None:
     """Describe LOG (an MCAP file, rosbag2 or ROS 1 bag, or an image folder): topics, the chosen
@@ -70,6 +70,8 @@ def info(log: str, source_opts: SourceOptions, as_json: bool, check: bool) -> No
                     description["check"] = f"fails after {counted(pairs, 'stereo pair')}: {_reason(exc, log)}"
     except NoStereoError as exc:
         description = {**exc.contents, "stereo_pair": f"none, so process cannot use it ({_reason(exc, log)})"}
+        if check:
+            readable, description["check"] = False, "fails: no stereo pair to read"
     click.echo(json.dumps(_json_safe(description), indent=2) if as_json else format_description(description))
     if not readable:
         sys.exit(1)

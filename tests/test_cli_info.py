@@ -65,6 +65,8 @@ def test_info_describes_a_log_without_stereo_and_says_why_process_cannot_use_it(
     description = json.loads(result.output)
     assert description["topics"] and any(t["count"] for t in description["topics"])
     assert description["stereo_pair"].startswith("none, so process cannot use it (no stereo image topics found")
+    checked = CliRunner().invoke(info, ["--check", str(DATA / log)])
+    assert checked.exit_code == 1 and "check:" in checked.output and "no stereo pair to read" in checked.output
 
 
 def test_source_options_collect_into_open_and_frames_kwargs():
