@@ -10,11 +10,14 @@ from __future__ import annotations
 import importlib
 import logging
 import os
+import signal
 import sys
 
 import click
 
 from terrainmap.errors import TerrainmapError  # first terrainmap import: limits OpenBLAS's threads
+
+from .options import GracefulStop
 
 # command name -> "module:attribute" (modules relative to terrainmap.cli)
 COMMANDS = {
@@ -56,14 +59,20 @@ def cli(ctx: click.Context, verbose: bool) -> None:
     logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
 
 
+def _signal_exit_code() -> int:
+    """128 + the signal that stopped the run: 130 for Ctrl-C, 143 for SIGTERM."""
+    return 128 + (GracefulStop.last_signal or signal.SIGINT)
+
+
 def main(argv: list[str] | None = None) -> None:
     """Run the CLI, turning library errors into one-line messages."""
     verbose = "-v" in (argv or sys.argv[1:]) or "--verbose" in (argv or sys.argv[1:])
+    GracefulStop.last_signal = None
     try:
         cli.main(args=argv, standalone_mode=False)
     except click.exceptions.Abort:
         click.echo("Aborted.", err=True)
-        sys.exit(130)
+        sys.exit(_signal_exit_code())
     except click.ClickException as exc:
         exc.show()
         sys.exit(exc.exit_code)
@@ -74,7 +83,7 @@ def main(argv: list[str] | None = None) -> None:
         sys.exit(2)
     except KeyboardInterrupt:
         click.echo("Interrupted.", err=True)
-        sys.exit(130)
+        sys.exit(_signal_exit_code())
     except OSError as exc:  # a report or plot that cannot be written (disk full, permissions)
         if verbose:
             raise

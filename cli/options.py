@@ -45,11 +45,15 @@ class GracefulStop:
     signal only asks, so a quick double Ctrl-C never leaves a file without its summary or with
     half a frame."""
 
+    last_signal: int | None = None
+    """The signal that stopped the last run (the CLI exits with 128 + it, as a shell expects)."""
+
     def __init__(self) -> None:
         self.requested = False
         self._open = 0
 
     def _handle(self, signum, frame) -> None:
+        GracefulStop.last_signal = signum
         if self.requested and not self._open:
             raise KeyboardInterrupt
         self.requested = True
@@ -68,7 +72,9 @@ class GracefulStop:
             self._open -= 1
 
     def __enter__(self):
-        self._previous = {s: signal.signal(s, self._handle) for s in (signal.SIGINT, signal.SIGTERM)}
+        # A signal the process was started ignoring (SIGINT of a `cmd &` job in a script) stays ignored.
+        self._previous = {s: signal.signal(s, self._handle) for s in (signal.SIGINT, signal.SIGTERM)
+                          if signal.getsignal(s) is not signal.SIG_IGN}
         return self
 
     def __exit__(self, *exc_info) -> None:

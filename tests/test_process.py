@@ -335,6 +335,7 @@ def test_a_terminated_run_still_finalises_its_output(small_log, tmp_path):
         time.sleep(0.05)
     proc.send_signal(signal.SIGTERM)
     proc.communicate(timeout=60)
+    assert proc.returncode == 128 + signal.SIGTERM  # what a shell or supervisor expects of a terminated job
     with open(out, "rb") as stream:
         assert make_reader(stream).get_summary() is not None  # finished: summary and index written
 
