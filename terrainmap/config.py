@@ -379,6 +379,7 @@ class StereoConfig:
             f"must be one of sgbm, hh, sgbm_3way, hh4, got {self.mode!r}",
         )
         _check(0 < self.min_range_m < self.max_range_m, "stereo.min_range_m", "must be in (0, max_range_m)")
+        _check(self.max_range_m <= MAX_OFFSET_M, "stereo.max_range_m", f"must be at most {MAX_OFFSET_M:g} m")
         _check(self.min_texture >= 0, "stereo.min_texture", "must be >= 0")
         _check(
             self.texture_window % 2 == 1 and 3 <= self.texture_window <= 101,
