@@ -98,11 +98,13 @@ def test_transform_tree_composes_up_to_the_vehicle_frame():
     assert other.extrinsics("fixed_cam") is None  # only a world frame above it: estimated instead
 
 
-def test_broken_static_transforms_are_skipped():
+def test_broken_static_transforms_are_skipped_with_a_warning(caplog):
     tree = TransformTree()
     tree.add("base_link", "camera", [0, 0, 1.5], [0, 0, 0, 0])  # zero quaternion: no rotation at all
     tree.add("base_link", "lidar", [np.nan, 0, 1.5], [0, 0, 0, 1])
     assert len(tree) == 0
+    assert [r.getMessage().split(" is ")[0] for r in caplog.records] == ["tf: the transform base_link → camera",
+                                                                          "tf: the transform base_link → lidar"]
 
 
 def test_vehicle_poses_interpolate_and_keep_to_one_odometry_frame():

@@ -147,7 +147,7 @@ class LogSource(Source):
                     if limit and tree.resolves(self.frame_id):
                         break
             except InputError as exc:  # a damaged log (reader.damage): keep the transforms read before it
-                logger.info("reading transforms: %s", exc)
+                logger.warning("reading transforms: %s", exc)
             finally:
                 stream.close()
         return tree.extrinsics(self.frame_id)

@@ -8,11 +8,14 @@ mount is static, and only the edges between the camera and the vehicle frame mat
 from __future__ import annotations
 
 import itertools
+import logging
 from bisect import bisect_left
 
 import numpy as np
 
 from ..types import Extrinsics
+
+logger = logging.getLogger(__name__)
 
 VEHICLE_FRAMES = ("base_link", "base_footprint")
 WORLD_FRAMES = ("map", "odom", "world", "earth")
@@ -56,8 +59,12 @@ class TransformTree:
     def add(self, parent: str, child: str, translation, quaternion_xyzw) -> None:
         """Record ``child``'s pose in ``parent`` (leading '/' of ROS 1 frame ids is dropped)."""
         parent, child = parent.lstrip("/"), child.lstrip("/")
-        if child and parent and child != parent and child not in self._parent and usable(translation, quaternion_xyzw):
-            self._parent[child] = (parent, homogeneous(quaternion_to_matrix(quaternion_xyzw), translation))
+        if not child or not parent or child == parent or child in self._parent:
+            return
+        if not usable(translation, quaternion_xyzw):
+            logger.warning("tf: the transform %s → %s is not finite or its quaternion is zero; ignored", parent, child)
+            return
+        self._parent[child] = (parent, homogeneous(quaternion_to_matrix(quaternion_xyzw), translation))
 
     def chain(self, frame: str) -> list[str]:
         """``frame`` and its ancestors up to the root (cycles are cut)."""
