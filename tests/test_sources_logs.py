@@ -329,6 +329,14 @@ def test_undistorted_raw_images_with_a_rectifying_rotation_are_still_rectified()
     no_tx = [camera_info(SimpleNamespace(**ros_info(T0, side, 8, 6, 0.0)), side) for side in ("left", "right")]
     with pytest.raises(CalibrationError, match="test: the right camera's projection P has the same Tx.*--calibration"):
         calibration_from_infos(*no_tx, rectified_images=True, source="test")
+    left, right = (camera_info(SimpleNamespace(**ros_info(T0, side, 8, 6, tx)), side)
+                   for side, tx in (("left", 0.0), ("right", -100.0)))
+    with pytest.raises(CalibrationError, match="test: the left camera info is 8×6 px but the right one 100×100"):
+        calibration_from_infos(left, {**right, "width": 100, "height": 100}, rectified_images=True, source="test")
+    narrow = {**right, "P": right["P"] * [[0.5], [0.5], [1]]}
+    with pytest.raises(CalibrationError, match=r"different focal lengths \(400 and 200 px\)"):
+        calibration_from_infos(left, narrow, rectified_images=True, source="test")
+    assert calibration_from_infos(left, {**right, "width": 0, "height": 0}, rectified_images=True, source="test")
 
 
 @pytest.mark.parametrize("log", ["negative/rosbag2_cdr_test", "negative/rosbag2_talker", "negative/grid_map_ros1.bag"])

@@ -90,6 +90,13 @@ def calibration_from_infos(
     Raw distorted images: ``rectified=False`` with K, D and the right camera's pose wrt the left,
     ``R = R_rᵀ R_l``, ``T = −R_rᵀ (B, 0, 0)`` (R_l, R_r: the rectifying rotations of the infos).
     """
+    sizes = [(info["width"], info["height"]) for info in (left, right)]
+    if all(any(size) for size in sizes) and sizes[0] != sizes[1]:  # (0, 0): a driver that leaves it unset
+        raise CalibrationError(f"{source}: the left camera info is {left['width']}×{left['height']} px but the "
+                               f"right one {right['width']}×{right['height']}: not one stereo pair")
+    if not np.allclose(np.diag(right["P"])[:2], np.diag(left["P"])[:2], rtol=0.01):
+        raise CalibrationError(f"{source}: the left and right projections P have different focal lengths "
+                               f"({left['P'][0, 0]:g} and {right['P'][0, 0]:g} px): not one rectified stereo pair")
     if left["P"][0, 3] == right["P"][0, 3]:  # a driver that leaves Tx at 0 (mono calibrations)
         raise CalibrationError(
             f"{source}: the right camera's projection P has the same Tx as the left, so the baseline is unknown "
