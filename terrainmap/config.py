@@ -76,7 +76,7 @@ class GridConfig:
             _check(abs(value) <= MAX_OFFSET_M, f"grid.{name}", f"must be within ±{MAX_OFFSET_M:g} m, got {value}")
         for name in ("length_m", "width_m", "cell_size_m"):
             value = getattr(self, name)
-            _check(math.isfinite(value) and value > 0, f"grid.{name}", f"must be > 0, got {value}")
+            _check(value > 0, f"grid.{name}", f"must be > 0, got {value}")
         for name in ("length_m", "width_m"):
             cells = getattr(self, name) / self.cell_size_m
             _check(
@@ -90,11 +90,7 @@ class GridConfig:
                 f"must be a whole number of cells of {self.cell_size_m} m, got {getattr(self, name)}",
             )
         _check(self.z_min_m < self.z_max_m, "grid.z_min_m", "must be below grid.z_max_m")
-        _check(
-            math.isfinite(self.stereo_noise_px) and self.stereo_noise_px >= 0,
-            "grid.stereo_noise_px",
-            f"must be >= 0, got {self.stereo_noise_px}",
-        )
+        _check(self.stereo_noise_px >= 0, "grid.stereo_noise_px", f"must be >= 0, got {self.stereo_noise_px}")
         _check(0 <= self.sigma_factor <= 5, "grid.sigma_factor", f"must be in [0, 5], got {self.sigma_factor}")
 
     @property
@@ -551,22 +547,10 @@ class TrackingConfig:
         )
         for name in ("gate_m", "measurement_std_m", "acceleration_std_mps2", "initial_velocity_std_mps"):
             value = getattr(self, name)
-            _check(math.isfinite(value) and value > 0, f"tracking.{name}", f"must be > 0, got {value}")
-        _check(
-            math.isfinite(self.disparity_std_px) and self.disparity_std_px >= 0,
-            "tracking.disparity_std_px",
-            f"must be >= 0, got {self.disparity_std_px}",
-        )
-        _check(
-            math.isfinite(self.fragment_radius_m) and self.fragment_radius_m >= 0,
-            "tracking.fragment_radius_m",
-            f"must be >= 0, got {self.fragment_radius_m}",
-        )
-        _check(
-            math.isfinite(self.duplicate_depth_sigmas) and self.duplicate_depth_sigmas >= 0,
-            "tracking.duplicate_depth_sigmas",
-            f"must be >= 0, got {self.duplicate_depth_sigmas}",
-        )
+            _check(value > 0, f"tracking.{name}", f"must be > 0, got {value}")
+        _check(self.disparity_std_px >= 0, "tracking.disparity_std_px", f"must be >= 0, got {self.disparity_std_px}")
+        _check(self.fragment_radius_m >= 0, "tracking.fragment_radius_m", f"must be >= 0, got {self.fragment_radius_m}")
+        _check(self.duplicate_depth_sigmas >= 0, "tracking.duplicate_depth_sigmas", f"must be >= 0, got {self.duplicate_depth_sigmas}")
 
 
 @dataclass
@@ -644,7 +628,7 @@ _KINDS = {"bool": ((bool,), "true or false"), "int": ((int,), "an integer"), "fl
 def _check_kinds(name: str, section: Any) -> None:
     """Every field of ``section`` holds a value of its declared kind (an int where a float is
     declared is fine), and every number is finite: what TOML and ``--set`` ensure for a loaded
-    config, checked here for one built in code."""
+    config, checked here for one built in code (so the sections' own checks are of ranges only)."""
     for f in fields(section):
         value, kind = getattr(section, f.name), str(f.type)
         types, what = _KINDS[kind]

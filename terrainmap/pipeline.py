@@ -88,8 +88,11 @@ def map_points(
     FrameError
         No terrain can be found (no points in the area, too few cells, fit failure).
     """
-    config.validate()
-    watch = watch or Stopwatch()
+    return _map_points(points_vehicle, config.validate(), watch or Stopwatch(), camera)
+
+
+def _map_points(points_vehicle: np.ndarray, config: Config, watch: Stopwatch, camera: StereoCamera | None) -> TerrainMap:
+    """:func:`map_points` for a config already validated (a run checks it once, not every frame)."""
     with watch("grid"):
         idx = cell_index(points_vehicle, config.grid)
         grid = quantize(points_vehicle, config.grid, index=idx, camera=camera)
@@ -136,11 +139,23 @@ class PipelineState:
     extrinsics: Extrinsics | None = None
     tracker: ObstacleTracker | None = None
     tracked_matcher: StereoMatcher | None = None
+    checked: tuple = (None, None)
+    """The (config, frame extrinsics) validated last: a run checks them once, not every frame."""
 
     def __post_init__(self) -> None:
-        self.config.validate()  # a config built in code: ConfigError here, not a numpy error mid-run
+        self.check(self.config, None)  # a config built in code: ConfigError here, not a numpy error mid-run
         if self.tracker is None:
             self.tracker = make_tracker(self.config)
+
+    def check(self, config: Config, extrinsics: Extrinsics | None, frame_index: int = 0) -> None:
+        """Validate ``config`` (ConfigError) and a frame's ``extrinsics`` (CalibrationError for a
+        pose that is no rigid motion), each only when it is not the one checked last."""
+        if config is not self.checked[0]:
+            config.validate()
+        if extrinsics is not None and extrinsics is not self.checked[1]:
+            extrinsics_from_calibration(extrinsics.rotation, extrinsics.translation,
+                                        name=f"frame {frame_index}: extrinsics")
+        self.checked = (config, extrinsics)
 
 
 @dataclass
@@ -171,9 +186,7 @@ def match_frame(frame: StereoFrame, config: Config, state: PipelineState) -> Mat
             if state.matcher is not None:  # another camera or scene (a folder of KITTI or Middlebury
                 state.extrinsics = None  # scenes): the pose estimated before does not hold for it
             state.matcher = StereoMatcher(frame.calibration, config.stereo)
-        if frame.extrinsics is not None:  # CalibrationError for a pose that is no rigid motion
-            extrinsics_from_calibration(frame.extrinsics.rotation, frame.extrinsics.translation,
-                                        name=f"frame {frame.index}: extrinsics")
+        state.check(config, frame.extrinsics, frame.index)
         extrinsics = frame.extrinsics or state.extrinsics
         stereo = state.matcher.compute(frame.left, frame.right, extrinsics)  # drops the sky if it can
     with watch("points"):
@@ -195,7 +208,7 @@ def finish_frame(frame: StereoFrame, matched: Matched, config: Config, state: Pi
         state.tracker.reset()  # not these (here, as match_frame may run a frame ahead)
         state.tracked_matcher = matched.matcher
     points = matched.points_vehicle
-    terrain = map_points(points, config, watch, matched.camera)
+    terrain = _map_points(points, config, watch, matched.camera)  # config checked by match_frame
     with watch("obstacles"):
         obstacles, cost = run_obstacle_stage(
             points, terrain.point_labels, terrain.grid, terrain.layers, frame.stamp_ns, state.tracker, config,

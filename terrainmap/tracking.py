@@ -136,7 +136,7 @@ class ObstacleTracker:
             Copies carrying ``track_id``, ``confirmed`` and ``velocity_mps``, vehicle frame.
         """
         rot, trans = _pose(vehicle_pose)
-        _check_detections(obstacles, stamp_ns)
+        centers = _detection_centers(obstacles, stamp_ns)
         if self._world is not None and self._world != (vehicle_pose is not None):
             logger.warning("tracking: vehicle poses started or stopped; tracks reset")
             self.reset()
@@ -145,7 +145,6 @@ class ObstacleTracker:
         self._predict(dt)
         self._drop(self._outside(rot, trans))
 
-        centers = np.array([o.center_m for o in obstacles], float).reshape(-1, 3)
         centers_t = centers @ rot.T + trans  # tracking frame
         yaw_v = float(np.arctan2(rot[1, 0], rot[0, 0]))
         rows, cols = self._associate(centers_t[:, :2], [o.kind for o in obstacles])
@@ -387,9 +386,9 @@ _MAX_COORDINATE_M = 1e6
 centre would otherwise only fail in a later frame, deep in the association's k-d tree."""
 
 
-def _check_detections(obstacles, stamp_ns) -> None:
-    """:class:`InputError` unless ``stamp_ns`` is a whole number and every detection's centre, size
-    and yaw are finite (centre within ±1e6 m)."""
+def _detection_centers(obstacles, stamp_ns) -> np.ndarray:
+    """The detections' centres, (n, 3) vehicle frame; :class:`InputError` unless ``stamp_ns`` is a
+    whole number and every detection's centre, size and yaw are finite (centre within ±1e6 m)."""
     if isinstance(stamp_ns, bool) or not isinstance(stamp_ns, numbers.Integral):
         raise InputError(f"tracking: the stamp must be a whole number of nanoseconds, got {stamp_ns!r}")
     try:
@@ -399,6 +398,7 @@ def _check_detections(obstacles, stamp_ns) -> None:
         raise InputError(f"tracking: detections must be a list of Obstacle with 3-vector centre and size ({exc})") from exc
     if values.size and (not np.isfinite(values).all() or np.abs(values[:, :3]).max() > _MAX_COORDINATE_M):
         raise InputError("tracking: every detection needs a finite centre (within ±1e6 m), size and yaw")
+    return values[:, :3]
 
 
 def _pose(vehicle_pose: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
