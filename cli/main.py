@@ -69,10 +69,14 @@ def main(argv: list[str] | None = None) -> None:
     verbose = "-v" in (argv or sys.argv[1:]) or "--verbose" in (argv or sys.argv[1:])
     GracefulStop.last_signal = None
     try:
-        cli.main(args=argv, standalone_mode=False)
+        cli.main(args=argv, prog_name="terrainmap", standalone_mode=False)
     except click.exceptions.Abort:
         click.echo("Aborted.", err=True)
         sys.exit(_signal_exit_code())
+    except click.UsageError as exc:  # one line, with the help hint click would print above it
+        hint = f" (see '{exc.ctx.command_path} --help')" if exc.ctx is not None else ""
+        click.echo(f"Error: {exc.format_message()}{hint}", err=True)
+        sys.exit(exc.exit_code)
     except click.ClickException as exc:
         exc.show()
         sys.exit(exc.exit_code)

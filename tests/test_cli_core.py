@@ -27,6 +27,21 @@ def test_bad_override_is_a_one_line_error(capsys):
 
 
 @pytest.mark.parametrize(
+    ("args", "line"),
+    [
+        (["process"], "Error: Missing argument 'LOG'. (see 'terrainmap process --help')"),
+        (["bogus"], "Error: No such command 'bogus'. (see 'terrainmap --help')"),
+        (["config", "--nope"], "Error: No such option '--nope'. (see 'terrainmap config --help')"),
+    ],
+)
+def test_usage_errors_are_one_line(capsys, args, line):
+    with pytest.raises(SystemExit) as exc:
+        main(args)
+    assert exc.value.code == 2
+    assert capsys.readouterr().err.splitlines() == [line]
+
+
+@pytest.mark.parametrize(
     ("error", "code", "line"),
     [
         (KeyboardInterrupt(), 130, "Interrupted."),
