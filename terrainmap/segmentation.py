@@ -101,6 +101,9 @@ def label_points(
         index = cell_index(pts, grid)
     above, below = limits or thresholds(grid, config)
     c, gx, gy = cell_planes(elevation, dz_dx, dz_dy, grid)
+    unknown = ~np.isfinite(c + gx + gy)
+    if unknown.any():  # no surface there: its points go to the outside row and come out UNKNOWN
+        index = np.where(unknown[index], elevation.size, index)
     # One row per cell (gx, gy, c + above, c − below), gathered once per point: the thresholds are
     # folded in, so z − gx·x − gy·y is compared with the last two columns.
     table = np.stack([gx, gy, np.append(above.ravel(), 0) + c, np.append(-below.ravel(), 0) + c], axis=1)

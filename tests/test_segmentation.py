@@ -57,6 +57,22 @@ def test_points_are_labelled_against_the_surface():
     assert np.all(labels[-5:] == Label.UNKNOWN)
 
 
+@pytest.mark.filterwarnings("error")
+def test_points_over_cells_without_a_surface_are_unknown():
+    grid = GridConfig()
+    pts = cloud(5_000, seed=4)
+    flat = np.zeros(grid.shape)
+    elevation = flat.copy()
+    elevation[:, : grid.shape[1] // 2] = np.nan  # the surface is missing on one side
+    labels = label_points(pts, elevation, flat, flat, grid, SegmentationConfig())
+    idx = cell_index(pts, grid)
+    missing = (idx < flat.size) & np.isnan(np.append(elevation.ravel(), 0.0)[idx])
+    assert missing.any() and (~missing & (idx < flat.size)).any()
+    assert np.all(labels[missing] == Label.UNKNOWN)
+    assert np.all(labels[~missing & (idx < flat.size)] != Label.UNKNOWN)
+    assert np.all(label_points(pts, np.full(grid.shape, np.nan), flat, flat, grid, SegmentationConfig()) == Label.UNKNOWN)
+
+
 def test_thresholds_grow_with_range():
     config = SegmentationConfig(obstacle_height_m=0.2, threshold_per_m=0.01)
     grid = GridConfig()
