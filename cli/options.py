@@ -146,7 +146,8 @@ def output_file(*suffixes: str) -> Callable:
             return None
         path = Path(value)
         if not path.parent.is_dir():
-            raise click.BadParameter(f"folder {path.parent} does not exist")
+            what = "is not a folder" if path.parent.exists() else "does not exist"
+            raise click.BadParameter(f"folder {path.parent} {what}")
         if suffixes and path.suffix.lower() not in suffixes:
             raise click.BadParameter(f"{path} must end in {', '.join(suffixes)}")
         if path.exists() and not (path.is_file() or path.is_dir()):  # a FIFO would block, a device...

@@ -51,6 +51,8 @@ def test_refuses_to_overwrite_and_reports_missing_paths(shared_data, tmp_path):
     assert out.read_bytes() == b"keep"
     result = CliRunner().invoke(cli, ["process", str(tmp_path / "nope"), "-o", str(tmp_path / "x.mcap")])
     assert result.exit_code == 2 and "does not exist" in result.output
+    result = CliRunner().invoke(cli, ["process", str(shared_data / "kitti2015_000005"), "-o", str(out / "x.mcap")])
+    assert result.exit_code == 2 and f"folder {out} is not a folder" in result.output
 
 
 @pytest.mark.parametrize("name", ["negative/rosbag2_talker", "negative/rosbag2_cdr_test", "negative/grid_map_ros1.bag"])

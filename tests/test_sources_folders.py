@@ -91,6 +91,14 @@ def test_selection_start_end_every_max_and_index_from_source_start(tmp_path):
                 list(source.frames(**bad))
 
 
+def test_extra_timestamps_are_warned_about(tmp_path, caplog):
+    root = generic_folder(tmp_path, n=3)
+    (root / "timestamps.txt").write_text("10\n20\n30\n40\n")
+    with open_source(root) as source:
+        assert [f.stamp_ns for f in source.frames()] == [10, 20, 30]
+    assert "4 timestamps for 3 image pairs; the first 3 are used" in caplog.text
+
+
 def test_calibration_toml_extrinsics_and_unrectified(tmp_path):
     root = generic_folder(tmp_path, n=1)
     (root / "calibration.yaml").unlink()

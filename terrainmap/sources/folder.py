@@ -87,6 +87,11 @@ class FolderSource(Source):
         stamps = self._stamps_ns()
         if stamps is not None and len(stamps) < len(self.pairs):
             raise InputError(f"{self.path}: {len(stamps)} timestamps for {len(self.pairs)} image pairs")
+        if stamps is not None and len(stamps) > len(self.pairs):
+            logger.warning(
+                "%s: %d timestamps for %d image pairs; the first %d are used",
+                self.path, len(stamps), len(self.pairs), len(self.pairs),
+            )
         self.stamps_ns = stamps or [i * DEFAULT_PERIOD_NS for i in range(len(self.pairs))]
         self._calibrations: dict[Path, tuple[StereoCalibration, Extrinsics | None]] = {}
 
