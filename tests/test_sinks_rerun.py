@@ -174,3 +174,33 @@ def test_what_the_recording_shows_is_what_was_computed(log, tmp_path, keep_sink)
         np.testing.assert_allclose(shown, [o.size_m / 2 for o in confirmed] or np.zeros((0, 3)), atol=1e-6)
         image = np.array(labels[k][0], np.uint8).reshape(result.image.shape[:2])  # one image, its bytes
         np.testing.assert_array_equal(image[result.pixels[:, 1], result.pixels[:, 0]], result.point_labels)
+
+
+def test_camera_model_and_pose_are_logged_per_frame_where_they_change(log, tmp_path):
+    """A folder of several scenes changes the camera between frames: each frame must show its own
+    pinhole and pose (a static log would overwrite them all with the last one)."""
+    import dataclasses
+
+    import numpy as np
+
+    from terrainmap.pipeline import PipelineState, process_frame
+
+    config = Config()
+    with open_source(log) as source:
+        frames = list(source.frames())
+    state = PipelineState(config)
+    results = [process_frame(frame, config, state) for frame in frames]
+    results[2].pinhole = dataclasses.replace(results[2].pinhole, cy=results[2].pinhole.cy - 40)
+    results[2].extrinsics = dataclasses.replace(results[2].extrinsics, translation=np.array([0.5, 0.0, 2.0]))
+    rrd = tmp_path / "cameras.rrd"
+    with RerunSink(rrd, config=config) as sink:
+        for frame, result in zip(frames, results):
+            sink.write(frame, result)
+    entity = "/world/vehicle/camera"
+    assert not any(c.is_static for c in RrdReader(str(rrd)).store().stream().to_chunks() if str(c.entity_path) == entity)
+    pinholes = _columns(rrd, entity, "Pinhole:image_from_camera")
+    translations = _columns(rrd, entity, "Transform3D:translation")
+    assert sorted(pinholes) == sorted(translations) == [0, 2]  # logged where it holds first and where it changes
+    assert pinholes[2][0][7] == pinholes[0][0][7] - 40  # cy, in the column-major 3×3
+    np.testing.assert_allclose(translations[0][0], results[0].extrinsics.translation, atol=1e-6)
+    np.testing.assert_allclose(translations[2][0], [0.5, 0.0, 2.0])

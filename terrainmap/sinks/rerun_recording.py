@@ -11,7 +11,8 @@ else the vehicle frame itself; z up)::
     world                         ViewCoordinates RIGHT_HAND_Z_UP (static)
     world/vehicle                 Transform3D: the vehicle frame (base_link) in the odometry frame,
                                   per frame (only where the source gives the pose; else identity)
-    world/vehicle/camera          Transform3D (camera pose) + Pinhole (static); image, labels
+    world/vehicle/camera          Transform3D (camera pose) + Pinhole, logged on the frame where
+                                  they first hold (and again where they change); image, labels
     world/vehicle/points          Points3D, class ids = Label (AnnotationContext on world, static)
     world/vehicle/grid/samples    grid samples before equalization (eq. 1, valid cells)
     world/vehicle/grid/equalized  samples after the last equalization
@@ -110,7 +111,7 @@ class RerunSink:
         self._closed = False
         self._static_done = False
         self._mesh_key: tuple | None = None
-        self._pose: tuple | None = None
+        self._camera_key: tuple | None = None
         self.frames_written = 0
         self._rec = rr.RecordingStream(application_id)
         try:
@@ -123,7 +124,7 @@ class RerunSink:
             raise TerrainmapError(f"Rerun output {self.path} is already closed")
         rec = self._rec
         if not self._static_done:
-            self._log_static(_camera_model(frame, result))
+            self._log_static()
         rec.set_time("frame", sequence=frame.index)
         rec.set_time("stamp", timestamp=np.datetime64(frame.stamp_ns, "ns"))
         if frame.vehicle_pose is not None:
@@ -140,36 +141,32 @@ class RerunSink:
             rec.log(f"stats/{group}/{name}", rr.Scalars(value))
         self.frames_written += 1
 
-    def _log_static(self, pinhole) -> None:
+    def _log_static(self) -> None:
         rec = self._rec
         rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
         context = rr.AnnotationContext([(int(k), k.name.lower(), c) for k, c in LABEL_COLORS.items()])
         rec.log("world", context, static=True)
-        rec.log(
-            f"{VEHICLE}/camera",
-            rr.Pinhole(focal_length=[pinhole.fx, pinhole.fy], principal_point=[pinhole.cx, pinhole.cy],
-                       width=pinhole.width, height=pinhole.height,
-                       camera_xyz=rr.ViewCoordinates.RDF, image_plane_distance=1.0),
-            static=True,
-        )
         self._static_done = True
 
     def _log_camera(self, frame: StereoFrame, result: FrameResult) -> None:
         rec = self._rec
-        ext = result.extrinsics
-        pose = (tuple(np.ravel(ext.translation)), tuple(np.ravel(ext.rotation)))
-        if pose != self._pose:  # static: logged once, again only if the pose changes
-            transform = rr.Transform3D(translation=np.asarray(ext.translation, float),
-                                       mat3x3=np.asarray(ext.rotation, float))
-            rec.log(f"{VEHICLE}/camera", transform, static=True)
-            self._pose = pose
+        ext, c = result.extrinsics, _camera_model(frame, result)
+        pinhole = (c.fx, c.fy, c.cx, c.cy, c.width, c.height)
+        key = (pinhole, tuple(np.ravel(ext.translation)), tuple(np.ravel(ext.rotation)))
+        if key != self._camera_key:  # on the timelines, not static: each holds from its frame on
+            rec.log(
+                f"{VEHICLE}/camera",
+                rr.Transform3D(translation=np.asarray(ext.translation, float), mat3x3=np.asarray(ext.rotation, float)),
+                rr.Pinhole(focal_length=[c.fx, c.fy], principal_point=[c.cx, c.cy], width=c.width, height=c.height,
+                           camera_xyz=rr.ViewCoordinates.RDF, image_plane_distance=1.0),
+            )
+            self._camera_key = key
         if result.image is not None:
             rec.log(f"{VEHICLE}/camera/image", rr.Image(result.image))
             labels = np.zeros(result.image.shape[:2], np.uint8)
             labels[result.pixels[:, 1], result.pixels[:, 0]] = result.point_labels
             rec.log(f"{VEHICLE}/camera/image/labels", rr.SegmentationImage(labels, opacity=0.45))
         if result.disparity is not None:
-            c = _camera_model(frame, result)
             with np.errstate(divide="ignore", invalid="ignore"):
                 depth = (c.fx * c.baseline_m / (result.disparity[::2, ::2] + c.doffs)).astype(np.float32)
             depth[~np.isfinite(depth)] = 0.0
