@@ -81,6 +81,14 @@ def test_mcap_has_the_topics_types_and_counts_of_a_robot_log(mcap_log):
             assert header.stamp.sec * 10**9 + header.stamp.nanosec == log_time, topic
 
 
+def test_static_transforms_and_the_terrain_truth_are_offered_latched(mcap_log):
+    from test_sinks_mcap_ros2 import channel_qos
+
+    qos = channel_qos(mcap_log)
+    assert len(qos) == 12
+    assert {topic for topic, (_, durability, _) in qos.items() if durability == 1} == {"/tf_static", "/truth/terrain"}
+
+
 def test_terrain_sources_read_the_simulated_logs_with_true_extrinsics(mcap_log, folder_log):
     for path in (mcap_log, folder_log):
         with open_source(path) as source:
@@ -223,6 +231,9 @@ def test_bundled_example_is_what_its_readme_command_writes(tmp_path):
         else:
             _assert_close(a, b, topic)
     assert example.stat().st_size < 8_000_000  # "a few MB"
+    from test_sinks_mcap_ros2 import channel_qos
+
+    assert channel_qos(tmp_path / "demo.mcap") == channel_qos(example)
 
 
 def _assert_close(a, b, where: str) -> None:

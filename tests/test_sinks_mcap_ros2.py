@@ -201,6 +201,24 @@ def test_tf_static_once_and_stamps(ros_file):
     assert mcap_topics["/terrainmap/grid_map"][2][0] == STAMP0 + 200_000_000
 
 
+def channel_qos(path: Path) -> dict[str, tuple[int, int, int]]:
+    """topic → (reliability, durability, depth) of its offered QoS, parsed by rosbags (as rosbag2 would)."""
+    from rosbags.rosbag2.metadata import parse_qos
+
+    with open(path, "rb") as f:
+        channels = make_reader(f).get_summary().channels.values()
+    profiles = {c.topic: parse_qos(c.metadata["offered_qos_profiles"]) for c in channels}
+    return {topic: (p.reliability.value, p.durability.value, p.depth) for topic, (p,) in profiles.items()}
+
+
+def test_channels_offer_qos_for_ros2_bag_play_with_static_topics_latched(ros_file):
+    qos = channel_qos(ros_file[0])
+    assert {"/tf_static", "/terrainmap/costmap", "/terrainmap/grid_map", "/terrainmap/points"} <= set(qos)
+    for topic, (reliability, durability, depth) in qos.items():
+        latched = topic in ("/tf_static", "/terrainmap/costmap")
+        assert (reliability, durability, depth) == (1, 1 if latched else 2, 1 if latched else 10), topic  # 1 = reliable; 1 transient local, 2 volatile
+
+
 def test_schemas_registered_once_with_short_dependency_names(ros_file):
     path = ros_file[0]
     with open(path, "rb") as f:

@@ -18,7 +18,8 @@ Topics (every message of a frame is logged at, and stamped with, the frame's sta
 ``/truth/left/instance``           ``sensor_msgs/msg/Image``           mono8: obstacle id, 0 elsewhere
 =================================  ==================================  ===============================
 
-Metadata record ``terrainmap.sim``: key ``scene``, the JSON description of the simulation
+Channels carry rosbag2's QoS metadata (:func:`terrainmap.ros2defs.offered_qos_profiles`):
+``/tf_static`` and ``/truth/terrain`` latched. Metadata record ``terrainmap.sim``: key ``scene``, the JSON description of the simulation
 (scene, seed, rig, obstacles with velocities, terrain grid), see :func:`terrainmap.sim.simulate.describe`.
 Message layouts are in :mod:`terrainmap.sim.messages`.
 """
@@ -31,9 +32,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 from mcap.writer import CompressionType
-from mcap_ros2.writer import Writer
 
 from ..ros2defs import SCHEMAS, header, quaternion_from_matrix, transform_stamped
+from ..sinks.mcap_ros2 import Ros2Writer
 from .messages import grid_map_message, image_message, marker_array_message, pose_message
 from .render import SimFrame
 from .rig import LEFT_FRAME, RIGHT_FRAME, VEHICLE_FRAME, WORLD_FRAME, CameraRig
@@ -49,6 +50,8 @@ TRUTH_TOPICS = {
     "/truth/left/instance": "sensor_msgs/msg/Image",
 }
 """The ground-truth topics and their types (the reader requires all of them)."""
+LATCHED_TOPICS = frozenset({"/tf_static", "/truth/terrain"})
+"""Written once and offered transient local, as a robot's static transforms and maps are."""
 
 
 def camera_info(rig: CameraRig, stamp_ns: int, frame_id: str, baseline_m: float) -> dict:
@@ -71,7 +74,7 @@ class McapLog:
         self.path = Path(path)
         self.scene, self.rig, self.compressed = scene, rig, compressed
         self._file = open(self.path, "wb")  # noqa: SIM115 - closed in close()
-        self._writer = Writer(self._file, compression=CompressionType.ZSTD)
+        self._writer = Ros2Writer(self._file, compression=CompressionType.ZSTD, latched=LATCHED_TOPICS)
         self._schemas: dict[str, object] = {}
         self._writer.add_metadata(METADATA_NAME, {"scene": json.dumps(description)})
         self._started = False

@@ -23,6 +23,9 @@ Topics, all in the vehicle frame (``Extrinsics.vehicle_frame_id``: ``base_link``
 - ``/tf`` and ``/tf_static`` ``tf2_msgs/msg/TFMessage``: ``base_link`` → camera frame, and on
   ``/tf`` each frame's ``odom → base_link`` where the source gave the vehicle pose.
 - metadata record ``terrainmap``: version, config (TOML), extrinsics (JSON), source...
+
+Every channel carries rosbag2's ``offered_qos_profiles`` metadata, so ``ros2 bag play``
+publishes with it: reliable, and transient local (latched) for ``/tf_static`` and the costmap.
 """
 
 from __future__ import annotations
@@ -43,6 +46,7 @@ from ..ros2defs import (
     grid_map_frame,
     grid_map_layer,
     header,
+    offered_qos_profiles,
     pose,
     stamp,
     transform_stamped,
@@ -60,6 +64,10 @@ from .base import (
     points_record,
 )
 from .cdr import encode_grid_map, encode_occupancy_grid, point_cloud2_head_tail
+
+LATCHED_TOPICS = frozenset({"/tf_static", "/terrainmap/costmap"})
+"""Offered transient local (:class:`Ros2Writer`): tf2's static listener, and map consumers such
+as nav2's static layer, subscribe that way and get nothing from a volatile publisher."""
 
 
 def grid_map_message(result: FrameResult) -> dict:
@@ -163,16 +171,30 @@ def tf_message(stamp_ns: int, transform: tuple[str, str, tuple, tuple]) -> dict:
     return {"transforms": [transform_stamped(stamp_ns, *transform)]}
 
 
-class _Writer(Writer):
-    """mcap_ros2's writer plus ``write_encoded`` for messages this package encodes itself."""
+class Ros2Writer(Writer):
+    """mcap_ros2's writer whose channels carry rosbag2's QoS metadata
+    (:func:`~terrainmap.ros2defs.offered_qos_profiles`; transient local for the ``latched``
+    topics), plus ``write_encoded`` for messages this package encodes itself."""
 
-    def write_encoded(self, topic: str, schema: Schema, data: bytes | bytearray, log_time: int) -> None:
+    def __init__(self, output, *, compression: CompressionType, latched: frozenset[str] = frozenset()):
+        super().__init__(output, compression=compression)
+        self._latched = latched
+
+    def _channel(self, topic: str, schema: Schema) -> int:
         if topic not in self._channel_ids:
             self._channel_ids[topic] = self._writer.register_channel(
-                topic=topic, message_encoding="cdr", schema_id=schema.id
+                topic=topic, message_encoding="cdr", schema_id=schema.id,
+                metadata={"offered_qos_profiles": offered_qos_profiles(topic in self._latched)},
             )
+        return self._channel_ids[topic]
+
+    def write_message(self, topic: str, schema: Schema, message, log_time=None, publish_time=None, sequence=0):
+        self._channel(topic, schema)  # registered here, with its QoS, before mcap_ros2 would
+        super().write_message(topic, schema, message, log_time, publish_time, sequence)
+
+    def write_encoded(self, topic: str, schema: Schema, data: bytes | bytearray, log_time: int) -> None:
         self._writer.add_message(
-            channel_id=self._channel_ids[topic], log_time=log_time, publish_time=log_time, sequence=0, data=data
+            channel_id=self._channel(topic, schema), log_time=log_time, publish_time=log_time, sequence=0, data=data
         )
 
 
@@ -189,7 +211,7 @@ class Ros2McapSink(McapSink):
         super().__init__(path, config=config, metadata=metadata)
 
     def _open(self, stream) -> None:
-        self._writer = _Writer(stream, compression=self._compression)
+        self._writer = Ros2Writer(stream, compression=self._compression, latched=LATCHED_TOPICS)
 
     def _schema(self, type_name: str) -> Schema:
         if type_name not in self._schemas:
