@@ -310,6 +310,19 @@ def test_metadata_record(tmp_path, flavor):
     assert meta["frames"] == "2"
     assert tomllib.loads(meta["config"]) == tomllib.loads(Config().to_toml())
     assert json.loads(meta["extrinsics"]) == frames[0][1].extrinsics.to_dict()
+    assert meta["extrinsics_changes"] == "0"
+
+
+def test_metadata_counts_the_frames_that_moved_the_camera(tmp_path):
+    frames = [make_frame(i) for i in range(4)]
+    for i in (2, 3):  # a second scene from frame 2 on
+        frame, result = frames[i]
+        moved = dataclasses.replace(result.extrinsics, translation=np.array([0.2, -0.1, 1.4]))
+        frames[i] = (frame, dataclasses.replace(result, extrinsics=moved))
+    path = tmp_path / "moved.mcap"
+    write_frames(path, "foxglove", frames)
+    meta = read_metadata(path)
+    assert json.loads(meta["extrinsics"])["translation_m"] == [0.2, -0.1, 1.6] and meta["extrinsics_changes"] == "1"
 
 
 # ---------------------------------------------------------------- failure handling

@@ -70,7 +70,9 @@ class McapSink:
         self.path = Path(path)
         self._config = config
         self._metadata = {_utf8(k): _utf8(v) for k, v in (metadata or {}).items()}
-        self._extrinsics: Extrinsics | None = None
+        self._extrinsics: Extrinsics | None = None  # the first frame's
+        self._extrinsics_changes = 0  # frames whose camera pose differs from the frame before's
+        self._last_camera: tuple | None = None
         self._last_static: tuple | None = None
         self.frames_written = 0
         self._closed = False
@@ -104,8 +106,11 @@ class McapSink:
         if np.shape(result.point_labels) != (len(result.points_vehicle),):
             raise TerrainmapError(f"frame {result.index}: {len(result.points_vehicle)} points but point labels "
                                   f"of shape {np.shape(result.point_labels)}")
+        camera = camera_transform(result.extrinsics)
         if self._extrinsics is None:
             self._extrinsics = result.extrinsics
+        self._extrinsics_changes += self._last_camera not in (None, camera)
+        self._last_camera = camera
         self._write_frame(frame, result)
         self.frames_written += 1
 
@@ -135,6 +140,7 @@ class McapSink:
         record = {"version": __version__, "config": self._config.to_toml(), "frames": str(self.frames_written)}
         if self._extrinsics is not None:
             record["extrinsics"] = json.dumps(self._extrinsics.to_dict())
+            record["extrinsics_changes"] = str(self._extrinsics_changes)
         return {**record, **self._metadata}
 
     def _transforms(self, frame: StereoFrame, result: FrameResult) -> list[tuple[str, tuple]]:

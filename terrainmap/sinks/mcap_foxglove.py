@@ -17,7 +17,9 @@ Topics, all in the vehicle frame (``Extrinsics.vehicle_frame_id``: ``base_link``
 - ``/tf`` and ``/tf_static`` ``foxglove.FrameTransforms``: ``base_link`` → camera frame, and on
   ``/tf`` each frame's ``odom → base_link`` where the source gave the vehicle pose (so Foxglove
   can show the drive in the odometry frame).
-- metadata record ``terrainmap``: version, config (TOML), extrinsics (JSON), source...
+- metadata record ``terrainmap``: version, config (TOML), the first frame's extrinsics (JSON) and
+  ``extrinsics_changes`` (how many later frames moved the camera; each frame's pose is on the
+  tf topics), source...
 """
 
 from __future__ import annotations

@@ -22,7 +22,9 @@ Topics, all in the vehicle frame (``Extrinsics.vehicle_frame_id``: ``base_link``
   (``obstacle_labels``), marker id = track id.
 - ``/tf`` and ``/tf_static`` ``tf2_msgs/msg/TFMessage``: ``base_link`` → camera frame, and on
   ``/tf`` each frame's ``odom → base_link`` where the source gave the vehicle pose.
-- metadata record ``terrainmap``: version, config (TOML), extrinsics (JSON), source...
+- metadata record ``terrainmap``: version, config (TOML), the first frame's extrinsics (JSON) and
+  ``extrinsics_changes`` (how many later frames moved the camera; each frame's pose is on the
+  tf topics), source...
 
 Every channel carries rosbag2's ``offered_qos_profiles`` metadata, so ``ros2 bag play``
 publishes with it: reliable, and transient local (latched) for ``/tf_static`` and the costmap.
