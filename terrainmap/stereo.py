@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import lru_cache
 
 import cv2
@@ -123,8 +123,9 @@ def check_calibration(calibration: StereoCalibration, *, size_known: bool = True
     return calibration
 
 
-def _rectification(calibration: StereoCalibration) -> tuple[tuple, tuple, RectifiedPinhole]:
-    """``cv2.stereoRectify`` + ``initUndistortRectifyMap``: maps for left and right and the new pinhole."""
+def _rectification(calibration: StereoCalibration) -> tuple[tuple, tuple, RectifiedPinhole, np.ndarray]:
+    """``cv2.stereoRectify`` + ``initUndistortRectifyMap``: maps for left and right, the new
+    pinhole, and R1, the 3×3 rotation from the left camera's frame into the rectified one."""
     size = (calibration.width, calibration.height)
     K1, K2 = (np.asarray(k, np.float64).reshape(3, 3) for k in (calibration.K_left, calibration.K_right))
     D1, D2 = (
@@ -157,7 +158,7 @@ def _rectification(calibration: StereoCalibration) -> tuple[tuple, tuple, Rectif
         float(P1[0, 0]), float(P1[1, 1]), float(P1[0, 2]), float(P1[1, 2]), float(baseline_m),
         float(P2[0, 2] - P1[0, 2]), calibration.width, calibration.height,
     )  # fmt: skip
-    return maps_left, maps_right, pinhole
+    return maps_left, maps_right, pinhole, R1
 
 
 def _rectified_pinhole(calibration: StereoCalibration) -> RectifiedPinhole:
@@ -222,11 +223,16 @@ class StereoMatcher:
         self._pad = max(0, self.config.min_disparity + n - self.config.left_margin_px) if self.config.full_width else 0
         columns = min(calibration.width, self.config.min_disparity + n + self.config.left_margin_px)
         self._max_disparity = np.arange(columns, dtype=np.float32) - self.config.left_margin_px
+        # Rectifying turns the left camera by R1: points found in the rectified image are turned
+        # back (p_cam = R1ᵀ·p_rect), since extrinsics (tf, calibration files) place the camera itself.
+        self._rectified_to_camera: np.ndarray | None = None
         if calibration.rectified:
             self._maps = None
             self.pinhole = _rectified_pinhole(calibration)
         else:
-            *self._maps, self.pinhole = _rectification(calibration)
+            *self._maps, self.pinhole, r1 = _rectification(calibration)
+            if not np.allclose(r1, np.eye(3), atol=1e-9):
+                self._rectified_to_camera = r1.astype(np.float32)  # rows: p_rect_row @ R1 = (R1ᵀ p_rect)ᵀ
         p = self.pinhole
         u = np.arange(p.width, dtype=np.int32)
         v = np.arange(p.height, dtype=np.int32)
@@ -308,6 +314,9 @@ class StereoMatcher:
 
     def sky(self, grey: np.ndarray, extrinsics: Extrinsics) -> np.ndarray:
         """:func:`sky_mask` of a rectified grey left image: H×W bool."""
+        if self._rectified_to_camera is not None:  # the rectified camera's pose: R·R1ᵀ
+            rotation = np.asarray(extrinsics.rotation, np.float64) @ self._rectified_to_camera.T.astype(np.float64)
+            extrinsics = replace(extrinsics, rotation=rotation)
         return sky_mask(grey, self.pinhole, extrinsics, self.config)
 
     def drop_sky(self, result: StereoResult, extrinsics: Extrinsics) -> None:
@@ -325,7 +334,8 @@ class StereoMatcher:
 
         Returns
         -------
-        points_cam : (N, 3) float32, metres, camera optical frame.
+        points_cam : (N, 3) float32, metres, camera optical frame (for a pair rectified here,
+            the formulas give the rectified camera's frame, turned back by R1ᵀ into the camera's).
         pixels : (N, 2) int32, the (u, v) pixel of each point in the rectified left image.
         """
         p = self.pinhole
@@ -344,6 +354,8 @@ class StereoMatcher:
         np.multiply(self._ray_x.take(index), z, out=points_cam[:, 0])
         np.multiply(self._ray_y.take(index), z, out=points_cam[:, 1])
         points_cam[:, 2] = z
+        if self._rectified_to_camera is not None:
+            points_cam = points_cam @ self._rectified_to_camera
         return points_cam, self._pixels.take(index, axis=0)
 
     def _check_images(self, left: np.ndarray, right: np.ndarray) -> None:

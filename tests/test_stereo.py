@@ -160,11 +160,20 @@ def test_rectification_recovers_disparity():
     result = matcher.compute(left, right)
     points, _ = matcher.reproject(result.disparity)
     assert np.isfinite(result.disparity).mean() > 0.5
-    # the rectified left camera is rotated slightly: compare the plane's distance from the camera
     centroid = np.median(points, axis=0)
     normal = np.linalg.svd(points - centroid, full_matrices=False)[2][2]
     assert abs(normal @ centroid) == pytest.approx(depth, rel=0.02)
     assert np.median(np.abs((points - centroid) @ normal)) < 0.05  # 0.2 px of disparity at 4 m
+    assert np.median(points[:, 2]) == pytest.approx(depth, rel=0.02)
+    # Points are in the left camera's own frame, not the rectified one (turned by R1, 2.2° here):
+    # the plane's exact disparity in the rectified image gives Z = depth at every pixel.
+    R1 = cv2.stereoRectify(K, D, K, D, (W, H), R, T.reshape(3, 1), flags=cv2.CALIB_ZERO_DISPARITY, alpha=0)[0]
+    p = matcher.pinhole
+    u, v = np.meshgrid(np.arange(W), np.arange(H))
+    rays = np.stack([(u - p.cx) / p.fx, (v - p.cy) / p.fy, np.ones((H, W))], -1)  # rectified frame, z = 1
+    rectified_depth = depth / (rays @ R1)[..., 2]  # (R1ᵀ·ray)_z: the ray's z in the camera frame
+    exact, _ = matcher.reproject((p.fx * p.baseline_m / rectified_depth - p.doffs).astype(np.float32))
+    np.testing.assert_allclose(exact[:, 2], depth, rtol=1e-5)
 
 
 def test_to_vehicle_applies_rotation_and_translation():
