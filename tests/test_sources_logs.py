@@ -339,6 +339,24 @@ def test_undistorted_raw_images_with_a_rectifying_rotation_are_still_rectified()
     assert calibration_from_infos(left, {**right, "width": 0, "height": 0}, rectified_images=True, source="test")
 
 
+def test_distortion_models_opencv_cannot_apply_are_refused_and_an_empty_d_is_none():
+    from types import SimpleNamespace
+
+    from terrainmap.sources.messages import calibration_from_infos, camera_info
+
+    def infos(model, d):
+        return [camera_info(SimpleNamespace(**{**ros_info(T0, side, 8, 6, tx, d=d), "distortion_model": model}), side)
+                for side, tx in (("left", 0.0), ("right", -100.0))]
+
+    with pytest.raises(CalibrationError, match="test: the left camera's distortion model 'equidistant' is not supported"):
+        calibration_from_infos(*infos("equidistant", (0.1, 0.01, 0, 0)), rectified_images=False, source="test")
+    assert calibration_from_infos(*infos("equidistant", (0.1, 0.01, 0, 0)), rectified_images=True, source="test").rectified
+    calib = calibration_from_infos(*infos("rational_polynomial", (0.1, 0.01, 0, 0, 0, 0.02, 0, 0)),
+                                   rectified_images=False, source="test")
+    assert not calib.rectified and len(calib.dist_left) == 8
+    assert calibration_from_infos(*infos("", ()), rectified_images=False, source="test").rectified  # empty D: none
+
+
 @pytest.mark.parametrize("log", ["negative/rosbag2_cdr_test", "negative/rosbag2_talker", "negative/grid_map_ros1.bag"])
 def test_logs_without_stereo_say_so(log):
     if not (DATA / log).exists():

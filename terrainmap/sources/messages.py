@@ -61,14 +61,21 @@ def _field(msg, name: str) -> np.ndarray:
     return np.asarray(getattr(msg, name.lower()) if hasattr(msg, name.lower()) else getattr(msg, name), float)
 
 
+PINHOLE_DISTORTION_MODELS = frozenset({"plumb_bob", "rational_polynomial", ""})
+"""Distortion models OpenCV's pinhole model applies with the coefficients in ROS's order
+(REP 104; ``""``: unset, taken as plumb_bob). ``equidistant`` (fisheye) and others are not."""
+
+
 def camera_info(msg, topic: str) -> dict:
-    """K (3×3), D, R (3×3), P (3×4), width, height of a CameraInfo / CameraCalibration."""
+    """K (3×3), D, distortion model, R (3×3), P (3×4), width, height of a CameraInfo /
+    CameraCalibration."""
     K, D, R, P = (_field(msg, name) for name in ("K", "D", "R", "P"))
     if K.size != 9:
         raise CalibrationError(f"{topic}: camera calibration without a 3×3 K matrix")
     info = {
         "K": K.reshape(3, 3),
-        "D": D.ravel(),
+        "D": D.ravel() if D.size else np.zeros(5),  # empty: no distortion
+        "model": str(getattr(msg, "distortion_model", "") or ""),
         "R": R.reshape(3, 3) if R.size == 9 and R.any() else np.eye(3),  # all zero: not set (monocular)
         "P": P.reshape(3, 4) if P.size == 12 else None,
         "width": int(msg.width),
@@ -105,6 +112,13 @@ def calibration_from_infos(
     rectified = rectified_images or all(
         not np.any(info["D"]) and np.allclose(info["R"], np.eye(3), atol=1e-9) for info in (left, right)
     )
+    for side, info in (("left", left), ("right", right)):
+        if not rectified and np.any(info["D"]) and info["model"] not in PINHOLE_DISTORTION_MODELS:
+            raise CalibrationError(
+                f"{source}: the {side} camera's distortion model {info['model']!r} is not supported for "
+                f"rectifying raw images (only {', '.join(sorted(PINHOLE_DISTORTION_MODELS - {''}))}); "
+                "use rectified image topics or --calibration"
+            )
     calib = calib_io.from_projections(
         left["P"], right["P"], source=source, width=left["width"], height=left["height"]
     )
