@@ -194,10 +194,11 @@ def test_foxglove_protobuf_log_from_kitti_images(kitti, tmp_path):
     np.testing.assert_allclose(ext.rotation, OPTICAL_R, atol=1e-12)
 
 
-def test_ros2_log_pairs_by_stamp_selects_and_composes_tf(tmp_path):
+def test_ros2_log_pairs_by_stamp_selects_and_composes_tf(tmp_path, caplog):
     path = write_ros2_log(tmp_path / "run.mcap")
     with open_source(path) as source:
         frames = list(source.frames())
+        assert "1 of 13 image messages had no partner within 10.0 ms (--pair-tolerance-ms)" in caplog.text
         late = list(source.frames(start_s=0.3, every=2))
     assert [f.index for f in frames] == list(range(6))  # the extra left image found no partner
     assert [f.stamp_ns - T0 for f in frames] == [i * 100_000_000 for i in range(6)]

@@ -78,6 +78,14 @@ def test_pairer_matches_within_tolerance_and_stays_bounded():
     assert pairer.push(1, 1000 + 100 * 99 + 2, "R") == (1000 + 100 * 99, 99, "R")
 
 
+def test_pairer_keeps_every_pair_of_a_camera_logged_a_third_of_a_second_late():
+    pairer, period = StereoPairer(tolerance_ns=1_000_000), 33_333_333  # 30 Hz
+    stamps = [i * period for i in range(300)]
+    arrivals = sorted([(t, 0, t) for t in stamps] + [(t + 300_000_000, 1, t) for t in stamps])  # right logged late
+    pairs = [p for _, side, t in arrivals if (p := pairer.push(side, t, t)) is not None]
+    assert [p[0] for p in pairs] == stamps and pairer.dropped == 0 and pairer.pushed == 600
+
+
 def test_transform_tree_composes_up_to_the_vehicle_frame():
     tree = TransformTree()
     tree.add("odom", "base_link", [10, 0, 0], [0, 0, 0, 1])

@@ -177,8 +177,8 @@ class LogSource(Source):
         while pending:
             yield self._pair_ref(pending.popleft(), poses)
         if pairer.dropped:
-            logger.info("%s: %d image messages had no partner within %.1f ms", self.path, pairer.dropped,
-                        self.pair_tolerance_ns / 1e6)
+            logger.warning("%s: %d of %d image messages had no partner within %.1f ms (--pair-tolerance-ms)",
+                           self.path, pairer.dropped, pairer.pushed, self.pair_tolerance_ns / 1e6)
 
     def _pair_ref(self, pair: tuple, poses: VehiclePoses) -> PairRef:
         index, stamp_ns = pair[:2]

@@ -13,19 +13,22 @@ class StereoPairer:
     """Match left/right messages whose stamps differ by at most ``tolerance_ns``.
 
     Messages arrive in log order and wait in one buffer per side (``max_buffer`` each, so memory
-    stays bounded however long the log; the oldest unmatched message is dropped when full).
+    stays bounded however long the log; the oldest unmatched message is dropped when full: 32
+    holds a second of a 30 Hz camera whose messages are logged late).
     A new message pairs with the closest-stamped waiting message of the other side; messages of
     either side older than the matched ones can no longer pair and are dropped.
     """
 
-    def __init__(self, tolerance_ns: int, max_buffer: int = 8):
+    def __init__(self, tolerance_ns: int, max_buffer: int = 32):
         self.tolerance_ns = int(tolerance_ns)
         self._waiting: tuple[deque, deque] = (deque(maxlen=max_buffer), deque(maxlen=max_buffer))
+        self.pushed = 0
         self.dropped = 0
 
     def push(self, side: int, stamp_ns: int, item: Any) -> tuple[int, Any, Any] | None:
         """Add a message of ``side`` (0 left, 1 right); return ``(left_stamp_ns, left, right)``
         when it completes a pair, else None."""
+        self.pushed += 1
         other = self._waiting[1 - side]
         best = min(range(len(other)), key=lambda i: abs(other[i][0] - stamp_ns), default=None)
         if best is None or abs(other[best][0] - stamp_ns) > self.tolerance_ns:
