@@ -19,7 +19,9 @@ Topics (every message of a frame is logged at, and stamped with, the frame's sta
 =================================  ==================================  ===============================
 
 Channels carry rosbag2's QoS metadata (:func:`terrainmap.ros2defs.offered_qos_profiles`):
-``/tf_static`` and ``/truth/terrain`` latched. Metadata record ``terrainmap.sim``: key ``scene``, the JSON description of the simulation
+``/tf_static`` and ``/truth/terrain`` latched.
+
+Metadata record ``terrainmap.sim``: key ``scene``, the JSON description of the simulation
 (scene, seed, rig, obstacles with velocities, terrain grid), see :func:`terrainmap.sim.simulate.describe`.
 Message layouts are in :mod:`terrainmap.sim.messages`.
 """
