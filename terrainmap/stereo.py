@@ -225,14 +225,14 @@ class StereoMatcher:
         self._max_disparity = np.arange(columns, dtype=np.float32) - self.config.left_margin_px
         # Rectifying turns the left camera by R1: points found in the rectified image are turned
         # back (p_cam = R1ᵀ·p_rect), since extrinsics (tf, calibration files) place the camera itself.
-        self._rectified_to_camera: np.ndarray | None = None
+        self._r1: np.ndarray | None = None  # None: no turn (rectified input)
         if calibration.rectified:
             self._maps = None
             self.pinhole = _rectified_pinhole(calibration)
         else:
             *self._maps, self.pinhole, r1 = _rectification(calibration)
             if not np.allclose(r1, np.eye(3), atol=1e-9):
-                self._rectified_to_camera = r1.astype(np.float32)  # rows: p_rect_row @ R1 = (R1ᵀ p_rect)ᵀ
+                self._r1 = r1
         p = self.pinhole
         u = np.arange(p.width, dtype=np.int32)
         v = np.arange(p.height, dtype=np.int32)
@@ -314,9 +314,8 @@ class StereoMatcher:
 
     def sky(self, grey: np.ndarray, extrinsics: Extrinsics) -> np.ndarray:
         """:func:`sky_mask` of a rectified grey left image: H×W bool."""
-        if self._rectified_to_camera is not None:  # the rectified camera's pose: R·R1ᵀ
-            rotation = np.asarray(extrinsics.rotation, np.float64) @ self._rectified_to_camera.T.astype(np.float64)
-            extrinsics = replace(extrinsics, rotation=rotation)
+        if self._r1 is not None:  # the rectified camera's pose: R·R1ᵀ
+            extrinsics = replace(extrinsics, rotation=np.asarray(extrinsics.rotation, np.float64) @ self._r1.T)
         return sky_mask(grey, self.pinhole, extrinsics, self.config)
 
     def drop_sky(self, result: StereoResult, extrinsics: Extrinsics) -> None:
@@ -354,8 +353,8 @@ class StereoMatcher:
         np.multiply(self._ray_x.take(index), z, out=points_cam[:, 0])
         np.multiply(self._ray_y.take(index), z, out=points_cam[:, 1])
         points_cam[:, 2] = z
-        if self._rectified_to_camera is not None:
-            points_cam = points_cam @ self._rectified_to_camera
+        if self._r1 is not None:  # rows: p_rect @ R1 = (R1ᵀ·p_rect)ᵀ
+            points_cam = points_cam @ self._r1.astype(np.float32)
         return points_cam, self._pixels.take(index, axis=0)
 
     def _check_images(self, left: np.ndarray, right: np.ndarray) -> None:

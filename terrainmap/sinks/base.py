@@ -72,7 +72,7 @@ class McapSink:
         self._metadata = {_utf8(k): _utf8(v) for k, v in (metadata or {}).items()}
         self._extrinsics: Extrinsics | None = None  # the first frame's
         self._extrinsics_changes = 0  # frames whose camera pose differs from the frame before's
-        self._last_camera: tuple | None = None
+        self._camera: tuple | None = None  # camera_transform of the frame being written
         self._last_static: tuple | None = None
         self.frames_written = 0
         self._closed = False
@@ -109,8 +109,8 @@ class McapSink:
         camera = camera_transform(result.extrinsics)
         if self._extrinsics is None:
             self._extrinsics = result.extrinsics
-        self._extrinsics_changes += self._last_camera not in (None, camera)
-        self._last_camera = camera
+        self._extrinsics_changes += self._camera not in (None, camera)
+        self._camera = camera
         self._write_frame(frame, result)
         self.frames_written += 1
 
@@ -151,7 +151,7 @@ class McapSink:
         vehicle's pose in the odometry frame, where the source gave one, goes on ``/tf``.
         """
         out = []
-        camera = camera_transform(result.extrinsics)
+        camera = self._camera  # set by write() for this frame
         if result.extrinsics.source == "estimated":
             out.append(("/tf", camera))
         elif camera != self._last_static:

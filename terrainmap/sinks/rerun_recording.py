@@ -109,7 +109,6 @@ class RerunSink:
         self.path = Path(path)
         self._config = config
         self._closed = False
-        self._static_done = False
         self._mesh_key: tuple | None = None
         self._camera_key: tuple | None = None
         self.frames_written = 0
@@ -118,13 +117,14 @@ class RerunSink:
             self._rec.save(str(self.path), default_blueprint=blueprint())
         except Exception as exc:  # rerun reports an unwritable path with its own exception types
             raise InputError(f"cannot create Rerun output {self.path}: {exc}") from exc
+        self._rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+        context = rr.AnnotationContext([(int(k), k.name.lower(), c) for k, c in LABEL_COLORS.items()])
+        self._rec.log("world", context, static=True)
 
     def write(self, frame: StereoFrame, result: FrameResult) -> None:
         if self._closed:
             raise TerrainmapError(f"Rerun output {self.path} is already closed")
         rec = self._rec
-        if not self._static_done:
-            self._log_static()
         rec.set_time("frame", sequence=frame.index)
         rec.set_time("stamp", timestamp=np.datetime64(frame.stamp_ns, "ns"))
         if frame.vehicle_pose is not None:
@@ -140,13 +140,6 @@ class RerunSink:
             group = "fit" if name in ("iterations", "mean_error_m") else "counts"
             rec.log(f"stats/{group}/{name}", rr.Scalars(value))
         self.frames_written += 1
-
-    def _log_static(self) -> None:
-        rec = self._rec
-        rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
-        context = rr.AnnotationContext([(int(k), k.name.lower(), c) for k, c in LABEL_COLORS.items()])
-        rec.log("world", context, static=True)
-        self._static_done = True
 
     def _log_camera(self, frame: StereoFrame, result: FrameResult) -> None:
         rec = self._rec
