@@ -87,9 +87,10 @@ def run(
     """
     summary = RunSummary()
     start = time.perf_counter()
-    state = PipelineState(config)
-    ahead = _matched_ahead(frames, config, state)
+    ahead = None
     try:
+        state = PipelineState(config)  # validates the config: a ConfigError still closes the sinks
+        ahead = _matched_ahead(frames, config, state)
         for frame, matched in ahead:
             try:
                 if isinstance(matched, FrameError):
@@ -111,7 +112,8 @@ def run(
     finally:
         summary.wall_s = time.perf_counter() - start
         try:
-            ahead.close()  # ends the worker thread now, not whenever the generator is collected
+            if ahead is not None:
+                ahead.close()  # ends the worker thread now, not whenever the generator is collected
         finally:
             _close_all(sinks)
     return summary

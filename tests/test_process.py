@@ -96,6 +96,19 @@ def test_output_is_finalised_when_the_run_fails_part_way(shared_data, tmp_path):
     assert len(_grids(out)) == 1  # summary and index written: the file reads back whole
 
 
+def test_a_config_that_fails_validation_still_finalises_the_open_outputs(tmp_path):
+    from terrainmap.errors import ConfigError
+
+    config = Config()
+    out = tmp_path / "o.mcap"
+    sink = open_mcap_sink(out, config=config)
+    config.terrain.degree = 0  # set in code after the sink opened: the run's own check refuses it
+    with pytest.raises(ConfigError, match="terrain.degree"):
+        runner.run(iter([]), config, [sink])
+    with open(out, "rb") as f:
+        assert make_reader(f).get_summary() is not None  # closed: summary and index written
+
+
 def test_a_log_cut_before_its_first_pair_names_the_damage_and_writes_nothing(shared_data, tmp_path, capsys):
     """Half of the KITTI rosbag2 file holds the left image but not the right one: one error line
     that names the damage and the missing pair, and no output file (a log cut after some frames
