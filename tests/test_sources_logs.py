@@ -257,6 +257,7 @@ def test_rosbag2_directory_without_metadata_is_read_in_file_order(tmp_path):
         (lambda a: (cv2.cvtColor(a, cv2.COLOR_RGB2RGBA), "rgba8"), lambda a: a),
         (lambda a: (a[:, :, 1].copy(), "mono8"), lambda a: a[:, :, 1]),
         (lambda a: (a[:, :, 1].astype(np.uint16) * 4, "16UC1"), None),
+        (lambda a: (a[:, :, 1].copy(), "bayer_grbg8"), lambda a: cv2.cvtColor(a[:, :, 1], cv2.COLOR_BayerGRBG2RGB)),
     ],
 )
 def test_ros_image_encodings(tmp_path, encode, expect):
@@ -272,8 +273,9 @@ def test_ros_image_encodings(tmp_path, encode, expect):
 
 
 def test_unsupported_encoding_names_topic_and_encoding(tmp_path):
-    path = write_ros2_log(tmp_path / "bayer.mcap", n=1, encode=lambda a: (a[:, :, 0].copy(), "bayer_rggb8"))
-    with pytest.raises(InputError, match="/cam/left/image_rect: unsupported image encoding 'bayer_rggb8'"):
+    depth = lambda a: (a[:, :, 0].astype(np.float32), "32FC1")  # noqa: E731 (a depth image, not a camera's)
+    path = write_ros2_log(tmp_path / "depth.mcap", n=1, encode=depth)
+    with pytest.raises(InputError, match="/cam/left/image_rect: unsupported image encoding '32FC1'"):
         list(open_source(path).frames())
 
 

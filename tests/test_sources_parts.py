@@ -148,3 +148,53 @@ def test_decode_raw_handles_row_padding_and_big_endian():
     np.testing.assert_array_equal(out, image)
     with pytest.raises(InputError, match="/t: image of 4×3 rgb8"):
         decode_raw(b"\x00" * 10, width=4, height=3, step=12, encoding="rgb8", name="/t")
+
+
+def _smooth_rgb(height=12, width=16, scale=1):
+    """A colour image whose channels change slowly (so demosaicing can restore it), ×scale."""
+    v, u = np.mgrid[0:height, 0:width]
+    rgb = np.stack([100 + 4 * u, 60 + 5 * v, 180 - 3 * u - 2 * v], axis=-1)
+    return (rgb * scale).astype(np.uint16 if scale > 1 else np.uint8)
+
+
+# The colour channel (0 R, 1 G, 2 B) of the pixels (0, 0), (0, 1), (1, 0), (1, 1) of each 2×2 tile.
+BAYER_TILES = {"rggb": (0, 1, 1, 2), "bggr": (2, 1, 1, 0), "gbrg": (1, 2, 0, 1), "grbg": (1, 0, 2, 1)}
+
+
+@pytest.mark.parametrize("pattern", sorted(BAYER_TILES))
+@pytest.mark.parametrize("bits", [8, 16])
+def test_decode_raw_demosaics_bayer_patterns(pattern, bits):
+    rgb = _smooth_rgb(scale=1 if bits == 8 else 256)
+    mosaic = np.zeros(rgb.shape[:2], rgb.dtype)
+    for (dv, du), channel in zip(((0, 0), (0, 1), (1, 0), (1, 1)), BAYER_TILES[pattern]):
+        mosaic[dv::2, du::2] = rgb[dv::2, du::2, channel]
+    out = decode_raw(mosaic.tobytes(), width=16, height=12, step=0, encoding=f"bayer_{pattern}{bits}", name="/t")
+    assert out.shape == rgb.shape and out.dtype == rgb.dtype
+    # bilinear demosaicing restores a linear ramp exactly away from the borders
+    tolerance = 1 if bits == 8 else 256
+    np.testing.assert_allclose(out[2:-2, 2:-2].astype(float), rgb[2:-2, 2:-2], atol=tolerance)
+
+
+def test_decode_raw_reads_yuv422_in_both_byte_orders():
+    luma = np.tile(np.arange(16, 236, 20, dtype=np.uint8)[:10], (3, 1))  # 3×10, grey ramp
+    chroma = np.full(luma.shape, 128, np.uint8)  # neutral: no colour
+    chroma[2] = np.tile([200, 128], 5)  # last row: U (blue difference) high, V neutral
+    uyvy = np.stack([chroma, luma], axis=-1)  # [U, Y1, V, Y2, ...]: chroma first in each byte pair
+    yuyv = np.stack([luma, chroma], axis=-1)
+    a = decode_raw(uyvy.tobytes(), width=10, height=3, step=20, encoding="uyvy", name="/t")
+    b = decode_raw(yuyv.tobytes(), width=10, height=3, step=20, encoding="yuv422_yuy2", name="/t")
+    np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(a, decode_raw(uyvy.tobytes(), width=10, height=3, step=20, encoding="YUV422", name="/t"))
+    grey = a[:2].astype(int)
+    assert a.shape == (3, 10, 3) and (grey.max(-1) - grey.min(-1) <= 1).all()  # neutral chroma: grey
+    assert (np.diff(grey[0, :, 1]) > 0).all()  # brighter with Y
+    assert (a[2, :, 2].astype(int) - a[2, :, 0] > 40).all()  # high U: bluer than red
+    with pytest.raises(InputError, match="/t: uyvy image of odd width 9"):
+        decode_raw(bytes(54), width=9, height=3, step=18, encoding="uyvy", name="/t")
+
+
+@pytest.mark.parametrize("encoding, order", [("rgb16", (0, 1, 2)), ("bgr16", (2, 1, 0)), ("16UC3", (2, 1, 0))])
+def test_decode_raw_reads_16_bit_colour(encoding, order):
+    rgb = _smooth_rgb(scale=256)
+    out = decode_raw(rgb[:, :, order].tobytes(), width=16, height=12, step=0, encoding=encoding, name="/t")
+    np.testing.assert_array_equal(out, rgb)

@@ -14,7 +14,9 @@ import numpy as np
 
 from ..errors import InputError
 
-# ROS / Foxglove raw encodings -> (dtype, channels, conversion to RGB or None)
+# ROS / Foxglove raw encodings (lower case) -> (dtype, channels on the wire, conversion to RGB or None).
+# Bayer names give the colours of the first two pixels of the first two rows (rggb: R G / G B);
+# uyvy / yuv422 carry [U, Y1, V, Y2] per pixel pair, yuyv / yuv422_yuy2 [Y1, U, Y2, V].
 _RAW_ENCODINGS: dict[str, tuple[type, int, int | None]] = {
     "rgb8": (np.uint8, 3, None),
     "bgr8": (np.uint8, 3, cv2.COLOR_BGR2RGB),
@@ -23,8 +25,27 @@ _RAW_ENCODINGS: dict[str, tuple[type, int, int | None]] = {
     "mono8": (np.uint8, 1, None),
     "8uc1": (np.uint8, 1, None),
     "8uc3": (np.uint8, 3, cv2.COLOR_BGR2RGB),
+    "rgb16": (np.uint16, 3, None),
+    "bgr16": (np.uint16, 3, cv2.COLOR_BGR2RGB),
+    "rgba16": (np.uint16, 4, cv2.COLOR_RGBA2RGB),
+    "bgra16": (np.uint16, 4, cv2.COLOR_BGRA2RGB),
+    "16uc3": (np.uint16, 3, cv2.COLOR_BGR2RGB),
     "mono16": (np.uint16, 1, None),
     "16uc1": (np.uint16, 1, None),
+    "uyvy": (np.uint8, 2, cv2.COLOR_YUV2RGB_UYVY),
+    "yuv422": (np.uint8, 2, cv2.COLOR_YUV2RGB_UYVY),
+    "yuyv": (np.uint8, 2, cv2.COLOR_YUV2RGB_YUY2),
+    "yuv422_yuy2": (np.uint8, 2, cv2.COLOR_YUV2RGB_YUY2),
+    **{
+        f"bayer_{pattern}{bits}": (dtype, 1, code)
+        for pattern, code in (
+            ("rggb", cv2.COLOR_BayerRGGB2RGB),
+            ("bggr", cv2.COLOR_BayerBGGR2RGB),
+            ("gbrg", cv2.COLOR_BayerGBRG2RGB),
+            ("grbg", cv2.COLOR_BayerGRBG2RGB),
+        )
+        for bits, dtype in (("8", np.uint8), ("16", np.uint16))
+    },
 }
 
 
@@ -89,13 +110,18 @@ def decode_raw(
 ) -> np.ndarray:
     """Turn a raw image message's bytes into an array (RGB or mono, uint8 or uint16).
 
-    Supported encodings: rgb8, bgr8, rgba8, bgra8, mono8/8UC1, 8UC3 (as BGR), mono16/16UC1.
+    Supported encodings (case-insensitive): rgb8, bgr8, rgba8, bgra8, mono8/8UC1, 8UC3 (as BGR),
+    their 16-bit forms rgb16, bgr16, rgba16, bgra16, 16UC3 (as BGR), mono16/16UC1; Bayer mosaics
+    bayer_rggb8, _bggr8, _gbrg8, _grbg8 and their 16-bit forms (demosaiced bilinearly); YUV 4:2:2
+    uyvy/yuv422 and yuyv/yuv422_yuy2 (even widths).
     """
     spec = _RAW_ENCODINGS.get(encoding.lower())
     if spec is None:
         supported = ", ".join(sorted(_RAW_ENCODINGS))
         raise InputError(f"{name}: unsupported image encoding {encoding!r} (supported: {supported})")
     dtype, channels, conversion = spec
+    if channels == 2 and width % 2:
+        raise InputError(f"{name}: {encoding} image of odd width {width} (YUV 4:2:2 pairs the pixels of each row)")
     itemsize = np.dtype(dtype).itemsize
     row_bytes = width * channels * itemsize
     step = step or row_bytes
@@ -109,9 +135,9 @@ def decode_raw(
     pixels = np.ascontiguousarray(buffer[: step * height].reshape(height, step)[:, :row_bytes])
     wire_dtype = np.dtype(dtype).newbyteorder(">" if big_endian else "<")
     image = pixels.view(wire_dtype).astype(dtype).reshape(height, width, channels)
-    if conversion is not None:
-        image = cv2.cvtColor(image, conversion)
-    return image[:, :, 0] if channels == 1 else image
+    if channels == 1:
+        image = image[:, :, 0]
+    return image if conversion is None else cv2.cvtColor(image, conversion)
 
 
 def stereo_pair(
