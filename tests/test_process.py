@@ -9,6 +9,7 @@ import pytest
 from click.testing import CliRunner
 from mcap.reader import make_reader
 from mcap_protobuf.decoder import DecoderFactory
+from rosbag2_copy import rewrite_rosbag2
 
 from terrainmap import runner
 from terrainmap.cli.main import cli
@@ -29,11 +30,14 @@ def _elevation(grid):
     return np.frombuffer(grid.data, np.uint8).reshape(-1, grid.cell_stride)[:, offset : offset + 4].copy().view("<f4")
 
 
-def test_process_kitti_folder_and_both_rosbag2_logs_give_the_same_layers(shared_data, tmp_path):
+def test_process_kitti_folder_and_the_rosbag2_logs_give_the_same_layers(shared_data, tmp_path):
+    """The folder, both rosbag2 logs and a copy of the raw one in sqlite3 storage, zstd-compressed."""
+    rewrite_rosbag2(shared_data / "kitti2015_000005_ros2_raw", tmp_path / "db3", compression="file")
     outputs = []
-    for name in ("kitti2015_000005", "kitti2015_000005_ros2_raw", "kitti2015_000005_ros2_compressed"):
-        out = tmp_path / f"{name}.mcap"
-        result = CliRunner().invoke(cli, ["process", str(shared_data / name), "-o", str(out)])
+    for log in (*(shared_data / name for name in ("kitti2015_000005", "kitti2015_000005_ros2_raw",
+                                                  "kitti2015_000005_ros2_compressed")), tmp_path / "db3"):
+        out = tmp_path / f"{log.name}.mcap"
+        result = CliRunner().invoke(cli, ["process", str(log), "-o", str(out)])
         assert result.exit_code == 0, result.output
         assert "processed 1 frames" in result.output and f"wrote {out}" in result.output
         outputs.append(_grids(out))

@@ -13,6 +13,7 @@ from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
 from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
 from mcap_protobuf.writer import Writer as ProtobufWriter
 from mcap_ros2.writer import Writer as Ros2Writer
+from rosbag2_copy import rewrite_rosbag2
 
 from terrainmap.errors import CalibrationError, InputError
 from terrainmap.sources import open_source
@@ -444,3 +445,65 @@ def test_ros1_bag_truncated(tmp_path):
     bad.write_bytes(real.read_bytes()[:4000])
     with pytest.raises(InputError, match="bad.bag"):
         list(open_source(bad).frames())
+
+
+def _same_frames(a, b):
+    assert len(a) == len(b) > 0
+    for x, y in zip(a, b):
+        assert (x.index, x.stamp_ns, x.frame_id) == (y.index, y.stamp_ns, y.frame_id)
+        np.testing.assert_array_equal(x.left, y.left)
+        np.testing.assert_array_equal(x.right, y.right)
+        assert x.calibration.baseline_m == y.calibration.baseline_m and x.calibration.fx == y.calibration.fx
+        for ext in ("translation", "rotation"):
+            np.testing.assert_array_equal(*(getattr(f.extrinsics, ext, None) for f in (x, y)))
+        np.testing.assert_array_equal(x.vehicle_pose, y.vehicle_pose)
+
+
+@pytest.mark.parametrize("storage, compression", [("sqlite3", "none"), ("sqlite3", "file"), ("mcap", "file"),
+                                                  ("mcap", "message"), ("sqlite3", "message")])
+def test_rosbag2_in_sqlite3_storage_or_compressed_reads_like_the_mcap_log(tmp_path, storage, compression):
+    log = write_ros2_log(tmp_path / "run.mcap", encode=lambda a: (cv2.cvtColor(a, cv2.COLOR_RGB2BGR), "bgr8"))
+    bag = rewrite_rosbag2(log, tmp_path / "bag", storage=storage, compression=compression)
+    with open_source(log) as source:
+        expected = list(source.frames())
+    with open_source(bag) as source:
+        info = source.describe()
+        _same_frames(list(source.frames()), expected)
+        assert [f.index for f in source.frames(start_s=0.3, every=2)] == [3, 5]
+    assert info["format"] == "rosbag2" and info["frames"] == 6 and info["odometry_topics"] == []
+    assert [Path(f).parent for f in info["files"]] == [bag]
+
+
+def test_rosbag2_sqlite3_of_the_real_log_gives_its_frames(tmp_path):
+    real = DATA / "kitti2015_000005_ros2_raw"
+    if not real.is_dir():
+        pytest.skip("shared data not available")
+    bag = rewrite_rosbag2(real, tmp_path / "bag", storage="sqlite3", compression="file")
+    with open_source(real) as a, open_source(bag) as b:
+        _same_frames(list(b.frames()), list(a.frames()))
+
+
+def test_damaged_or_incomplete_sqlite3_bags_are_named(tmp_path):
+    bag = rewrite_rosbag2(write_ros2_log(tmp_path / "run.mcap", n=1), tmp_path / "bag")
+    db3 = next(bag.glob("*.db3"))
+    metadata = (bag / "metadata.yaml").read_bytes()
+    (bag / "metadata.yaml").unlink()
+    with pytest.raises(InputError, match="needs its metadata.yaml"):
+        open_source(bag)
+    (bag / "metadata.yaml").write_bytes(metadata)
+    db3.write_bytes(db3.read_bytes()[:200])
+    with pytest.raises(InputError, match=f"{bag}: not a readable rosbag2"):
+        open_source(bag)
+
+
+def test_rosbag2_sqlite3_of_a_simulated_drive_keeps_its_vehicle_poses(tmp_path):
+    from terrainmap.sim import SimConfig, simulate
+
+    log = tmp_path / "drive.mcap"
+    simulate(log, SimConfig(scene="flat", frames=3, seed=1, width=64, height=48, focal_px=50.0))
+    bag = rewrite_rosbag2(log, tmp_path / "bag", storage="sqlite3")
+    with open_source(log) as a, open_source(bag) as b:
+        expected, frames = list(a.frames()), list(b.frames())
+        assert b.describe()["odometry_topics"] == ["/tf"]
+    _same_frames(frames, expected)
+    assert all(f.vehicle_pose is not None for f in frames) and frames[2].vehicle_pose[0, 3] > frames[0].vehicle_pose[0, 3]

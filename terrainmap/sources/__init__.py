@@ -11,6 +11,7 @@
 
 =================  ===================================================================
 ``mcap``           an ``.mcap`` file, or a rosbag2 directory (``metadata.yaml`` + .mcap)
+``rosbag2``        a rosbag2 directory in sqlite3 storage (.db3) or compressed (zstd), via ``rosbags``
 ``ros1-bag``       a ROS 1 ``.bag`` (read through ``rosbags``)
 ``kitti-raw``      ``image_02/data``, ``image_03/data``, ``calib_cam_to_cam.txt`` up to two levels up
 ``kitti-odometry`` ``image_2``, ``image_3``, ``calib.txt``, ``times.txt``
@@ -37,10 +38,11 @@ from ..errors import ConfigError, InputError
 from .base import Source
 from .folder import GenericFolder
 from .kitti import KittiOdometryFolder, KittiRawFolder, KittiStereoFolder
-from .log import McapSource, Ros1BagSource
+from .log import McapSource, Ros1BagSource, Rosbag2Source
 from .middlebury import MiddleburyFolder
 
 SOURCES: tuple[type[Source], ...] = (
+    Rosbag2Source,
     McapSource,
     Ros1BagSource,
     KittiRawFolder,
@@ -65,8 +67,8 @@ def source_class(path: str | Path) -> type[Source]:
     if path.is_dir() and any(path.glob("*.mcap")):  # a rosbag2 without metadata.yaml (module docstring)
         return McapSource
     if path.is_dir() and any(path.glob("*.db3")):
-        raise InputError(f"{path}: rosbag2 with sqlite3 storage is not supported; convert it with "
-                         "`ros2 bag convert` to MCAP storage")
+        raise InputError(f"{path}: a rosbag2 folder of .db3 files needs its metadata.yaml (`ros2 bag reindex` "
+                         "writes it)")
     raise InputError(
         f"{path}: not a known stereo source (expected an .mcap file, a rosbag2 or KITTI/Middlebury folder, "
         "a ROS 1 .bag, or a folder with left/, right/ and calibration.yaml)"

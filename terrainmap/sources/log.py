@@ -1,4 +1,4 @@
-"""Stereo pairs from logs: MCAP files, rosbag2 directories (MCAP storage) and ROS 1 bags.
+"""Stereo pairs from logs: MCAP files, rosbag2 directories (MCAP or sqlite3 storage) and ROS 1 bags.
 
 Images: ROS 2/1 ``sensor_msgs/msg/Image`` and ``CompressedImage``, Foxglove ``RawImage`` and
 ``CompressedImage``. Calibration: ``sensor_msgs/msg/CameraInfo`` or ``foxglove.CameraCalibration``
@@ -34,7 +34,7 @@ from . import messages as msgs
 from .base import PairRef, Source, extrinsics_entry
 from .images import stereo_pair
 from .pairing import StereoPairer
-from .readers import McapLog, Ros1Bag
+from .readers import McapLog, Ros1Bag, Rosbag2Bag
 from .tf import TransformTree, VehiclePoses
 from .topics import calibration_topic, side_tokens, stereo_topics
 
@@ -94,8 +94,14 @@ class LogSource(Source):
         self.extrinsics: Extrinsics | None = given or self._tf_extrinsics()
 
     @abstractmethod
-    def _open_reader(self) -> McapLog | Ros1Bag:
+    def _open_reader(self) -> McapLog | Rosbag2Bag | Ros1Bag:
         """The message reader of ``self.path``."""
+
+    def close(self) -> None:
+        close = getattr(self.reader, "close", None)  # a reader that keeps its log open
+        if close is not None:
+            close()
+        super().close()
 
     def _first(self, topic: str):
         stream = self.reader.messages([topic])
@@ -250,6 +256,37 @@ class McapSource(LogSource):
 
     def _open_reader(self) -> McapLog:
         return McapLog(self.path)
+
+
+class Rosbag2Source(LogSource):
+    """A rosbag2 directory (``metadata.yaml``) in sqlite3 storage (``.db3`` files) or with compressed
+    files (``.mcap.zstd``, ``.db3.zstd``) or messages (``compression_mode: message``), read through
+    ``rosbags`` (:class:`~terrainmap.sources.readers.Rosbag2Bag`); uncompressed MCAP storage is
+    :class:`McapSource`'s."""
+
+    format = "rosbag2"
+
+    @classmethod
+    def matches(cls, path: Path) -> bool:
+        if not (path / "metadata.yaml").is_file():
+            return False
+        if any(path.glob("*.db3")) or any(path.glob("*.zstd")):
+            return True
+        return _metadata_says(path / "metadata.yaml", "compression_mode", ("message", "file"))
+
+    def _open_reader(self) -> Rosbag2Bag:
+        return Rosbag2Bag(self.path)
+
+
+def _metadata_says(path: Path, key: str, values: tuple[str, ...]) -> bool:
+    """Whether rosbag2's ``metadata.yaml`` sets ``key`` to one of ``values`` (case-insensitive;
+    a cheap line scan, as the file is parsed properly when the bag is opened)."""
+    try:
+        lines = path.read_text(errors="replace").splitlines()
+    except OSError:
+        return False
+    return any(line.strip().lower().startswith(f"{key}:") and line.split(":", 1)[1].strip().strip("'\"").lower()
+               in values for line in lines)
 
 
 class Ros1BagSource(LogSource):

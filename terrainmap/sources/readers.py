@@ -1,5 +1,6 @@
 """Message readers under :class:`~terrainmap.sources.log.LogSource`: MCAP files (a single file or
-a rosbag2 directory of them) and ROS 1 bags (through ``rosbags``).
+a rosbag2 directory of them), and through ``rosbags`` the rosbag2 directories the mcap reader
+cannot read (sqlite3 storage, zstd-compressed files or messages) and ROS 1 bags.
 
 A reader knows its files (``paths``), its topics (``types``: topic → message type, ``counts``:
 topic → number of messages) and ``damage`` (why reading stopped early, or None),
@@ -127,10 +128,9 @@ class McapFile:
             raise InputError(f"{self.path}: topic {channel.topic}: unreadable schema {name} ({_reason(exc)})") from exc
 
 
-def mcap_files(path: Path) -> list[Path]:
-    """The MCAP files of a log: the file itself, or a rosbag2 directory's files in metadata order."""
-    if path.is_file():
-        return [path]
+def bag_files(path: Path) -> list[Path]:
+    """The files a rosbag2 directory's ``metadata.yaml`` lists, in its order, that exist inside the
+    directory ([] when the metadata is missing or unreadable, which is logged)."""
     metadata = path / "metadata.yaml"
     names: list[str] = []
     if metadata.is_file():
@@ -140,9 +140,14 @@ def mcap_files(path: Path) -> list[Path]:
         except (OSError, ValueError, yaml.YAMLError, KeyError, TypeError, AttributeError) as exc:
             logger.warning("%s: unreadable (%s); using the .mcap files in the folder", metadata, _reason(exc))
     inside = path.resolve()
-    files = [path / n for n in names if (path / n).suffix == ".mcap" and (path / n).is_file()
-             and inside in (path / n).resolve().parents]  # a rosbag2 folder holds its own files
-    return files or sorted(path.glob("*.mcap"))
+    return [path / n for n in names if (path / n).is_file() and inside in (path / n).resolve().parents]
+
+
+def mcap_files(path: Path) -> list[Path]:
+    """The MCAP files of a log: the file itself, or a rosbag2 directory's files in metadata order."""
+    if path.is_file():
+        return [path]
+    return [f for f in bag_files(path) if f.suffix == ".mcap"] or sorted(path.glob("*.mcap"))
 
 
 class McapLog:
@@ -215,3 +220,46 @@ class Ros1Bag:
                     count += 1
             except Exception as exc:
                 raise InputError(f"{self.path}: bag is truncated or corrupt after {count} messages ({_reason(exc)})") from exc
+
+
+class Rosbag2Bag:
+    """A rosbag2 directory in sqlite3 storage (``.db3``, the default before ROS 2 Iron), or one whose
+    files or messages rosbag2 compressed (zstd), read with ``rosbags``; CDR messages are decoded
+    with its type store of standard ROS 2 messages. The bag stays open until :meth:`close`: a
+    compressed file is decompressed once, into a temporary folder, when it opens."""
+
+    format = "rosbag2"
+    damage: str | None = None  # rosbags reads the storage's index at open and fails there
+
+    def __init__(self, path: Path):
+        from rosbags.rosbag2 import Reader
+        from rosbags.typesys import Stores, get_typestore
+
+        self.path = path
+        self.paths = bag_files(path)
+        self._typestore = get_typestore(Stores.LATEST)
+        try:
+            self._bag = Reader(path)
+            self._bag.open()
+        except Exception as exc:  # ReaderError, but also sqlite3, YAML and zstd errors on damaged files
+            raise InputError(f"{path}: not a readable rosbag2 ({_reason(exc)})") from exc
+        self.types = {c.topic: normalize_type(c.msgtype) for c in self._bag.connections}
+        self.counts = {}
+        for c in self._bag.connections:
+            self.counts[c.topic] = self.counts.get(c.topic, 0) + c.msgcount
+
+    def close(self) -> None:
+        if self._bag.is_open:
+            self._bag.close()
+
+    def messages(self, topics: list[str]) -> Iterator[tuple[str, int, Any]]:
+        count = 0
+        connections = [c for c in self._bag.connections if c.topic in topics]
+        try:
+            for connection, log_time, raw in self._bag.messages(connections=connections):
+                yield connection.topic, log_time, self._typestore.deserialize_cdr(raw, connection.msgtype)
+                count += 1
+        except Exception as exc:
+            raise InputError(
+                f"{self.path}: bag is truncated or corrupt after {count} messages of {', '.join(topics)} ({_reason(exc)})"
+            ) from exc
