@@ -7,9 +7,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from log_copies import rewrite_rosbag2
 from mcap.reader import make_reader
 from mcap_protobuf.decoder import DecoderFactory
-from rosbag2_copy import rewrite_rosbag2
 
 from terrainmap import runner
 from terrainmap.cli.main import cli

@@ -11,9 +11,9 @@ from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
 from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
 from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
+from log_copies import rewrite_rosbag2, ros1_bag, ros1_mcap
 from mcap_protobuf.writer import Writer as ProtobufWriter
 from mcap_ros2.writer import Writer as Ros2Writer
-from rosbag2_copy import rewrite_rosbag2
 
 from terrainmap.errors import CalibrationError, InputError
 from terrainmap.sources import open_source
@@ -496,14 +496,38 @@ def test_damaged_or_incomplete_sqlite3_bags_are_named(tmp_path):
         open_source(bag)
 
 
-def test_rosbag2_sqlite3_of_a_simulated_drive_keeps_its_vehicle_poses(tmp_path):
+def test_copies_of_a_simulated_drive_keep_its_vehicle_poses(tmp_path):
+    """A drive (dynamic /tf odom → base_link) as rosbag2 in sqlite3 storage, ROS 1 bag and ROS 1 MCAP."""
     from terrainmap.sim import SimConfig, simulate
 
     log = tmp_path / "drive.mcap"
     simulate(log, SimConfig(scene="flat", frames=3, seed=1, width=64, height=48, focal_px=50.0))
-    bag = rewrite_rosbag2(log, tmp_path / "bag", storage="sqlite3")
-    with open_source(log) as a, open_source(bag) as b:
-        expected, frames = list(a.frames()), list(b.frames())
-        assert b.describe()["odometry_topics"] == ["/tf"]
-    _same_frames(frames, expected)
-    assert all(f.vehicle_pose is not None for f in frames) and frames[2].vehicle_pose[0, 3] > frames[0].vehicle_pose[0, 3]
+    db3 = rewrite_rosbag2(log, tmp_path / "bag", storage="sqlite3")
+    bag = ros1_bag(db3, tmp_path / "drive.bag")
+    with open_source(log) as source:
+        expected = list(source.frames())
+    assert all(f.vehicle_pose is not None for f in expected) and expected[2].vehicle_pose[0, 3] > expected[0].vehicle_pose[0, 3]
+    for copy in (db3, bag, ros1_mcap(bag, tmp_path / "ros1.mcap")):
+        with open_source(copy) as source:
+            _same_frames(list(source.frames()), expected)
+            assert source.describe()["odometry_topics"] == ["/tf"]
+
+
+def test_ros1_mcap_reads_like_the_ros1_bag_it_was_converted_from(tmp_path):
+    log = write_ros2_log(tmp_path / "run.mcap", encode=lambda a: (cv2.cvtColor(a, cv2.COLOR_RGB2BGR), "bgr8"))
+    bag = ros1_bag(log, tmp_path / "run.bag")
+    mcap = ros1_mcap(bag, tmp_path / "ros1.mcap")
+    with open_source(log) as a, open_source(bag) as b, open_source(mcap) as c:
+        expected = list(a.frames())
+        _same_frames(list(b.frames()), expected)
+        _same_frames(list(c.frames()), expected)
+        assert {t["type"] for t in c.describe()["topics"]} == {"sensor_msgs/msg/Image", "sensor_msgs/msg/CameraInfo",
+                                                              "tf2_msgs/msg/TFMessage"}
+
+
+def test_ros1_mcap_of_the_real_bag(tmp_path):
+    real = DATA / "kitti2015_000005_ros1_raw.bag"
+    if not real.is_file():
+        pytest.skip("shared data not available")
+    with open_source(real) as a, open_source(ros1_mcap(real, tmp_path / "ros1.mcap")) as b:
+        _same_frames(list(b.frames()), list(a.frames()))

@@ -15,6 +15,7 @@ import io
 import logging
 from collections.abc import Iterator
 from contextlib import contextmanager, redirect_stderr
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -35,7 +36,42 @@ def _decoder_factories() -> list:
     from mcap_protobuf.decoder import DecoderFactory as ProtobufDecoderFactory
     from mcap_ros2.decoder import DecoderFactory as Ros2DecoderFactory
 
-    return [Ros2DecoderFactory(), ProtobufDecoderFactory()]
+    return [Ros2DecoderFactory(), ProtobufDecoderFactory(), Ros1DecoderFactory()]
+
+
+class Ros1DecoderFactory:
+    """Decoders of ROS 1 messages in MCAP (message encoding ``ros1``, as ``mcap convert`` writes a
+    ROS 1 bag), through ``rosbags``' ROS 1 type store; a type it lacks is registered from the
+    channel's schema (the ``ros1msg`` definition a bag carries)."""
+
+    def __init__(self):
+        self._typestore = None
+
+    def decoder_for(self, message_encoding: str, schema) -> Any:
+        if message_encoding != "ros1" or schema is None:
+            return None
+        if self._typestore is None:
+            self._typestore = ros1_typestore()
+        name = normalize_type(schema.name)
+        register_ros1_type(self._typestore, name, schema.data.decode())
+        return partial(self._typestore.deserialize_ros1, typename=name)
+
+
+def ros1_typestore():
+    """``rosbags``' type store of ROS 1 Noetic's standard messages."""
+    from rosbags.typesys import Stores, get_typestore
+
+    return get_typestore(Stores.ROS1_NOETIC)
+
+
+def register_ros1_type(typestore, name: str, definition: str) -> None:
+    """Teach ``typestore`` the ROS 1 message type ``name`` (``pkg/msg/Type``) from its full
+    definition (the ``MSG:``-separated text a bag carries) unless it knows it: the Noetic store
+    lacks some common ones, tf2_msgs/TFMessage among them."""
+    from rosbags.typesys import get_types_from_msg
+
+    if name not in typestore.fielddefs:
+        typestore.register(get_types_from_msg(definition, name))
 
 
 class McapFile:
@@ -185,12 +221,16 @@ class Ros1Bag:
     damage: str | None = None  # rosbags reads the index at open and fails there on a damaged bag
 
     def __init__(self, path: Path):
-        from rosbags.typesys import Stores, get_typestore
-
         self.path = path
         self.paths = [path]
-        self._typestore = get_typestore(Stores.ROS1_NOETIC)
+        self._typestore = ros1_typestore()
         with self._open() as bag:
+            for c in bag.connections:
+                try:
+                    register_ros1_type(self._typestore, c.msgtype, c.msgdef.data)
+                except Exception as exc:  # a definition rosbags cannot parse: only its topic is unreadable
+                    logger.info("%s: topic %s: cannot parse the definition of %s (%s)", path, c.topic, c.msgtype,
+                                _reason(exc))
             self.types = {c.topic: normalize_type(c.msgtype) for c in bag.connections}
             self.counts = {}
             for c in bag.connections:

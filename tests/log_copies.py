@@ -1,0 +1,54 @@
+"""Copies of logs in other formats, made by other libraries than terrainmap: rosbag2 bags in other
+storage and compression (``rosbags``' writer), ROS 1 bags (``rosbags``' converter) and ROS 1 MCAP
+(the ``mcap`` writer, as ``mcap convert`` makes it from a bag)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+
+def rewrite_rosbag2(src: Path, dst: Path, *, storage: str = "sqlite3", compression: str = "none") -> Path:
+    """``src`` (an MCAP log or rosbag2) copied message by message into a new rosbag2 by ``rosbags``'
+    own writer (not terrainmap's), in ``storage`` and with rosbag2's zstd ``compression`` (none,
+    file or message). Topics of types the standard ROS 2 messages lack (a simulated log's truth) stay out."""
+    from rosbags.rosbag2 import CompressionFormat, CompressionMode, Reader, StoragePlugin, Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    typestore = get_typestore(Stores.ROS2_HUMBLE)
+    writer = Writer(dst, version=8, storage_plugin=StoragePlugin[storage.upper()])
+    writer.set_compression(CompressionMode[compression.upper()], CompressionFormat.ZSTD)
+    with Reader(src) as reader, writer:
+        out = {c.id: writer.add_connection(c.topic, c.msgtype, typestore=typestore)
+               for c in reader.connections if c.msgtype in typestore.fielddefs}
+        for connection, stamp, data in reader.messages([c for c in reader.connections if c.id in out]):
+            writer.write(out[connection.id], stamp, data)
+    return dst
+
+
+def ros1_bag(src: Path, dst: Path) -> Path:
+    """``src`` (a ROS 2 MCAP log or rosbag2) converted into a ROS 1 bag by ``rosbags``' converter."""
+    from rosbags.convert import convert
+    from rosbags.typesys import Stores, get_typestore
+
+    convert([src], dst, "sqlite3", 8, None, "file", get_typestore(Stores.ROS2_HUMBLE), None, [], [], [], [])
+    return dst
+
+
+def ros1_mcap(bag: Path, dst: Path) -> Path:
+    """A ROS 1 bag's messages, bytes unchanged, in an MCAP file of profile ``ros1`` (schemas ``ros1msg``,
+    message encoding ``ros1``), as ``mcap convert x.bag x.mcap`` writes it."""
+    from mcap.writer import Writer
+    from rosbags.rosbag1 import Reader
+
+    with Reader(bag) as reader, open(dst, "wb") as stream:
+        writer = Writer(stream)
+        writer.start(profile="ros1", library="tests")
+        channels = {}
+        for connection, stamp, data in reader.messages():
+            if connection.id not in channels:
+                schema = writer.register_schema(connection.msgtype.replace("/msg/", "/"), "ros1msg",
+                                                connection.msgdef.data.encode())
+                channels[connection.id] = writer.register_channel(connection.topic, "ros1", schema)
+            writer.add_message(channels[connection.id], stamp, data, stamp)
+        writer.finish()
+    return dst
