@@ -27,6 +27,8 @@ baseline_m: 0.3
 KITTI_P2 = "7.215377e+02 0 6.095593e+02 4.485728e+01 0 7.215377e+02 1.728540e+02 2.163791e-01 0 0 1 2.745884e-03"
 KITTI_P3 = "7.215377e+02 0 6.095593e+02 -3.395242e+02 0 7.215377e+02 1.728540e+02 2.199936e+00 0 0 1 2.729905e-03"
 KITTI_BASELINE = (44.85728 + 339.5242) / 721.5377
+KITTI_P3_GREY = "7.215377e+02 0 6.095593e+02 -3.460000e+02 0 7.215377e+02 1.728540e+02 0 0 0 1 0"
+KITTI_BASELINE_GREY = (44.85728 + 346.0) / 721.5377
 
 
 def image(seed: int, shape=(6, 8, 3), dtype=np.uint8) -> np.ndarray:
@@ -205,7 +207,7 @@ def test_kitti_odometry_sequence(tmp_path):
     for i in range(4):
         write(tmp_path / "image_2" / f"{i:06d}.png", image(i))
         write(tmp_path / "image_3" / f"{i:06d}.png", image(9 + i))
-    (tmp_path / "calib.txt").write_text(f"P0: {KITTI_P2}\nP1: {KITTI_P3}\nP2: {KITTI_P2}\nP3: {KITTI_P3}\n")
+    (tmp_path / "calib.txt").write_text(f"P0: {KITTI_P2}\nP1: {KITTI_P3_GREY}\nP2: {KITTI_P2}\nP3: {KITTI_P3}\n")
     (tmp_path / "times.txt").write_text("0.0\n1.036e-01\n2.072e-01\n3.108e-01\n")
     source = open_source(tmp_path)
     assert isinstance(source, KittiOdometryFolder)
@@ -215,6 +217,20 @@ def test_kitti_odometry_sequence(tmp_path):
     (tmp_path / "times.txt").write_text("0.0\ninf\n2.072e-01\n3.108e-01\n")
     with pytest.raises(InputError, match="times.txt: need one finite time in seconds per line"):
         open_source(tmp_path)
+
+
+def test_kitti_odometry_grey_cameras(tmp_path):
+    """The grey download of a sequence: image_0/ image_1/ with P0/P1 (its baseline differs from P2/P3's)."""
+    for i in range(2):
+        write(tmp_path / "image_0" / f"{i:06d}.png", image(i)[:, :, 0])
+        write(tmp_path / "image_1" / f"{i:06d}.png", image(5 + i)[:, :, 0])
+    (tmp_path / "calib.txt").write_text(f"P0: {KITTI_P2}\nP1: {KITTI_P3_GREY}\nP2: {KITTI_P2}\nP3: {KITTI_P3}\n")
+    source = open_source(tmp_path)
+    assert isinstance(source, KittiOdometryFolder) and source.describe()["format"] == "kitti-odometry"
+    frames = list(source.frames())
+    assert len(frames) == 2 and frames[1].left.ndim == 2
+    np.testing.assert_array_equal(frames[1].right, image(6)[:, :, 0])
+    assert frames[0].calibration.baseline_m == pytest.approx(KITTI_BASELINE_GREY)
 
 
 MIDDLEBURY_CALIB = """cam0=[1758.23 0 953.34; 0 1758.23 552.29; 0 0 1]

@@ -6,7 +6,8 @@
   (and ``_11``) or ``NNNNNN.png`` use ``NNNNNN.txt``.
 - Raw drive: ``image_02/data/ image_03/data/``, ``image_02/timestamps.txt`` and
   ``calib_cam_to_cam.txt`` in the drive folder or one or two folders up.
-- Odometry sequence: ``image_2/ image_3/``, ``calib.txt`` (``P2``, ``P3``), ``times.txt`` (seconds).
+- Odometry sequence: ``image_2/ image_3/`` with ``P2``, ``P3`` of ``calib.txt`` (or, in the grey
+  download, ``image_0/ image_1/`` with ``P0``, ``P1``), ``times.txt`` (seconds).
 
 Baseline = (P_left[0,3] − P_right[0,3]) / fx; ``cx_right`` is set when the principal points differ.
 No camera-to-vehicle extrinsics are read: the pipeline estimates them from the ground.
@@ -97,18 +98,25 @@ def _parse_kitti_time(text: str, path: Path) -> int:
 
 
 class KittiOdometryFolder(FolderSource):
-    """A KITTI odometry sequence (``sequences/NN``)."""
+    """A KITTI odometry sequence (``sequences/NN``): the colour cameras, else the grey ones."""
 
     format = "kitti-odometry"
     calibration_hint = "calib.txt"
+    _CAMERAS = (("image_2", "image_3", ("P2", "P3")), ("image_0", "image_1", ("P0", "P1")))
+
+    @classmethod
+    def _cameras(cls, path: Path):
+        return next(((left, right, keys) for left, right, keys in cls._CAMERAS
+                     if (path / left).is_dir() and (path / right).is_dir()), None)
 
     @classmethod
     def matches(cls, path: Path) -> bool:
-        return (path / "image_2").is_dir() and (path / "image_3").is_dir() and (path / "calib.txt").is_file()
+        return cls._cameras(path) is not None and (path / "calib.txt").is_file()
 
     def _find_pairs(self) -> list[ImagePair]:
+        left, right, self._keys = self._cameras(self.path)
         calib = self.path / "calib.txt"
-        return matching_pairs(self.path / "image_2", self.path / "image_3", lambda name: calib)
+        return matching_pairs(self.path / left, self.path / right, lambda name: calib)
 
     def _stamps_ns(self) -> list[int] | None:
         path = self.path / "times.txt"
@@ -120,4 +128,4 @@ class KittiOdometryFolder(FolderSource):
             raise InputError(f"{path}: need one finite time in seconds per line") from None
 
     def _read_calibration(self, path: Path):
-        return calib_io.kitti_calibration(path, ("P2", "P3")), None
+        return calib_io.kitti_calibration(path, self._keys), None
