@@ -88,6 +88,14 @@ def ros_image(stamp_ns: int, frame: str, array: np.ndarray, encoding: str) -> di
             "is_bigendian": 0, "step": array.strides[0], "data": array.tobytes()}
 
 
+def info_msg(*args, **changes):
+    """A CameraInfo message object (attributes, as a decoder gives it) of :func:`ros_info` with ``changes``."""
+    from types import SimpleNamespace
+
+    fields = {**ros_info(*args), **changes}
+    return SimpleNamespace(**{**fields, "header": SimpleNamespace(**fields["header"])})
+
+
 def ros_info(stamp_ns: int, frame: str, w: int, h: int, tx: float, d=(0.0,) * 5, r=np.eye(3)) -> dict:
     return {"header": header(stamp_ns, frame), "height": h, "width": w, "distortion_model": "plumb_bob",
             "d": list(d), "k": [400.0, 0, w / 2, 0, 400.0, h / 2, 0, 0, 1], "r": np.ravel(r).tolist(),
@@ -107,20 +115,21 @@ def pair_images(i: int, shape=(6, 8, 3)) -> tuple[np.ndarray, np.ndarray]:
 
 
 def write_ros2_log(path: Path, n: int = 6, *, camera_info=True, tf=True, topics=("/cam/left/image_rect", "/cam/right/image_rect"),
-                   encode=lambda a: (a, "rgb8"), d=(0.0,) * 5, right_offset_ns=2_000_000, chunk_size=1024) -> Path:
+                   encode=lambda a: (a, "rgb8"), d=(0.0,) * 5, right_offset_ns=2_000_000, chunk_size=1024,
+                   right_tx=-400.0 * 0.25, extra_tf=()) -> Path:
     """A ROS 2 MCAP: tf_static and camera_info first, then n pairs at 10 Hz (right 2 ms late) and
-    one unpaired left image in the middle."""
+    one unpaired left image in the middle. ``extra_tf``: more static (parent, child, xyz, q)."""
     with open(path, "wb") as f, Ros2Writer(f, chunk_size=chunk_size) as writer:
         image_schema = writer.register_msgdef("sensor_msgs/msg/Image", IMAGE_DEF + HEADER)
         if tf:
             tf_schema = writer.register_msgdef("tf2_msgs/msg/TFMessage", TF_DEF + HEADER)
             for parent, child, xyz, q in (("base_link", "cam_link", (1.0, 0.0, 1.5), (0, 0, 0, 1)),
                                           ("cam_link", "left_optical", (0.0, 0.1, 0.0), OPTICAL_Q),
-                                          ("odom", "base_link", (5.0, 5.0, 0.0), (0, 0, 0, 1))):
+                                          ("odom", "base_link", (5.0, 5.0, 0.0), (0, 0, 0, 1)), *extra_tf):
                 writer.write_message("/tf_static", tf_schema, tf_message(T0, parent, child, xyz, q), T0)
         if camera_info:
             info_schema = writer.register_msgdef("sensor_msgs/msg/CameraInfo", INFO_DEF + HEADER)
-            for side, tx in (("left", 0.0), ("right", -400.0 * 0.25)):
+            for side, tx in (("left", 0.0), ("right", right_tx)):
                 writer.write_message(f"/cam/{side}/camera_info", info_schema, ros_info(T0, f"{side}_optical", 8, 6, tx, d), T0)
         for i in range(n):
             stamp = T0 + i * 100_000_000
@@ -315,25 +324,24 @@ def test_raw_distorted_images_give_an_unrectified_calibration(tmp_path):
 def test_undistorted_raw_images_with_a_rectifying_rotation_are_still_rectified():
     """D = 0 alone does not make images rectified: a CameraInfo's R (here 2° about y on the left)
     still has to be applied; an all-zero R is an unset one (monocular drivers publish that)."""
-    from types import SimpleNamespace
 
     from scipy.spatial.transform import Rotation
 
     from terrainmap.sources.messages import calibration_from_infos, camera_info
 
     turn = Rotation.from_euler("y", 2, degrees=True).as_matrix()
-    infos = [camera_info(SimpleNamespace(**ros_info(T0, side, 8, 6, tx, r=r)), side)
+    infos = [camera_info(info_msg(T0, side, 8, 6, tx, (0.0,) * 5, r), side)
              for side, tx, r in (("left", 0.0, turn), ("right", -100.0, np.eye(3)))]
     calib = calibration_from_infos(*infos, rectified_images=False, source="test")
     assert not calib.rectified
     np.testing.assert_allclose(calib.R, turn, atol=1e-12)
-    unset = [camera_info(SimpleNamespace(**ros_info(T0, side, 8, 6, tx, r=np.zeros((3, 3)))), side)
+    unset = [camera_info(info_msg(T0, side, 8, 6, tx, (0.0,) * 5, np.zeros((3, 3))), side)
              for side, tx in (("left", 0.0), ("right", -100.0))]
     assert calibration_from_infos(*unset, rectified_images=False, source="test").rectified
-    no_tx = [camera_info(SimpleNamespace(**ros_info(T0, side, 8, 6, 0.0)), side) for side in ("left", "right")]
+    no_tx = [camera_info(info_msg(T0, side, 8, 6, 0.0), side) for side in ("left", "right")]
     with pytest.raises(CalibrationError, match="test: the right camera's projection P has the same Tx.*--calibration"):
         calibration_from_infos(*no_tx, rectified_images=True, source="test")
-    left, right = (camera_info(SimpleNamespace(**ros_info(T0, side, 8, 6, tx)), side)
+    left, right = (camera_info(info_msg(T0, side, 8, 6, tx), side)
                    for side, tx in (("left", 0.0), ("right", -100.0)))
     with pytest.raises(CalibrationError, match="test: the left camera info is 8×6 px but the right one 100×100"):
         calibration_from_infos(left, {**right, "width": 100, "height": 100}, rectified_images=True, source="test")
@@ -344,12 +352,11 @@ def test_undistorted_raw_images_with_a_rectifying_rotation_are_still_rectified()
 
 
 def test_distortion_models_opencv_cannot_apply_are_refused_and_an_empty_d_is_none():
-    from types import SimpleNamespace
 
     from terrainmap.sources.messages import calibration_from_infos, camera_info
 
     def infos(model, d):
-        return [camera_info(SimpleNamespace(**{**ros_info(T0, side, 8, 6, tx, d=d), "distortion_model": model}), side)
+        return [camera_info(info_msg(T0, side, 8, 6, tx, d, distortion_model=model), side)
                 for side, tx in (("left", 0.0), ("right", -100.0))]
 
     with pytest.raises(CalibrationError, match="test: the left camera's distortion model 'equidistant' is not supported"):
@@ -531,3 +538,46 @@ def test_ros1_mcap_of_the_real_bag(tmp_path):
         pytest.skip("shared data not available")
     with open_source(real) as a, open_source(ros1_mcap(real, tmp_path / "ros1.mcap")) as b:
         _same_frames(list(b.frames()), list(a.frames()))
+
+
+def test_a_baseline_missing_from_the_camera_infos_comes_from_tf(tmp_path):
+    """Cameras calibrated one by one (right Tx = 0) with both optical frames in tf: the baseline is
+    the right frame's offset along the left's x axis."""
+    right = ("cam_link", "right_optical", (0.0, -0.15, 0.0), OPTICAL_Q)  # the left one is at y = 0.1: 0.25 m apart
+    path = write_ros2_log(tmp_path / "tf.mcap", n=2, right_tx=0.0, extra_tf=[right])
+    with open_source(path) as source:
+        frame = next(source.frames())
+    assert frame.calibration.baseline_m == pytest.approx(0.25) and frame.calibration.rectified
+    assert frame.calibration.source.endswith("stereo pose from tf (left_optical → right_optical)")
+    path = write_ros2_log(tmp_path / "none.mcap", n=2, right_tx=0.0)
+    with open_source(path) as source, pytest.raises(
+            CalibrationError, match=r"tf does not relate the cameras' frames \(left_optical → right_optical\)"):
+        next(source.frames())
+    above = ("cam_link", "right_optical", (0.0, -0.15, 0.1), OPTICAL_Q)
+    path = write_ros2_log(tmp_path / "above.mcap", n=2, right_tx=0.0, extra_tf=[above])
+    with open_source(path) as source, pytest.raises(
+            CalibrationError, match=r"tf places the right camera at \(0.250, -0.100, 0.000\) m turned by 0.00°.*"
+                                    "not a rectified pair side by side"):
+        next(source.frames())
+
+
+def test_raw_cameras_calibrated_one_by_one_take_their_pose_from_tf():
+    from scipy.spatial.transform import Rotation
+
+    from terrainmap.sources.messages import calibration_from_infos, camera_info
+
+    d = (-0.1, 0.01, 0.0, 0.0, 0.0)
+    left, right = (camera_info(info_msg(T0, side, 8, 6, 0.0, d), side) for side in ("left", "right"))
+    right["K"] = right["K"] * [[1.02], [1.02], [1]]  # another lens: focal lengths 2 % apart
+    pose = np.eye(4)
+    pose[:3, :3] = Rotation.from_euler("y", 1.5, degrees=True).as_matrix()
+    pose[:3, 3] = [0.3, 0.002, -0.004]
+    calib = calibration_from_infos(left, right, rectified_images=False, source="test", right_in_left=pose)
+    assert not calib.rectified and calib.baseline_m == pytest.approx(np.linalg.norm(pose[:3, 3]))
+    p_left = np.array([1.0, -0.5, 7.0])  # a point seen by both: p_right = R·p_left + T
+    np.testing.assert_allclose(calib.R @ p_left + calib.T, np.linalg.solve(pose, [*p_left, 1])[:3], atol=1e-12)
+    np.testing.assert_array_equal(calib.K_right, right["K"])
+    behind = pose.copy()
+    behind[0, 3] = -0.3
+    with pytest.raises(CalibrationError, match="not to its right"):
+        calibration_from_infos(left, right, rectified_images=False, source="test", right_in_left=behind)

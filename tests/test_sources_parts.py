@@ -198,3 +198,17 @@ def test_decode_raw_reads_16_bit_colour(encoding, order):
     rgb = _smooth_rgb(scale=256)
     out = decode_raw(rgb[:, :, order].tobytes(), width=16, height=12, step=0, encoding=encoding, name="/t")
     np.testing.assert_array_equal(out, rgb)
+
+
+def test_transform_tree_relates_two_frames_through_their_common_ancestor():
+    tree = TransformTree()
+    optical = [-0.5, 0.5, -0.5, 0.5]  # link (x fwd, y left, z up) -> optical (x right, y down, z fwd)
+    tree.add("base_link", "cam_link", [1.0, 0.0, 1.5], [0, 0, 0, 1])
+    tree.add("cam_link", "left_optical", [0.0, 0.06, 0.0], optical)
+    tree.add("cam_link", "right_optical", [0.0, -0.06, 0.0], optical)
+    tree.add("odom", "base_link", [5.0, 0.0, 0.0], [0, 0, 0, 1])
+    right_in_left = tree.relative("left_optical", "right_optical")
+    np.testing.assert_allclose(right_in_left[:3, 3], [0.12, 0.0, 0.0], atol=1e-12)
+    np.testing.assert_allclose(right_in_left[:3, :3], np.eye(3), atol=1e-12)
+    np.testing.assert_allclose(tree.relative("base_link", "left_optical")[:3, 3], [1.0, 0.06, 1.5])
+    assert tree.relative("left_optical", "elsewhere") is None and tree.relative("left_optical", "left_optical") is None

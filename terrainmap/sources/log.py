@@ -84,14 +84,15 @@ class LogSource(Source):
         first_left = self._first(self.left_topic)
         self.frame_id = msgs.frame_id(first_left) if first_left is not None else "camera_optical"
         override = calib_io.load_calibration_file(calibration) if calibration else None
+        self._static_tf_topics, self.odometry_topics = self._tf_topics()
+        tree = self._tf_tree()
         self.calibration_topics: tuple[str | None, str | None] = (None, None)
         self.calibration_error: CalibrationError | None = None
-        self.calibration: StereoCalibration | None = override[0] if override else self._log_calibration()
-        self._static_tf_topics, self.odometry_topics = self._tf_topics()
+        self.calibration: StereoCalibration | None = override[0] if override else self._log_calibration(tree)
         given = override[1] if override else None
         if given is not None:  # a calibration file names no frames: the camera's is the images'
             given = replace(given, camera_frame_id=self.frame_id)
-        self.extrinsics: Extrinsics | None = given or self._tf_extrinsics()
+        self.extrinsics: Extrinsics | None = given or tree.extrinsics(self.frame_id)
 
     @abstractmethod
     def _open_reader(self) -> McapLog | Rosbag2Bag | Ros1Bag:
@@ -110,7 +111,7 @@ class LogSource(Source):
         finally:
             stream.close()
 
-    def _log_calibration(self) -> StereoCalibration | None:
+    def _log_calibration(self, tree: TransformTree) -> StereoCalibration | None:
         topics = [t for t, kind in self.reader.types.items() if kind in msgs.CALIBRATION_TYPES]
         sides = side_tokens(self.left_topic, self.right_topic)
         left = calibration_topic(self.left_topic, topics, side=sides)
@@ -125,11 +126,13 @@ class LogSource(Source):
             infos = [self._first(t) for t in (left, right)]
             if any(info is None for info in infos):
                 raise CalibrationError(f"{self.path}: {left} or {right} holds no message; pass --calibration")
+            left_info, right_info = msgs.camera_info(infos[0], left), msgs.camera_info(infos[1], right)
             return msgs.calibration_from_infos(
-                msgs.camera_info(infos[0], left),
-                msgs.camera_info(infos[1], right),
+                left_info,
+                right_info,
                 rectified_images="rect" in self.left_topic.lower(),
                 source=f"{left} + {right}",
+                right_in_left=tree.relative(left_info["frame_id"], right_info["frame_id"]),
             )
         except CalibrationError as exc:
             self.calibration_error = exc
@@ -140,7 +143,9 @@ class LogSource(Source):
         tf_topics = sorted(t for t, kind in self.reader.types.items() if kind in msgs.TF_TYPES)
         return [t for t in tf_topics if "static" in t], [t for t in tf_topics if "static" not in t]
 
-    def _tf_extrinsics(self) -> Extrinsics | None:
+    def _tf_tree(self) -> TransformTree:
+        """The static transforms, and the dynamic ones of the first ``MAX_DYNAMIC_TF_MESSAGES``
+        messages where the static ones do not place the camera."""
         tree = TransformTree()
         for topics, limit in ((self._static_tf_topics, None), (self.odometry_topics, MAX_DYNAMIC_TF_MESSAGES)):
             if not topics or tree.resolves(self.frame_id):
@@ -156,7 +161,7 @@ class LogSource(Source):
                 logger.warning("reading transforms: %s", exc)
             finally:
                 stream.close()
-        return tree.extrinsics(self.frame_id)
+        return tree
 
     def _pairs(self) -> Iterator[PairRef]:
         if self.calibration is None:

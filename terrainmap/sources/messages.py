@@ -80,6 +80,7 @@ def camera_info(msg, topic: str) -> dict:
         "P": P.reshape(3, 4) if P.size == 12 else None,
         "width": int(msg.width),
         "height": int(msg.height),
+        "frame_id": frame_id(msg),
     }
     if info["P"] is None or not info["P"][0, 0]:
         raise CalibrationError(f"{topic}: camera calibration without a projection matrix P")
@@ -87,7 +88,7 @@ def camera_info(msg, topic: str) -> dict:
 
 
 def calibration_from_infos(
-    left: dict, right: dict, *, rectified_images: bool, source: str
+    left: dict, right: dict, *, rectified_images: bool, source: str, right_in_left: np.ndarray | None = None
 ) -> StereoCalibration:
     """Stereo calibration from the left and right camera infos (ROS stereo convention).
 
@@ -96,22 +97,25 @@ def calibration_from_infos(
     ``(P_left[0,3] − P_right[0,3]) / fx`` (= ``−P_right[0,3]/P_right[0,0]`` in ROS).
     Raw distorted images: ``rectified=False`` with K, D and the right camera's pose wrt the left,
     ``R = R_rᵀ R_l``, ``T = −R_rᵀ (B, 0, 0)`` (R_l, R_r: the rectifying rotations of the infos).
+
+    Where the right P's Tx equals the left's (two cameras calibrated one by one), the stereo
+    geometry comes from ``right_in_left``, the 4×4 pose of the right camera's frame in the left's
+    (from tf): for rectified images it must be a shift along +x (the baseline), within 1 % of its
+    length and 0.5°; raw images take its rotation and translation as the pair's R, T.
     """
     sizes = [(info["width"], info["height"]) for info in (left, right)]
     if all(any(size) for size in sizes) and sizes[0] != sizes[1]:  # (0, 0): a driver that leaves it unset
         raise CalibrationError(f"{source}: the left camera info is {left['width']}×{left['height']} px but the "
                                f"right one {right['width']}×{right['height']}: not one stereo pair")
-    if not np.allclose(np.diag(right["P"])[:2], np.diag(left["P"])[:2], rtol=0.01):
-        raise CalibrationError(f"{source}: the left and right projections P have different focal lengths "
-                               f"({left['P'][0, 0]:g} and {right['P'][0, 0]:g} px): not one rectified stereo pair")
-    if left["P"][0, 3] == right["P"][0, 3]:  # a driver that leaves Tx at 0 (mono calibrations)
-        raise CalibrationError(
-            f"{source}: the right camera's projection P has the same Tx as the left, so the baseline is unknown "
-            "(ROS stereo: Tx = −fx·baseline); pass --calibration with baseline_m"
-        )
     rectified = rectified_images or all(
         not np.any(info["D"]) and np.allclose(info["R"], np.eye(3), atol=1e-9) for info in (left, right)
     )
+    if rectified and not np.allclose(np.diag(right["P"])[:2], np.diag(left["P"])[:2], rtol=0.01):
+        raise CalibrationError(f"{source}: the left and right projections P have different focal lengths "
+                               f"({left['P'][0, 0]:g} and {right['P'][0, 0]:g} px): not one rectified stereo pair")
+    from_tf = left["P"][0, 3] == right["P"][0, 3]  # a driver that leaves Tx at 0 (mono calibrations)
+    if from_tf:
+        right = {**right, "P": _right_projection(left, right, right_in_left, rectified, source)}
     for side, info in (("left", left), ("right", right)):
         if not rectified and np.any(info["D"]) and info["model"] not in PINHOLE_DISTORTION_MODELS:
             raise CalibrationError(
@@ -119,21 +123,44 @@ def calibration_from_infos(
                 f"rectifying raw images (only {', '.join(sorted(PINHOLE_DISTORTION_MODELS - {''}))}); "
                 "use rectified image topics or --calibration"
             )
+    if from_tf:
+        source += f", stereo pose from tf ({left['frame_id']} → {right['frame_id']})"
     calib = calib_io.from_projections(
         left["P"], right["P"], source=source, width=left["width"], height=left["height"]
     )
     if rectified:
         return calib
+    if from_tf:  # p_right = R·p_left + T (OpenCV's stereo R, T)
+        R, T = right_in_left[:3, :3].T, -right_in_left[:3, :3].T @ right_in_left[:3, 3]
+    else:
+        R, T = right["R"].T @ left["R"], -right["R"].T @ np.array([calib.baseline_m, 0.0, 0.0])
     return dataclasses.replace(
-        calib,
-        rectified=False,
-        K_left=left["K"],
-        K_right=right["K"],
-        dist_left=left["D"],
-        dist_right=right["D"],
-        R=right["R"].T @ left["R"],
-        T=-right["R"].T @ np.array([calib.baseline_m, 0.0, 0.0]),
+        calib, rectified=False, K_left=left["K"], K_right=right["K"], dist_left=left["D"], dist_right=right["D"], R=R, T=T
     )
+
+
+def _right_projection(left: dict, right: dict, right_in_left: np.ndarray | None, rectified: bool, source: str):
+    """The right camera's P with Tx = left Tx − fx·B, B from ``right_in_left`` (see
+    :func:`calibration_from_infos`), or :class:`CalibrationError` saying why not."""
+    frames = f"{left['frame_id']} → {right['frame_id']}"
+    if right_in_left is None:
+        raise CalibrationError(
+            f"{source}: the right camera's projection P has the same Tx as the left, so the baseline is unknown "
+            f"(ROS stereo: Tx = −fx·baseline), and tf does not relate the cameras' frames ({frames}); "
+            "pass --calibration with baseline_m"
+        )
+    t = right_in_left[:3, 3]
+    angle = np.degrees(np.arccos(np.clip((np.trace(right_in_left[:3, :3]) - 1) / 2, -1, 1)))
+    across = float(np.hypot(t[1], t[2]))
+    if not (t[0] > 0 and (not rectified or (across <= 0.01 * t[0] and angle <= 0.5))):
+        raise CalibrationError(
+            f"{source}: tf places the right camera at ({t[0]:.3f}, {t[1]:.3f}, {t[2]:.3f}) m turned by {angle:.2f}° "
+            f"from the left ({frames}): not {'a rectified pair side by side' if rectified else 'to its right'}; "
+            "pass --calibration"
+        )
+    P = right["P"].copy()
+    P[0, 3] = left["P"][0, 3] - left["P"][0, 0] * float(np.linalg.norm(t) if not rectified else t[0])
+    return P
 
 
 def transforms(msg, msg_type: str) -> Iterator[tuple[int, str, str, list[float], list[float]]]:

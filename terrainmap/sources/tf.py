@@ -1,4 +1,5 @@
-"""A minimal transform tree, enough to find the camera's pose in the vehicle frame.
+"""A minimal transform tree, enough to find the camera's pose in the vehicle frame (and the right
+camera's in the left's, where the camera infos do not give the baseline).
 
 Edges are stored child → (parent, T_parent_child) as 4×4 homogeneous matrices, so
 ``p_parent = T_parent_child @ p_child``. The first transform seen for a child wins: the camera
@@ -89,9 +90,7 @@ class TransformTree:
         target = next((name for name in VEHICLE_FRAMES if name in chain), body[-1] if body else chain[0])
         if target == chain[0]:
             return None
-        T = np.eye(4)
-        for child in chain[: chain.index(target)]:
-            T = self._parent[child][1] @ T
+        T = self._up_to(chain, target)
         return Extrinsics(
             rotation=T[:3, :3],
             translation=T[:3, 3],
@@ -99,6 +98,23 @@ class TransformTree:
             camera_frame_id=chain[0],
             vehicle_frame_id=target,
         )
+
+
+    def _up_to(self, chain: list[str], ancestor: str) -> np.ndarray:
+        """``T_ancestor_frame`` (4×4) of ``chain[0]``, ``ancestor`` being in its ``chain``."""
+        T = np.eye(4)
+        for child in chain[: chain.index(ancestor)]:
+            T = self._parent[child][1] @ T
+        return T
+
+    def relative(self, frame: str, other: str) -> np.ndarray | None:
+        """``T_frame_other`` (4×4): the pose of ``other`` in ``frame``, through their nearest
+        common ancestor; None when they have none (or are the same frame)."""
+        chain, other_chain = self.chain(frame), self.chain(other)
+        common = next((name for name in chain if name in other_chain), None)
+        if common is None or chain[0] == other_chain[0]:
+            return None
+        return np.linalg.inv(self._up_to(chain, common)) @ self._up_to(other_chain, common)
 
 
 class VehiclePoses:
