@@ -12,6 +12,7 @@ from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
 from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
 from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
 from log_copies import rewrite_rosbag2, ros1_bag, ros1_mcap
+from mcap.reader import make_reader
 from mcap_protobuf.writer import Writer as ProtobufWriter
 from mcap_ros2.writer import Writer as Ros2Writer
 
@@ -581,3 +582,52 @@ def test_raw_cameras_calibrated_one_by_one_take_their_pose_from_tf():
     behind[0, 3] = -0.3
     with pytest.raises(CalibrationError, match="not to its right"):
         calibration_from_infos(left, right, rectified_images=False, source="test", right_in_left=behind)
+
+
+def test_camera_info_binning_and_region_of_interest_give_the_published_images_camera():
+    """As ROS's image_geometry: the window's offset off the principal point, then the binning."""
+    from types import SimpleNamespace
+
+    from terrainmap.sources.messages import calibration_from_infos, camera_info
+
+    full = {"width": 64, "height": 48, "k": [400.0, 0, 30, 0, 410.0, 20, 0, 0, 1],
+            "p": [400.0, 0, 30, -100.0, 0, 410.0, 20, 0, 0, 0, 1, 0]}
+    roi = SimpleNamespace(x_offset=8, y_offset=4, width=32, height=24, do_rectify=True)
+    info = camera_info(info_msg(T0, "left", 8, 6, 0.0, **full, roi=roi, binning_x=2, binning_y=4), "/cam/left/camera_info")
+    np.testing.assert_allclose(info["K"], [[200, 0, 11], [0, 102.5, 4], [0, 0, 1]])
+    np.testing.assert_allclose(info["P"][:2], [[200, 0, 11, -50], [0, 102.5, 4, 0]])
+    assert (info["width"], info["height"], info["roi"]) == (16, 6, True)
+    binned = camera_info(info_msg(T0, "left", 8, 6, 0.0, **full, binning_x=2, binning_y=2), "/t")
+    assert (binned["width"], binned["height"], binned["K"][0, 2], binned["P"][0, 3]) == (32, 24, 15.0, -50.0)
+    whole = SimpleNamespace(x_offset=0, y_offset=0, width=64, height=48, do_rectify=False)
+    assert camera_info(info_msg(T0, "left", 8, 6, 0.0, **full, roi=whole), "/t")["K"][0, 2] == 30
+    outside = SimpleNamespace(x_offset=40, y_offset=4, width=32, height=24, do_rectify=False)
+    with pytest.raises(CalibrationError, match=r"/t: region of interest 32×24 at \(40, 4\) reaches outside"):
+        camera_info(info_msg(T0, "left", 8, 6, 0.0, **full, roi=outside), "/t")
+    distorted = [camera_info(info_msg(T0, side, 8, 6, 0.0, (0.1, 0, 0, 0, 0), **{**full, "p": p}, roi=roi), side)
+                 for side, p in (("left", [400.0, 0, 30, 0, 0, 410.0, 20, 0, 0, 0, 1, 0]), ("right", full["p"]))]
+    with pytest.raises(CalibrationError, match="region of interest and distortion.*raw image topics"):
+        calibration_from_infos(*distorted, rectified_images=True, source="test")
+    assert not calibration_from_infos(*distorted, rectified_images=False, source="test").rectified
+
+
+def test_a_log_of_binned_images_uses_the_binned_camera(tmp_path):
+    """Images of 8×6 published with camera infos calibrated at 16×12 and binning 2."""
+    from mcap_ros2.decoder import DecoderFactory
+
+    path = write_ros2_log(tmp_path / "plain.mcap", n=1)
+    binned = tmp_path / "binned.mcap"
+    with open(path, "rb") as src, open(binned, "wb") as dst, Ros2Writer(dst) as writer:
+        schemas = {}
+        for schema, channel, message, decoded in make_reader(src, decoder_factories=[DecoderFactory()]).iter_decoded_messages():
+            if schema.name not in schemas:
+                schemas[schema.name] = writer.register_msgdef(schema.name, schema.data.decode())
+            if schema.name == "sensor_msgs/msg/CameraInfo":
+                decoded.width, decoded.height, decoded.binning_x, decoded.binning_y = 16, 12, 2, 2
+                decoded.k = [2 * v if i in (0, 2, 4, 5) else v for i, v in enumerate(decoded.k)]
+                decoded.p = [2 * v if i in (0, 2, 3, 5, 6) else v for i, v in enumerate(decoded.p)]
+            writer.write_message(channel.topic, schemas[schema.name], decoded, message.log_time, message.publish_time)
+    with open_source(path) as a, open_source(binned) as b:
+        expected, frame = next(a.frames()), next(b.frames())
+    for field in ("width", "height", "fx", "fy", "cx", "cy", "baseline_m"):
+        assert getattr(frame.calibration, field) == pytest.approx(getattr(expected.calibration, field)), field

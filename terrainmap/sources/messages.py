@@ -67,8 +67,11 @@ PINHOLE_DISTORTION_MODELS = frozenset({"plumb_bob", "rational_polynomial", ""})
 
 
 def camera_info(msg, topic: str) -> dict:
-    """K (3×3), D, distortion model, R (3×3), P (3×4), width, height of a CameraInfo /
-    CameraCalibration."""
+    """K (3×3), D, distortion model, R (3×3), P (3×4), width, height, frame id of a CameraInfo /
+    CameraCalibration, for the images as published: a CameraInfo's region of interest and
+    binning (``roi``, ``binning_x/y``: the images are a window of the calibrated resolution,
+    downsampled) are applied as ROS's image_geometry does, the window's offset taken off the
+    principal points, then x and y divided by the binning; ``roi`` is True when a window was applied."""
     K, D, R, P = (_field(msg, name) for name in ("K", "D", "R", "P"))
     if K.size != 9:
         raise CalibrationError(f"{topic}: camera calibration without a 3×3 K matrix")
@@ -84,7 +87,29 @@ def camera_info(msg, topic: str) -> dict:
     }
     if info["P"] is None or not info["P"][0, 0]:
         raise CalibrationError(f"{topic}: camera calibration without a projection matrix P")
-    return info
+    return _window(info, msg, topic)
+
+
+def _window(info: dict, msg, topic: str) -> dict:
+    """``info`` for the region of interest and binning of a CameraInfo (:func:`camera_info`);
+    unchanged for a message without them (Foxglove) or with the defaults (no window, binning 0 or 1)."""
+    roi = getattr(msg, "roi", None)
+    x0, y0, width, height = (int(getattr(roi, name, 0)) for name in ("x_offset", "y_offset", "width", "height"))
+    bx, by = (max(int(getattr(msg, name, 0)), 1) for name in ("binning_x", "binning_y"))
+    windowed = width > 0 and height > 0 and (x0, y0, width, height) != (0, 0, info["width"], info["height"])
+    if not windowed and bx == by == 1:
+        return info
+    if windowed and info["width"] and (x0 + width > info["width"] or y0 + height > info["height"]):
+        raise CalibrationError(f"{topic}: region of interest {width}×{height} at ({x0}, {y0}) reaches outside the "
+                               f"calibrated {info['width']}×{info['height']} image")
+    K, P = info["K"].copy(), info["P"].copy()
+    if windowed:
+        K[:2, 2] -= (x0, y0)
+        P[:2, 2] -= (x0, y0)
+    K[0], P[0] = K[0] / bx, P[0] / bx
+    K[1], P[1] = K[1] / by, P[1] / by
+    size = (width, height) if windowed else (info["width"], info["height"])
+    return {**info, "K": K, "P": P, "width": size[0] // bx, "height": size[1] // by, "roi": windowed}
 
 
 def calibration_from_infos(
@@ -117,6 +142,11 @@ def calibration_from_infos(
     if from_tf:
         right = {**right, "P": _right_projection(left, right, right_in_left, rectified, source)}
     for side, info in (("left", left), ("right", right)):
+        if rectified and info.get("roi") and np.any(info["D"]):
+            raise CalibrationError(
+                f"{source}: the {side} camera info has a region of interest and distortion: where its window lies "
+                "in rectified images is not known; use the raw image topics or --calibration"
+            )
         if not rectified and np.any(info["D"]) and info["model"] not in PINHOLE_DISTORTION_MODELS:
             raise CalibrationError(
                 f"{source}: the {side} camera's distortion model {info['model']!r} is not supported for "
