@@ -50,6 +50,9 @@ class RectifiedPinhole:
 
     ``fx, fy, cx, cy`` in pixels, ``baseline_m`` in metres, ``doffs`` the disparity offset in pixels
     (``Z = fx·baseline_m / (d + doffs)``), ``width × height`` the image size in pixels.
+    ``rectifying_rotation``: R1 of ``cv2.stereoRectify``, 9 floats row-major, the turn from the
+    left camera's frame into the rectified camera's (``p_rect = R1·p_cam``) where terrainmap
+    rectified the images itself; None where they came rectified (no turn).
     """
 
     fx: float
@@ -60,6 +63,16 @@ class RectifiedPinhole:
     doffs: float
     width: int
     height: int
+    rectifying_rotation: tuple[float, ...] | None = None
+
+
+def rectified_camera(extrinsics: Extrinsics, pinhole: RectifiedPinhole) -> Extrinsics:
+    """The pose in the vehicle frame of the camera that took the rectified image (``pinhole``), from
+    the left camera's ``extrinsics``: ``R·R1ᵀ``; ``extrinsics`` itself where there is no turn."""
+    if pinhole.rectifying_rotation is None:
+        return extrinsics
+    r1 = np.reshape(pinhole.rectifying_rotation, (3, 3))
+    return replace(extrinsics, rotation=np.asarray(extrinsics.rotation, np.float64) @ r1.T)
 
 
 @dataclass
@@ -233,6 +246,7 @@ class StereoMatcher:
             *self._maps, self.pinhole, r1 = _rectification(calibration)
             if not np.allclose(r1, np.eye(3), atol=1e-9):
                 self._r1 = r1
+                self.pinhole = replace(self.pinhole, rectifying_rotation=tuple(np.ravel(r1).tolist()))
         p = self.pinhole
         u = np.arange(p.width, dtype=np.int32)
         v = np.arange(p.height, dtype=np.int32)
@@ -314,9 +328,7 @@ class StereoMatcher:
 
     def sky(self, grey: np.ndarray, extrinsics: Extrinsics) -> np.ndarray:
         """:func:`sky_mask` of a rectified grey left image: H×W bool."""
-        if self._r1 is not None:  # the rectified camera's pose: R·R1ᵀ
-            extrinsics = replace(extrinsics, rotation=np.asarray(extrinsics.rotation, np.float64) @ self._r1.T)
-        return sky_mask(grey, self.pinhole, extrinsics, self.config)
+        return sky_mask(grey, self.pinhole, rectified_camera(extrinsics, self.pinhole), self.config)
 
     def drop_sky(self, result: StereoResult, extrinsics: Extrinsics) -> None:
         """Set the disparities of the sky to NaN, where :meth:`compute` had no extrinsics yet

@@ -122,14 +122,20 @@ def test_camera_and_depth_use_the_rectified_pinhole(log, tmp_path):
     config = Config()
     with open_source(log) as source:
         frame = next(source.frames())
+    from scipy.spatial.transform import Rotation
+
     result = process_frame(frame, config, PipelineState(config))
-    result.pinhole = dataclasses.replace(result.pinhole, fx=2 * frame.calibration.fx, fy=2 * frame.calibration.fy)
+    r1 = Rotation.from_euler("x", 3, degrees=True).as_matrix()  # as cv2.stereoRectify turns a camera
+    result.pinhole = dataclasses.replace(result.pinhole, fx=2 * frame.calibration.fx, fy=2 * frame.calibration.fy,
+                                         rectifying_rotation=tuple(r1.ravel()))
     rrd = tmp_path / "pinhole.rrd"
     with RerunSink(rrd, config=config) as sink:
         sink.write(frame, result)
     batches = [(str(c.entity_path), c.to_record_batch()) for c in RrdReader(str(rrd)).store().stream().to_chunks()]
     pinhole = next(b for path, b in batches if path == "/world/vehicle/camera" and "Pinhole:image_from_camera" in b.schema.names)
     assert pinhole.column("Pinhole:image_from_camera")[0].as_py()[0][0] == 2 * frame.calibration.fx
+    turn = np.reshape(_columns(rrd, "/world/vehicle/camera", "Transform3D:mat3x3")[0][0], (3, 3)).T  # column-major
+    np.testing.assert_allclose(turn, result.extrinsics.rotation @ r1.T, atol=1e-6)  # the rectified camera's pose
     depth_image = next(b for path, b in batches if path == "/depth")
     depth = np.frombuffer(bytes(depth_image.column("DepthImage:buffer")[0].as_py()[0]), np.float32)
     disparity = result.disparity[::2, ::2].ravel()

@@ -44,6 +44,7 @@ from ..config import Config
 from ..errors import InputError, TerrainmapError
 from ..grid import cell_centers
 from ..ros2defs import yaw_quaternion
+from ..stereo import rectified_camera
 from ..types import FrameResult, Label, StereoFrame
 from .base import confirmed_obstacles, obstacle_text
 
@@ -143,7 +144,8 @@ class RerunSink:
 
     def _log_camera(self, frame: StereoFrame, result: FrameResult) -> None:
         rec = self._rec
-        ext, c = result.extrinsics, _camera_model(frame, result)
+        c = _camera_model(frame, result)
+        ext = result.extrinsics if result.pinhole is None else rectified_camera(result.extrinsics, result.pinhole)
         pinhole = (c.fx, c.fy, c.cx, c.cy, c.width, c.height)
         key = (pinhole, tuple(np.ravel(ext.translation)), tuple(np.ravel(ext.rotation)))
         if key != self._camera_key:  # on the timelines, not static: each holds from its frame on
