@@ -226,12 +226,34 @@ class SegmentationConfig:
     the camera, the ditch) and changes no obstacle recall; 0 leaves the below threshold growing
     with range only."""
 
+    upright_ratio: float = 0.4
+    """Where the stereo camera and disparities are known, points on upright surfaces (a disparity
+    gradient down the image below this fraction of the terrain's; :mod:`terrainmap.upright`) are
+    obstacles from ``upright_above_m`` above the surface, below the height threshold too. 0 turns
+    the cue off. On the twelve simulated drives 0.4 (against 0) confirmed every 0.5 m rock but two
+    within 3 frames (three late and one never before) and raised obstacle recall from 0.848 and 0.875
+    to 0.861 and 0.941, for 0.15 and 0.05 more false obstacles per frame summed (README, Accuracy)."""
+    upright_rows: int = 2
+    """Half-window of the disparity gradient down the image, rows."""
+    upright_min_height_m: float = 0.3
+    """An upright point must belong to a vertical run of upright points at least this tall."""
+    upright_min_ground_gradient: float = 0.1
+    """The cue is used only where the terrain's disparity gradient down the image is at least this
+    (px per row): on ground that slopes towards the camera, ground and upright faces look alike."""
+    upright_above_m: float = 0.15
+    """An upright point is an obstacle when it stands at least this high above the surface."""
+
     def validate(self) -> None:
         _check(self.obstacle_height_m > 0, "segmentation.obstacle_height_m", "must be > 0")
         _check(self.below_depth_m > 0, "segmentation.below_depth_m", "must be > 0")
         _check(self.threshold_per_m >= 0, "segmentation.threshold_per_m", "must be >= 0")
         _check(self.disparity_tolerance_px >= 0, "segmentation.disparity_tolerance_px", "must be >= 0")
         _check(self.below_tolerance_px >= 0, "segmentation.below_tolerance_px", "must be >= 0")
+        _check(0 <= self.upright_ratio < 1, "segmentation.upright_ratio", "must be in [0, 1)")
+        _check(1 <= self.upright_rows <= 20, "segmentation.upright_rows", "must be in 1..20")
+        _check(self.upright_min_height_m > 0, "segmentation.upright_min_height_m", "must be > 0")
+        _check(self.upright_min_ground_gradient > 0, "segmentation.upright_min_ground_gradient", "must be > 0")
+        _check(self.upright_above_m >= 0, "segmentation.upright_above_m", "must be >= 0")
 
 
 @dataclass

@@ -24,6 +24,7 @@ from .stereo import StereoMatcher, StereoResult, to_vehicle
 from .terrain import TerrainEstimate, estimate_terrain
 from .tracking import ObstacleTracker
 from .types import Extrinsics, FrameResult, StereoCamera, StereoFrame
+from .upright import label_upright
 
 
 class Stopwatch:
@@ -46,13 +47,15 @@ class TerrainMap:
     """Output of :func:`map_points`.
 
     ``layers``: float32 ``elevation`` (m), ``slope`` (rad), ``dz_dx``, ``dz_dy``; uint8 ``label``;
-    bool ``valid`` — all (m0, m1), indexed [ix, iy]. ``point_labels``: (N,) uint8 Label.
+    bool ``valid`` — all (m0, m1), indexed [ix, iy]. ``point_labels``: (N,) uint8 Label. ``index``:
+    (N,) the points' flat cell index (:func:`~terrainmap.grid.cell_index`).
     """
 
     grid: HeightGrid
     terrain: TerrainEstimate
     layers: dict[str, np.ndarray]
     point_labels: np.ndarray
+    index: np.ndarray
     timings_ms: dict[str, float] = field(default_factory=dict)
 
     @property
@@ -103,7 +106,7 @@ def _map_points(points_vehicle: np.ndarray, config: Config, watch: Stopwatch, ca
             points_vehicle, terrain.elevation, terrain.dz_dx, terrain.dz_dy, config.grid, config.segmentation,
             index=idx, limits=limits,
         )
-    return TerrainMap(terrain.grid, terrain, layers, labels, watch.ms)
+    return TerrainMap(terrain.grid, terrain, layers, labels, idx, watch.ms)
 
 
 def map_surface(
@@ -209,6 +212,13 @@ def finish_frame(frame: StereoFrame, matched: Matched, config: Config, state: Pi
         state.tracked_matcher = matched.matcher
     points = matched.points_vehicle
     terrain = _map_points(points, config, watch, matched.camera)  # config checked by match_frame
+    if config.segmentation.upright_ratio > 0:
+        with watch("upright"):
+            est = terrain.terrain
+            terrain.point_labels = label_upright(
+                terrain.point_labels, points, terrain.index, matched.stereo.disparity, matched.pixels, est.elevation,
+                est.dz_dx, est.dz_dy, config.grid, matched.stereo.pinhole, matched.extrinsics, config.segmentation,
+            )
     with watch("obstacles"):
         obstacles, cost = run_obstacle_stage(
             points, terrain.point_labels, terrain.grid, terrain.layers, frame.stamp_ns, state.tracker, config,
