@@ -17,6 +17,8 @@ speed goals. The inputs are synthetic so the figures are comparable anywhere:
   see only sky) of the pair padded for ``stereo.full_width``, points, terrain, labels, obstacles,
   cost), side by side in one run; ``frame_every_row``: the same with ``stereo.drop_sky`` off,
   so SGBM matches every row, as on a frame that shows no rows of only sky.
+- ``upright``: the upright-surface cue on that frame (:mod:`terrainmap.upright`; in
+  ``frame_total`` too).
 - ``mcap_write``: writing that frame's result to a Foxglove MCAP (lz4), the default output.
 """
 
@@ -95,12 +97,15 @@ def sim_frame(scene: str = "mounds", seed: int = 7, width: int = 640, height: in
 
 
 def frame_stages(config: Config) -> dict[str, Stage]:
-    """``sgbm_alone``, ``frame_total`` and ``mcap_write`` on a simulated 640×480 pair."""
+    """``sgbm_alone``, ``frame_total``, ``frame_every_row``, ``upright`` and ``mcap_write`` on a
+    simulated 640×480 pair."""
     import tempfile
 
+    from .grid import cell_index
     from .pipeline import PipelineState, process_frame
     from .sinks import open_mcap_sink
     from .stereo import to_grey
+    from .upright import label_upright
 
     frame = sim_frame()
     state = PipelineState(config)
@@ -112,10 +117,18 @@ def frame_stages(config: Config) -> dict[str, Stage]:
     out = tempfile.NamedTemporaryFile(suffix=".mcap", delete=False)
     out.close()
     sink = open_mcap_sink(out.name, config=config)
+    est, index = result.terrain, cell_index(result.points_vehicle, config.grid)
+
+    def upright_stage():
+        label_upright(result.point_labels, result.points_vehicle, index, result.disparity, result.pixels,
+                      est.elevation, est.dz_dx, est.dz_dy, config.grid, result.pinhole, result.extrinsics,
+                      config.segmentation)
+
     return {
         "sgbm_alone": lambda: state.matcher.sgbm.compute(*grey),
         "frame_total": lambda: process_frame(frame, config, state),
         "frame_every_row": lambda: process_frame(frame, every_row, every_row_state),
+        "upright": upright_stage,
         "mcap_write": lambda: sink.write(frame, result),
     }
 

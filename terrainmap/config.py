@@ -242,6 +242,10 @@ class SegmentationConfig:
     (px per row): on ground that slopes towards the camera, ground and upright faces look alike."""
     upright_above_m: float = 0.15
     """An upright point is an obstacle when it stands at least this high above the surface."""
+    upright_min_range_m: float = 8.0
+    """The cue is used for points at least this far (camera depth, metres): nearer, a pixel of
+    disparity error moves a point little in height (0.1 m at 8 m for f·B = 150 px·m, 1.8 m up),
+    and the height thresholds separate obstacles alone. 0: everywhere."""
 
     def validate(self) -> None:
         _check(self.obstacle_height_m > 0, "segmentation.obstacle_height_m", "must be > 0")
@@ -254,6 +258,7 @@ class SegmentationConfig:
         _check(self.upright_min_height_m > 0, "segmentation.upright_min_height_m", "must be > 0")
         _check(self.upright_min_ground_gradient > 0, "segmentation.upright_min_ground_gradient", "must be > 0")
         _check(self.upright_above_m >= 0, "segmentation.upright_above_m", "must be >= 0")
+        _check(self.upright_min_range_m >= 0, "segmentation.upright_min_range_m", "must be >= 0")
 
 
 @dataclass

@@ -89,15 +89,21 @@ def label_upright(
     centres.
     """
     height, width = disparity.shape
+    focal_baseline = pinhole.fx * pinhole.baseline_m
     flat_pixel = pixels[:, 1] * np.int32(width) + pixels[:, 0]
-    expected = np.append(ground_gradient(elevation, dz_dx, dz_dy, grid, pinhole, extrinsics), np.nan).take(index)
-    measured = disparity_gradient(disparity, config.upright_rows).ravel().take(flat_pixel)
+    disparities = disparity.ravel().take(flat_pixel)
+    near = focal_baseline / config.upright_min_range_m - pinhole.doffs if config.upright_min_range_m else np.inf
+    with np.errstate(invalid="ignore"):  # near points: the height cue is enough there
+        far = disparities <= np.float32(near)
+    chosen = np.flatnonzero(far & (labels == Label.TERRAIN))
+    at = flat_pixel.take(chosen)
+    table = np.append(ground_gradient(elevation, dz_dx, dz_dy, grid, pinhole, extrinsics), np.nan).astype(np.float32)
+    expected = table.take(index.take(chosen))
+    measured = disparity_gradient(disparity, config.upright_rows).ravel().take(at)
     with np.errstate(invalid="ignore"):  # NaN compares false: not upright (outside the area too)
         upright = (measured < np.float32(config.upright_ratio) * expected) & (expected >= config.upright_min_ground_gradient)
-    upright &= labels == Label.TERRAIN
-    chosen = np.flatnonzero(upright)
-    at = flat_pixel.take(chosen)
-    depth = pinhole.fx * pinhole.baseline_m / (disparity.ravel().take(at) + pinhole.doffs)
+    chosen, at = chosen[upright], at[upright]
+    depth = focal_baseline / (disparities.take(chosen) + pinhole.doffs)
     with np.errstate(invalid="ignore"):
         chosen = chosen[vertical_runs(at, (height, width)) * depth >= config.upright_min_height_m * pinhole.fy]
     points = points_vehicle[chosen]

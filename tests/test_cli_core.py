@@ -99,7 +99,7 @@ def test_bench_reports_every_stage(tmp_path):
     assert "frame_total / sgbm_alone:" in result.output and "grid + labels, ms:" in result.output
     assert "frame_every_row / sgbm_alone:" in result.output
     stages = json.loads((tmp_path / "b.json").read_text())
-    for name in ("grid", "surface", "labels", "obstacles"):
+    for name in ("grid", "surface", "labels", "obstacles", "sgbm_alone", "frame_total", "upright", "mcap_write"):
         assert set(stages[name]) == {"median_ms", "min_ms", "max_ms", "runs"}
         assert 0 < stages[name]["min_ms"] <= stages[name]["median_ms"] <= stages[name]["max_ms"]
 

@@ -119,6 +119,13 @@ def test_an_upright_stretch_lower_than_upright_min_height_m_is_not_taken():
     assert _label(scene, SegmentationConfig(upright_min_height_m=0.15))[inside].all()
 
 
+def test_the_cue_leaves_points_nearer_than_upright_min_range_m_to_the_height_cue():
+    scene = _scene(0.0, 0.5)  # the face stands 18 m ahead
+    assert _label(scene, SegmentationConfig(upright_min_range_m=17.0)).any()
+    assert not _label(scene, SegmentationConfig(upright_min_range_m=19.0)).any()
+    assert _label(scene, SegmentationConfig(upright_min_range_m=0.0)).any()  # 0: everywhere
+
+
 def test_the_cue_is_off_on_ground_that_faces_the_camera_too_steeply():
     """Where the terrain's disparity gradient is under upright_min_ground_gradient (here set above
     level ground's), ground and faces look alike through stereo noise: nothing is taken."""
@@ -128,7 +135,7 @@ def test_the_cue_is_off_on_ground_that_faces_the_camera_too_steeply():
 
 @pytest.mark.parametrize("field, value", [("upright_ratio", 1.0), ("upright_ratio", -0.1), ("upright_rows", 0),
                                           ("upright_min_height_m", 0.0), ("upright_min_ground_gradient", 0.0),
-                                          ("upright_above_m", -1.0)])
+                                          ("upright_above_m", -1.0), ("upright_min_range_m", -1.0)])
 def test_nonsense_upright_settings_are_named(field, value):
     with pytest.raises(ConfigError, match=f"segmentation.{field}"):
         SegmentationConfig(**{field: value}).validate()
