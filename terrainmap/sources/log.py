@@ -34,7 +34,7 @@ from . import messages as msgs
 from .base import PairRef, Source, extrinsics_entry
 from .images import stereo_pair
 from .pairing import StereoPairer
-from .readers import McapLog, Ros1Bag, Rosbag2Bag
+from .readers import McapLog, Ros1Bag, Rosbag2Bag, bag_metadata
 from .tf import TransformTree, VehiclePoses
 from .topics import calibration_topic, side_tokens, stereo_topics
 
@@ -277,21 +277,10 @@ class Rosbag2Source(LogSource):
             return False
         if any(path.glob("*.db3")) or any(path.glob("*.zstd")):
             return True
-        return _metadata_says(path / "metadata.yaml", "compression_mode", ("message", "file"))
+        return str(bag_metadata(path).get("compression_mode") or "").lower() in ("message", "file")
 
     def _open_reader(self) -> Rosbag2Bag:
         return Rosbag2Bag(self.path)
-
-
-def _metadata_says(path: Path, key: str, values: tuple[str, ...]) -> bool:
-    """Whether rosbag2's ``metadata.yaml`` sets ``key`` to one of ``values`` (case-insensitive;
-    a cheap line scan, as the file is parsed properly when the bag is opened)."""
-    try:
-        lines = path.read_text(errors="replace").splitlines()
-    except OSError:
-        return False
-    return any(line.strip().lower().startswith(f"{key}:") and line.split(":", 1)[1].strip().strip("'\"").lower()
-               in values for line in lines)
 
 
 class Ros1BagSource(LogSource):

@@ -164,17 +164,26 @@ class McapFile:
             raise InputError(f"{self.path}: topic {channel.topic}: unreadable schema {name} ({_reason(exc)})") from exc
 
 
+def bag_metadata(path: Path) -> dict:
+    """``rosbag2_bagfile_information`` of a rosbag2 directory's ``metadata.yaml``; {} when it is
+    missing, or unreadable (which is logged)."""
+    metadata = path / "metadata.yaml"
+    if not metadata.is_file():
+        return {}
+    try:
+        info = yaml.safe_load(metadata.read_text())["rosbag2_bagfile_information"]
+        if isinstance(info, dict):
+            return info
+        raise TypeError("rosbag2_bagfile_information is no mapping")
+    except (OSError, ValueError, yaml.YAMLError, KeyError, TypeError) as exc:
+        logger.warning("%s: unreadable (%s); using the .mcap files in the folder", metadata, _reason(exc))
+        return {}
+
+
 def bag_files(path: Path) -> list[Path]:
     """The files a rosbag2 directory's ``metadata.yaml`` lists, in its order, that exist inside the
-    directory ([] when the metadata is missing or unreadable, which is logged)."""
-    metadata = path / "metadata.yaml"
-    names: list[str] = []
-    if metadata.is_file():
-        try:
-            info = yaml.safe_load(metadata.read_text())["rosbag2_bagfile_information"]
-            names = [str(name) for name in info.get("relative_file_paths") or []]
-        except (OSError, ValueError, yaml.YAMLError, KeyError, TypeError, AttributeError) as exc:
-            logger.warning("%s: unreadable (%s); using the .mcap files in the folder", metadata, _reason(exc))
+    directory ([] without readable metadata)."""
+    names = [str(name) for name in bag_metadata(path).get("relative_file_paths") or []]
     inside = path.resolve()
     return [path / n for n in names if (path / n).is_file() and inside in (path / n).resolve().parents]
 
