@@ -117,12 +117,11 @@ def frame_stages(config: Config) -> dict[str, Stage]:
     out = tempfile.NamedTemporaryFile(suffix=".mcap", delete=False)
     out.close()
     sink = open_mcap_sink(out.name, config=config)
-    est, index = result.terrain, cell_index(result.points_vehicle, config.grid)
+    index = cell_index(result.points_vehicle, config.grid)
 
     def upright_stage():
         label_upright(result.point_labels, result.points_vehicle, index, result.disparity, result.pixels,
-                      est.elevation, est.dz_dx, est.dz_dy, config.grid, result.pinhole, result.extrinsics,
-                      config.segmentation)
+                      result.terrain, config.grid, result.pinhole, result.extrinsics, config.segmentation)
 
     return {
         "sgbm_alone": lambda: state.matcher.sgbm.compute(*grey),

@@ -214,10 +214,9 @@ def finish_frame(frame: StereoFrame, matched: Matched, config: Config, state: Pi
     terrain = _map_points(points, config, watch, matched.camera)  # config checked by match_frame
     if config.segmentation.upright_ratio > 0:
         with watch("upright"):
-            est = terrain.terrain
             terrain.point_labels = label_upright(
-                terrain.point_labels, points, terrain.index, matched.stereo.disparity, matched.pixels, est.elevation,
-                est.dz_dx, est.dz_dy, config.grid, matched.stereo.pinhole, matched.extrinsics, config.segmentation,
+                terrain.point_labels, points, terrain.index, matched.stereo.disparity, matched.pixels, terrain.terrain,
+                config.grid, matched.stereo.pinhole, matched.extrinsics, config.segmentation,
             )
     with watch("obstacles"):
         obstacles, cost = run_obstacle_stage(

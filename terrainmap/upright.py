@@ -44,17 +44,13 @@ def disparity_gradient(disparity: np.ndarray, rows: int) -> np.ndarray:
     return g
 
 
-def ground_gradient(
-    elevation: np.ndarray,
-    dz_dx: np.ndarray,
-    dz_dy: np.ndarray,
-    grid: GridConfig,
-    pinhole: RectifiedPinhole,
-    extrinsics: Extrinsics,
-) -> np.ndarray:
+def ground_gradient(surface, grid: GridConfig, pinhole: RectifiedPinhole, extrinsics: Extrinsics) -> np.ndarray:
     """Per cell (m0, m1), the disparity gradient down the rectified left image (px per row) of the
     terrain's tangent plane there (module docstring); NaN where the surface is not finite or the
-    camera is not above the plane."""
+    camera is not above the plane. ``surface``: a
+    :class:`~terrainmap.terrain.TerrainEstimate` (``elevation``, ``dz_dx``, ``dz_dy`` at the cell
+    centres); ``pinhole``: the rectified left camera, posed by the left camera's ``extrinsics``."""
+    elevation, dz_dx, dz_dy = surface.elevation, surface.dz_dx, surface.dz_dy
     camera = rectified_camera(extrinsics, pinhole)
     rotation, centre = np.asarray(camera.rotation, float), np.asarray(camera.translation, float)
     xs, ys = cell_centers(grid)
@@ -72,9 +68,7 @@ def label_upright(
     index: np.ndarray,
     disparity: np.ndarray,
     pixels: np.ndarray,
-    elevation: np.ndarray,
-    dz_dx: np.ndarray,
-    dz_dy: np.ndarray,
+    surface,
     grid: GridConfig,
     pinhole: RectifiedPinhole,
     extrinsics: Extrinsics,
@@ -86,8 +80,7 @@ def label_upright(
     ``points_vehicle`` (N, 3) metres, vehicle frame; ``index`` their flat cell index
     (:func:`terrainmap.grid.cell_index`); ``pixels`` (N, 2) their (u, v) in ``disparity``, the H×W
     float32 disparity (px, NaN invalid) of the rectified left camera ``pinhole`` posed by the left
-    camera's ``extrinsics``; ``elevation``, ``dz_dx``, ``dz_dy`` (m0, m1): the surface at the cell
-    centres.
+    camera's ``extrinsics``; ``surface`` as in :func:`ground_gradient`.
     """
     height, width = disparity.shape
     focal_baseline = pinhole.fx * pinhole.baseline_m
@@ -98,7 +91,7 @@ def label_upright(
         far = disparities <= np.float32(near)
     chosen = np.flatnonzero(far & (labels == Label.TERRAIN))
     at = flat_pixel.take(chosen)
-    table = np.append(ground_gradient(elevation, dz_dx, dz_dy, grid, pinhole, extrinsics), np.nan).astype(np.float32)
+    table = np.append(ground_gradient(surface, grid, pinhole, extrinsics), np.nan).astype(np.float32)
     expected = table.take(index.take(chosen))
     measured = disparity_gradient(disparity, config.upright_rows).ravel().take(at)
     with np.errstate(invalid="ignore"):  # NaN compares false: not upright (outside the area too)
@@ -108,7 +101,7 @@ def label_upright(
     with np.errstate(invalid="ignore"):
         chosen = chosen[vertical_runs(at, (height, width)) * depth >= config.upright_min_height_m * pinhole.fy]
     points = points_vehicle[chosen]
-    planes = cell_planes(elevation, dz_dx, dz_dy, grid)
+    planes = cell_planes(surface.elevation, surface.dz_dx, surface.dz_dy, grid)
     above = points[:, 2] - surface_under_points(points, planes, index.take(chosen)) >= config.upright_above_m
     out = labels.copy()
     out[chosen[above]] = Label.OBSTACLE

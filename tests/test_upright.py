@@ -1,5 +1,7 @@
 """The upright-surface cue: disparity gradients of planes, vertical runs, labelling a rock's face."""
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -15,6 +17,12 @@ PINHOLE = RectifiedPinhole(fx=500.0, fy=500.0, cx=320.0, cy=240.0, baseline_m=0.
 OPTICAL = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])  # optical axes in the vehicle frame
 CAMERA = Extrinsics(rotation=OPTICAL, translation=np.array([0.0, 0.0, 1.8]), source="test")
 GRID = GridConfig()
+
+
+def _surface(elevation, dz_dx=None):
+    """A stand-in for a TerrainEstimate: the surface's height and gradient at the cell centres."""
+    zero = np.zeros(np.shape(elevation))
+    return SimpleNamespace(elevation=elevation, dz_dx=zero if dz_dx is None else dz_dx, dz_dy=zero)
 
 
 def _ground_disparity(slope=0.0, start_m=10.0):
@@ -36,13 +44,13 @@ def test_ground_gradient_is_the_disparity_gradient_of_the_tangent_plane(slope):
     shape = GRID.shape
     x = GRID.x_min_m + (np.arange(shape[0]) + 0.5) * GRID.cell_size_m
     elevation = np.broadcast_to(slope * (x[:, None] - 10.0), shape)
-    expected = ground_gradient(elevation, np.full(shape, slope), np.zeros(shape), GRID, PINHOLE, CAMERA)
+    expected = ground_gradient(_surface(elevation, np.full(shape, slope)), GRID, PINHOLE, CAMERA)
     np.testing.assert_allclose(expected, 0.3 / (1.8 + 10.0 * slope), rtol=1e-12)
     measured = disparity_gradient(disparity, 2)
     rows = np.nanmedian(measured[250:470], axis=1)
     np.testing.assert_allclose(rows, 0.3 / (1.8 + 10.0 * slope), rtol=1e-3)
     assert np.all(np.isnan(measured[:2]))  # the window leaves the image
-    above = ground_gradient(np.full(shape, 2.0), np.zeros(shape), np.zeros(shape), GRID, PINHOLE, CAMERA)
+    above = ground_gradient(_surface(np.full(shape, 2.0)), GRID, PINHOLE, CAMERA)
     assert np.isnan(above).all()  # a plane above the camera: no ground seen from above
 
 
@@ -91,10 +99,9 @@ def _label(scene, config=None):
     from terrainmap.grid import cell_index
 
     disparity, points, pixels, _, _ = scene
-    flat = np.zeros(GRID.shape)
     labels = np.full(len(points), Label.TERRAIN, np.uint8)
-    out = label_upright(labels, points, cell_index(points, GRID), disparity, pixels, flat, flat, flat, GRID, PINHOLE,
-                        CAMERA, config or SegmentationConfig())
+    out = label_upright(labels, points, cell_index(points, GRID), disparity, pixels, _surface(np.zeros(GRID.shape)),
+                        GRID, PINHOLE, CAMERA, config or SegmentationConfig())
     assert (labels == Label.TERRAIN).all()  # the input is left alone
     return out == Label.OBSTACLE
 
