@@ -269,25 +269,33 @@ class StereoMatcher:
         (l1, l2), (r1, r2) = self._maps
         return cv2.remap(left, l1, l2, cv2.INTER_LINEAR), cv2.remap(right, r1, r2, cv2.INTER_LINEAR)
 
-    def match(self, left_rect: np.ndarray, right_rect: np.ndarray, first_row: int = 0) -> np.ndarray:
+    def match(
+        self, left_rect: np.ndarray, right_rect: np.ndarray, first_row: int = 0, last_row: int | None = None
+    ) -> np.ndarray:
         """SGBM on a rectified pair → disparity H×W float32 in pixels, NaN where invalid.
-        Rows above ``first_row`` are not matched (NaN)."""
+        Rows above ``first_row`` are not matched (NaN). With ``config.vertical_passes`` 2, the
+        upside-down pass covers the rows above ``last_row`` only (all when None), matching
+        :data:`_SECOND_PASS_MARGIN` rows more below them whose single-pass values it leaves."""
         if first_row > 0:
             disparity = np.full(left_rect.shape[:2], np.nan, np.float32)
-            disparity[first_row:] = self.match(left_rect[first_row:], right_rect[first_row:])
+            rest = None if last_row is None else max(last_row - first_row, 0)
+            disparity[first_row:] = self.match(left_rect[first_row:], right_rect[first_row:], 0, rest)
             return disparity
         grey = to_grey(left_rect)
         pair = (grey, to_grey(right_rect))
         if self._pad:
             pair = [cv2.copyMakeBorder(image, 0, 0, self._pad, 0, cv2.BORDER_REPLICATE) for image in pair]
         disparity = self._sgbm(pair)
-        if self.config.vertical_passes == 2:  # cancels the single-pass modes' bias on ground (config)
-            upside_down = cv2.flip(self._sgbm([cv2.flip(image, 0) for image in pair]), 0)
+        rows = len(disparity) if last_row is None else min(last_row, len(disparity))
+        if self.config.vertical_passes == 2 and rows > 0:  # cancels the single-pass modes' bias on ground (config)
+            end = min(rows + _SECOND_PASS_MARGIN, len(disparity)) if last_row is not None else rows
+            upside_down = cv2.flip(self._sgbm([cv2.flip(image[:end], 0) for image in pair]), 0)[:rows]
+            both = disparity[:rows]
             with np.errstate(invalid="ignore"):  # NaN compares false: pixels only one pass matched drop
-                disagree = ~(np.abs(disparity - upside_down) <= self.config.pass_tolerance_px)
-            disparity += upside_down
-            disparity *= 0.5
-            disparity[disagree] = np.nan
+                disagree = ~(np.abs(both - upside_down) <= self.config.pass_tolerance_px)
+            both += upside_down
+            both *= 0.5
+            both[disagree] = np.nan
         if self.config.full_width:  # only columns left of min_disparity + n + margin can match too near the edge
             strip = disparity[:, : self._max_disparity.size]
             with np.errstate(invalid="ignore"):
@@ -321,7 +329,12 @@ class StereoMatcher:
             all_sky = sky.all(axis=1)
             rows_of_sky = len(sky) if all_sky.all() else int(all_sky.argmin())
             first_row = max(0, rows_of_sky - max(self.config.block_size, self.config.texture_window))
-        result = StereoResult(self.match(grey, right_rect, first_row), left_rect, self.pinhole, grey)
+        last_row = None  # the second pass's rows: those that see ground beyond vertical_passes_min_range_m
+        if extrinsics is not None and self.config.vertical_passes == 2 and self.config.vertical_passes_min_range_m > 0:
+            camera = rectified_camera(extrinsics, self.pinhole)
+            last_row = len(_above_horizon(self.pinhole, np.asarray(camera.rotation, np.float64).tobytes(),
+                                          float(camera.translation[2]), self.config.vertical_passes_min_range_m))
+        result = StereoResult(self.match(grey, right_rect, first_row, last_row), left_rect, self.pinhole, grey)
         if sky is not None:
             result.disparity[sky] = np.nan
         return result
@@ -418,6 +431,10 @@ def _local_variance(grey: np.ndarray, side: int) -> np.ndarray:
     mean = cv2.boxFilter(grey, cv2.CV_32F, (side, side))
     return cv2.sqrBoxFilter(grey, cv2.CV_32F, (side, side)) - mean * mean
 
+
+_SECOND_PASS_MARGIN = 32
+"""Rows matched below the last row of a partial upside-down pass (:meth:`StereoMatcher.match`): its
+cost paths start at the strip's lower edge, and these rows give them room before the rows it keeps."""
 
 _SKY_WINDOW = 5
 """Side of the window over which a sky pixel must be flat, pixels. A pixel is flat only when its

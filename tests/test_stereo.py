@@ -10,7 +10,7 @@ import pytest
 from conftest import load_kitti
 
 from terrainmap.config import StereoConfig
-from terrainmap.errors import CalibrationError, InputError
+from terrainmap.errors import CalibrationError, ConfigError, InputError
 from terrainmap.extrinsics import extrinsics_from_pose
 from terrainmap.sim import SimConfig
 from terrainmap.sim.scenes import build_scene
@@ -423,3 +423,23 @@ def test_single_pass_sgbm_reads_ground_low_and_two_pass_or_upside_down_averaging
     strict = StereoMatcher(calibration, StereoConfig(vertical_passes=2, pass_tolerance_px=0.05))
     kept_strict = ground & np.isfinite(strict.compute(frame.left, frame.right).disparity)
     assert kept_strict.sum() < 0.5 * ground.sum() * kept_share["two_passes"]  # the passes rarely agree that well
+
+
+def test_a_second_pass_on_the_far_rows_only_unbiases_far_ground_and_leaves_the_near_rows():
+    """With the camera pose known, ``vertical_passes = 2`` matches upside down only the rows that
+    see ground beyond ``vertical_passes_min_range_m``: there the ground reads unbiased, as with the
+    whole second pass; nearer rows keep the single pass's values exactly."""
+    renderer = SimConfig(scene="flat", frames=1, seed=1).renderer(build_scene("flat", 1, length_m=10.0))
+    frame, calibration, extrinsics = renderer.frame(0), renderer.rig.calibration(), renderer.rig.extrinsics()
+    truth = calibration.fx * calibration.baseline_m / frame.depth
+    single = StereoMatcher(calibration, StereoConfig()).compute(frame.left, frame.right, extrinsics).disparity
+    far_only = StereoMatcher(calibration, StereoConfig(vertical_passes=2, vertical_passes_min_range_m=8.0))
+    disparity = far_only.compute(frame.left, frame.right, extrinsics).disparity
+    ground = (frame.label == 1) & (frame.depth > 10) & (frame.depth < 35)
+    kept = ground & np.isfinite(disparity)
+    assert abs(np.median(disparity[kept] - truth[kept])) < 0.1
+    near_rows = (frame.depth < 7.5).all(axis=1)  # every pixel nearer than 7.5 m: below the rows seeing 8 m
+    assert near_rows.sum() > 100
+    np.testing.assert_array_equal(disparity[near_rows], single[near_rows])
+    with pytest.raises(ConfigError, match="stereo.vertical_passes_min_range_m"):
+        StereoConfig(vertical_passes_min_range_m=-1).validate()
