@@ -18,12 +18,12 @@ from .config import Config
 from .extrinsics import estimate_extrinsics, extrinsics_from_calibration
 from .grid import HeightGrid, cell_index, quantize
 from .obstacle_stage import make_tracker, run_obstacle_stage
-from .segmentation import label_cells, label_points, thresholds
+from .segmentation import cells_holding, label_cells, label_points, thresholds
 from .slope import layers as grid_layers
 from .stereo import StereoMatcher, StereoResult, to_vehicle
 from .terrain import TerrainEstimate, estimate_terrain
 from .tracking import ObstacleTracker
-from .types import Extrinsics, FrameResult, StereoCamera, StereoFrame
+from .types import Extrinsics, FrameResult, Label, StereoCamera, StereoFrame
 from .upright import label_upright
 
 
@@ -214,10 +214,15 @@ def finish_frame(frame: StereoFrame, matched: Matched, config: Config, state: Pi
     terrain = _map_points(points, config, watch, matched.camera)  # config checked by match_frame
     if config.segmentation.upright_ratio > 0:
         with watch("upright"):
-            terrain.point_labels = label_upright(
+            labels = label_upright(
                 terrain.point_labels, points, terrain.index, matched.stereo.disparity, matched.pixels, terrain.terrain,
                 config.grid, matched.stereo.pinhole, matched.extrinsics, config.segmentation,
             )
+            made = terrain.index[labels != terrain.point_labels]  # their cells hold obstacles too
+            terrain.layers["label"][cells_holding(made, config.grid.shape, config.obstacles.min_cell_points)] = (
+                Label.OBSTACLE
+            )
+            terrain.point_labels = labels
     with watch("obstacles"):
         obstacles, cost = run_obstacle_stage(
             points, terrain.point_labels, terrain.grid, terrain.layers, frame.stamp_ns, state.tracker, config,

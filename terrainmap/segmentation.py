@@ -133,3 +133,10 @@ def label_cells(
     labels[grid.z - elevation < -below] = Label.BELOW
     labels[~grid.observed] = Label.UNKNOWN
     return labels
+
+
+def cells_holding(index: np.ndarray, shape: tuple[int, int], min_points: int) -> np.ndarray:
+    """(m0, m1) bool: the cells that hold at least ``min_points`` of the points whose flat cell
+    ``index`` (:func:`~terrainmap.grid.cell_index`; ``m0·m1`` outside the area) is given."""
+    size = shape[0] * shape[1]
+    return (np.bincount(index, minlength=size + 1)[:size] >= min_points).reshape(shape)

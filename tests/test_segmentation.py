@@ -165,3 +165,11 @@ def test_layers_and_index_of_the_wrong_shape_are_named():
         label_points(pts, flat, flat, flat, grid, config, index=np.zeros(5, np.intp))
     with pytest.raises(InputError, match="N×3"):
         label_points(pts[:, :2], flat, flat, flat, grid, config)
+
+
+def test_cells_holding_counts_points_per_cell_and_ignores_the_outside():
+    from terrainmap.segmentation import cells_holding
+
+    index = np.array([0, 0, 0, 5, 5, 6, 12, 12, 12])  # 12 = outside a 3×4 grid
+    held = cells_holding(index, (3, 4), 2)
+    assert held.shape == (3, 4) and held.ravel().tolist() == [True] + [False] * 4 + [True] + [False] * 6

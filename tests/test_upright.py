@@ -162,3 +162,10 @@ def test_the_pipeline_takes_upright_points_as_obstacles_and_times_the_stage():
     changed = with_cue.point_labels != without.point_labels
     assert changed.any()
     assert (without.point_labels[changed] == Label.TERRAIN).all() and (with_cue.point_labels[changed] == Label.OBSTACLE).all()
+    from terrainmap.grid import cell_index
+
+    cells = np.bincount(cell_index(with_cue.points_vehicle[changed], on.grid), minlength=on.grid.shape[0] * on.grid.shape[1] + 1)
+    held = cells[:-1].reshape(on.grid.shape) >= on.obstacles.min_cell_points  # the cells those points hold
+    assert held.any() and (with_cue.layers["label"][held] == Label.OBSTACLE).all()
+    others = ~held
+    np.testing.assert_array_equal(with_cue.layers["label"][others], without.layers["label"][others])
