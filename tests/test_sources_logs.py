@@ -478,6 +478,10 @@ def test_rosbag2_in_sqlite3_storage_or_compressed_reads_like_the_mcap_log(tmp_pa
         info = source.describe()
         _same_frames(list(source.frames()), expected)
         assert [f.index for f in source.frames(start_s=0.3, every=2)] == [3, 5]
+    with open_source(bag, left_topic="/cam/left/image_rect", right_topic="/cam/right/image_rect") as named:
+        assert len(list(named.frames())) == 6  # topics may be named, as for any log
+    with open_source(bag, pair_tolerance_ns=1_000_000) as strict:
+        assert list(strict.frames()) == []  # and the pairing tolerance (the right images are 2 ms late)
     assert info["format"] == "rosbag2" and info["frames"] == 6 and info["odometry_topics"] == []
     assert [Path(f).parent for f in info["files"]] == [bag]
 
@@ -558,8 +562,35 @@ def test_a_baseline_missing_from_the_camera_infos_comes_from_tf(tmp_path):
     path = write_ros2_log(tmp_path / "above.mcap", n=2, right_tx=0.0, extra_tf=[above])
     with open_source(path) as source, pytest.raises(
             CalibrationError, match=r"tf places the right camera at \(0.250, -0.100, 0.000\) m turned by 0.00°.*"
-                                    "not a rectified pair side by side"):
+                                    "not a rectified pair .*use the raw image topics"):
         next(source.frames())
+    # The same cameras on raw topics: no rectified pair, so rectified here with tf's pose.
+    raw = write_ros2_log(tmp_path / "raw.mcap", n=2, right_tx=0.0, extra_tf=[above],
+                         topics=("/cam/left/image_raw", "/cam/right/image_raw"))
+    with open_source(raw) as source:
+        calib = next(source.frames()).calibration
+    assert not calib.rectified
+    np.testing.assert_allclose(calib.T, [-0.25, 0.1, 0.0], atol=1e-12)  # p_right = R·p_left + T
+    np.testing.assert_allclose(calib.R, np.eye(3), atol=1e-12)
+
+
+def test_rectified_images_whose_rows_do_not_agree_take_no_baseline_from_tf():
+    from terrainmap.sources.messages import calibration_from_infos, camera_info
+
+    left, right = (camera_info(info_msg(T0, side, 8, 6, 0.0), side) for side in ("left", "right"))
+    beside = np.eye(4)
+    beside[0, 3] = 0.3
+    assert calibration_from_infos(left, right, rectified_images=True, source="t", right_in_left=beside).baseline_m == 0.3
+    low = {**right, "P": right["P"] + [[0, 0, 0, 0], [0, 0, 2.0, 0], [0, 0, 0, 0]]}  # cy 2 px lower
+    with pytest.raises(CalibrationError, match="with cy 3 and 5 px: not a rectified pair"):
+        calibration_from_infos(left, low, rectified_images=True, source="t", right_in_left=beside)
+    from scipy.spatial.transform import Rotation
+
+    turned = beside.copy()
+    turned[:3, :3] = Rotation.from_euler("y", 0.2, degrees=True).as_matrix()  # 1.4 px at fx = 400
+    with pytest.raises(CalibrationError, match="turned by 0.20°"):
+        calibration_from_infos(left, right, rectified_images=True, source="t", right_in_left=turned)
+    assert not calibration_from_infos(left, right, rectified_images=False, source="t", right_in_left=turned).rectified
 
 
 def test_raw_cameras_calibrated_one_by_one_take_their_pose_from_tf():
@@ -631,3 +662,26 @@ def test_a_log_of_binned_images_uses_the_binned_camera(tmp_path):
         expected, frame = next(a.frames()), next(b.frames())
     for field in ("width", "height", "fx", "fy", "cx", "cy", "baseline_m"):
         assert getattr(frame.calibration, field) == pytest.approx(getattr(expected.calibration, field)), field
+
+
+def test_a_rosbag2_whose_metadata_lists_no_files_is_read_from_its_mcap_files(tmp_path, caplog):
+    bag = tmp_path / "bag"
+    bag.mkdir()
+    write_ros2_log(bag / "bag_0.mcap", n=2)
+    (bag / "metadata.yaml").write_text("rosbag2_bagfile_information:\n  relative_file_paths: 5\n")
+    with open_source(bag) as source:
+        assert len(list(source.frames())) == 2
+    assert "relative_file_paths is no list" in caplog.text
+
+
+def test_a_rosbag2_source_that_fails_to_open_lets_go_of_its_bag(tmp_path, monkeypatch):
+    from terrainmap.errors import NoStereoError
+    from terrainmap.sources.readers import Rosbag2Bag
+
+    log = write_ros2_log(tmp_path / "run.mcap", n=1)
+    bag = rewrite_rosbag2(log, tmp_path / "bag", compression="file")
+    closed = []
+    monkeypatch.setattr(Rosbag2Bag, "close", lambda self: closed.append(self.path))
+    with pytest.raises(NoStereoError):
+        open_source(bag, left_topic="/cam/left/camera_info")  # no image topic: refused after the bag opened
+    assert closed == [bag]

@@ -38,7 +38,7 @@ from ..errors import ConfigError, InputError
 from .base import Source
 from .folder import GenericFolder
 from .kitti import KittiOdometryFolder, KittiRawFolder, KittiStereoFolder
-from .log import McapSource, Ros1BagSource, Rosbag2Source
+from .log import LogSource, McapSource, Ros1BagSource, Rosbag2Source
 from .middlebury import MiddleburyFolder
 
 SOURCES: tuple[type[Source], ...] = (
@@ -97,7 +97,7 @@ def open_source(
         Largest stamp difference of a left/right pair in a log, nanoseconds.
     """
     cls = source_class(path)
-    if issubclass(cls, (McapSource, Ros1BagSource)):
+    if issubclass(cls, LogSource):
         return cls(path, left_topic=left_topic, right_topic=right_topic, calibration=calibration,
                    pair_tolerance_ns=pair_tolerance_ns)
     if left_topic or right_topic:

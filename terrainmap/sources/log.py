@@ -74,6 +74,14 @@ class LogSource(Source):
         super().__init__(path)
         self.reader = self._open_reader()
         try:
+            self._read_log(left_topic, right_topic, calibration, pair_tolerance_ns)
+        except BaseException:  # a reader that holds the log open (a temporary folder) lets go of it
+            self.close()
+            raise
+
+    def _read_log(self, left_topic, right_topic, calibration, pair_tolerance_ns) -> None:
+        """Find the stereo topics, the calibration and the camera pose (see the module docstring)."""
+        try:
             self.left_topic, self.right_topic = stereo_topics(self.reader.types, left_topic, right_topic, str(self.path))
         except InputError as exc:
             damage = self.reader.damage

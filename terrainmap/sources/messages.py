@@ -125,20 +125,23 @@ def calibration_from_infos(
 
     Where the right P's Tx equals the left's (two cameras calibrated one by one), the stereo
     geometry comes from ``right_in_left``, the 4×4 pose of the right camera's frame in the left's
-    (from tf): for rectified images it must be a shift along +x (the baseline), within 1 % of its
-    length and 0.5°; raw images take its rotation and translation as the pair's R, T.
+    (from tf): raw images (undistorted ones too) take its rotation and translation as the pair's R,
+    T and are rectified with them; images of ``rectified_images`` topics must already be a
+    rectified pair: a shift along +x (the baseline, off the axis by at most 1 % of it), turned by
+    less than half a pixel at fx, with rows that agree (cy and fy within half a pixel).
     """
     sizes = [(info["width"], info["height"]) for info in (left, right)]
     if all(any(size) for size in sizes) and sizes[0] != sizes[1]:  # (0, 0): a driver that leaves it unset
         raise CalibrationError(f"{source}: the left camera info is {left['width']}×{left['height']} px but the "
                                f"right one {right['width']}×{right['height']}: not one stereo pair")
-    rectified = rectified_images or all(
+    from_tf = left["P"][0, 3] == right["P"][0, 3]  # a driver that leaves Tx at 0 (mono calibrations)
+    # Undistorted cameras calibrated one by one are no rectified pair: rectify them with tf's pose.
+    rectified = rectified_images or not from_tf and all(
         not np.any(info["D"]) and np.allclose(info["R"], np.eye(3), atol=1e-9) for info in (left, right)
     )
     if rectified and not np.allclose(np.diag(right["P"])[:2], np.diag(left["P"])[:2], rtol=0.01):
         raise CalibrationError(f"{source}: the left and right projections P have different focal lengths "
                                f"({left['P'][0, 0]:g} and {right['P'][0, 0]:g} px): not one rectified stereo pair")
-    from_tf = left["P"][0, 3] == right["P"][0, 3]  # a driver that leaves Tx at 0 (mono calibrations)
     if from_tf:
         right = {**right, "P": _right_projection(left, right, right_in_left, rectified, source)}
     for side, info in (("left", left), ("right", right)):
@@ -180,13 +183,16 @@ def _right_projection(left: dict, right: dict, right_in_left: np.ndarray | None,
             "pass --calibration with baseline_m"
         )
     t = right_in_left[:3, 3]
-    angle = np.degrees(np.arccos(np.clip((np.trace(right_in_left[:3, :3]) - 1) / 2, -1, 1)))
-    across = float(np.hypot(t[1], t[2]))
-    if not (t[0] > 0 and (not rectified or (across <= 0.01 * t[0] and angle <= 0.5))):
+    angle = np.arccos(np.clip((np.trace(right_in_left[:3, :3]) - 1) / 2, -1, 1))
+    (fx, fy, cy), (fy_right, cy_right) = left["P"][[0, 1, 1], [0, 1, 2]], right["P"][1, 1:3]
+    aligned = (np.hypot(t[1], t[2]) <= 0.01 * t[0] and fx * angle <= 0.5
+               and abs(cy_right - cy) <= 0.5 and abs(fy_right - fy) <= 0.5)
+    if not (t[0] > 0 and (not rectified or aligned)):
         raise CalibrationError(
-            f"{source}: tf places the right camera at ({t[0]:.3f}, {t[1]:.3f}, {t[2]:.3f}) m turned by {angle:.2f}° "
-            f"from the left ({frames}): not {'a rectified pair side by side' if rectified else 'to its right'}; "
-            "pass --calibration"
+            f"{source}: tf places the right camera at ({t[0]:.3f}, {t[1]:.3f}, {t[2]:.3f}) m turned by "
+            f"{np.degrees(angle):.2f}° from the left ({frames}), with cy {cy:g} and {cy_right:g} px: not "
+            + ("a rectified pair (rows half a pixel apart at most); use the raw image topics, which terrainmap "
+               "rectifies with this pose, or --calibration" if rectified else "to its right; pass --calibration")
         )
     P = right["P"].copy()
     P[0, 3] = left["P"][0, 3] - left["P"][0, 0] * float(np.linalg.norm(t) if not rectified else t[0])

@@ -176,14 +176,18 @@ def bag_metadata(path: Path) -> dict:
             return info
         raise TypeError("rosbag2_bagfile_information is no mapping")
     except (OSError, ValueError, yaml.YAMLError, KeyError, TypeError) as exc:
-        logger.warning("%s: unreadable (%s); using the .mcap files in the folder", metadata, _reason(exc))
+        logger.warning("%s: unreadable (%s)", metadata, _reason(exc))
         return {}
 
 
 def bag_files(path: Path) -> list[Path]:
     """The files a rosbag2 directory's ``metadata.yaml`` lists, in its order, that exist inside the
     directory ([] without readable metadata)."""
-    names = [str(name) for name in bag_metadata(path).get("relative_file_paths") or []]
+    names = bag_metadata(path).get("relative_file_paths") or []
+    if not isinstance(names, list):
+        logger.warning("%s: relative_file_paths is no list; using the .mcap files in the folder", path / "metadata.yaml")
+        names = []
+    names = [str(name) for name in names]
     inside = path.resolve()
     return [path / n for n in names if (path / n).is_file() and inside in (path / n).resolve().parents]
 
