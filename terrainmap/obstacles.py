@@ -31,6 +31,7 @@ from scipy import ndimage
 from .config import GridConfig, ObstacleConfig
 from .errors import InputError
 from .grid import as_points, cell_centers, cell_index, check_shapes
+from .segmentation import cells_holding
 from .types import Label, Obstacle
 
 _EIGHT = np.ones((3, 3), dtype=bool)
@@ -146,8 +147,7 @@ def _clusters(
     points, idx = points[inside].astype(np.float64), idx[inside]
     if len(points) == 0:
         return []
-    counts = np.bincount(idx, minlength=m0 * m1).reshape(m0, m1)
-    cells, n = ndimage.label(counts >= config.min_cell_points, structure=_EIGHT)
+    cells, n = ndimage.label(cells_holding(idx, (m0, m1), config.min_cell_points), structure=_EIGHT)
     if n == 0:
         return []
     cid = cells.ravel()[idx] - 1  # cluster of each point, -1 where its cell has too few points

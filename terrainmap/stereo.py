@@ -136,9 +136,10 @@ def check_calibration(calibration: StereoCalibration, *, size_known: bool = True
     return calibration
 
 
-def _rectification(calibration: StereoCalibration) -> tuple[tuple, tuple, RectifiedPinhole, np.ndarray]:
-    """``cv2.stereoRectify`` + ``initUndistortRectifyMap``: maps for left and right, the new
-    pinhole, and R1, the 3×3 rotation from the left camera's frame into the rectified one."""
+def _rectification(calibration: StereoCalibration) -> tuple[tuple, tuple, RectifiedPinhole]:
+    """``cv2.stereoRectify`` + ``initUndistortRectifyMap``: maps for left and right, and the new
+    pinhole (with R1, the rotation from the left camera's frame into the rectified one, where it
+    turns at all)."""
     size = (calibration.width, calibration.height)
     K1, K2 = (np.asarray(k, np.float64).reshape(3, 3) for k in (calibration.K_left, calibration.K_right))
     D1, D2 = (
@@ -167,11 +168,12 @@ def _rectification(calibration: StereoCalibration) -> tuple[tuple, tuple, Rectif
             f"{calibration.source or 'stereo calibration'}: the right camera is not to the right of the left "
             f"(rectified baseline {baseline_m:.4f} m); swap the images"
         )
+    turn = None if np.allclose(R1, np.eye(3), atol=1e-9) else tuple(np.ravel(R1).tolist())
     pinhole = RectifiedPinhole(
         float(P1[0, 0]), float(P1[1, 1]), float(P1[0, 2]), float(P1[1, 2]), float(baseline_m),
-        float(P2[0, 2] - P1[0, 2]), calibration.width, calibration.height,
+        float(P2[0, 2] - P1[0, 2]), calibration.width, calibration.height, turn,
     )  # fmt: skip
-    return maps_left, maps_right, pinhole, R1
+    return maps_left, maps_right, pinhole
 
 
 def _rectified_pinhole(calibration: StereoCalibration) -> RectifiedPinhole:
@@ -236,17 +238,11 @@ class StereoMatcher:
         self._pad = max(0, self.config.min_disparity + n - self.config.left_margin_px) if self.config.full_width else 0
         columns = min(calibration.width, self.config.min_disparity + n + self.config.left_margin_px)
         self._max_disparity = np.arange(columns, dtype=np.float32) - self.config.left_margin_px
-        # Rectifying turns the left camera by R1: points found in the rectified image are turned
-        # back (p_cam = R1ᵀ·p_rect), since extrinsics (tf, calibration files) place the camera itself.
-        self._r1: np.ndarray | None = None  # None: no turn (rectified input)
         if calibration.rectified:
             self._maps = None
             self.pinhole = _rectified_pinhole(calibration)
         else:
-            *self._maps, self.pinhole, r1 = _rectification(calibration)
-            if not np.allclose(r1, np.eye(3), atol=1e-9):
-                self._r1 = r1
-                self.pinhole = replace(self.pinhole, rectifying_rotation=tuple(np.ravel(r1).tolist()))
+            *self._maps, self.pinhole = _rectification(calibration)
         p = self.pinhole
         u = np.arange(p.width, dtype=np.int32)
         v = np.arange(p.height, dtype=np.int32)
@@ -288,7 +284,7 @@ class StereoMatcher:
         disparity = self._sgbm(pair)
         rows = len(disparity) if last_row is None else min(last_row, len(disparity))
         if self.config.vertical_passes == 2 and rows > 0:  # cancels the single-pass modes' bias on ground (config)
-            end = min(rows + _SECOND_PASS_MARGIN, len(disparity)) if last_row is not None else rows
+            end = min(rows + _SECOND_PASS_MARGIN, len(disparity))
             upside_down = cv2.flip(self._sgbm([cv2.flip(image[:end], 0) for image in pair]), 0)[:rows]
             both = disparity[:rows]
             with np.errstate(invalid="ignore"):  # NaN compares false: pixels only one pass matched drop
@@ -331,9 +327,8 @@ class StereoMatcher:
             first_row = max(0, rows_of_sky - max(self.config.block_size, self.config.texture_window))
         last_row = None  # the second pass's rows: those that see ground beyond vertical_passes_min_range_m
         if extrinsics is not None and self.config.vertical_passes == 2 and self.config.vertical_passes_min_range_m > 0:
-            camera = rectified_camera(extrinsics, self.pinhole)
-            last_row = len(_above_horizon(self.pinhole, np.asarray(camera.rotation, np.float64).tobytes(),
-                                          float(camera.translation[2]), self.config.vertical_passes_min_range_m))
+            last_row = len(_beyond(self.pinhole, rectified_camera(extrinsics, self.pinhole),
+                                   self.config.vertical_passes_min_range_m))
         result = StereoResult(self.match(grey, right_rect, first_row, last_row), left_rect, self.pinhole, grey)
         if sky is not None:
             result.disparity[sky] = np.nan
@@ -378,8 +373,10 @@ class StereoMatcher:
         np.multiply(self._ray_x.take(index), z, out=points_cam[:, 0])
         np.multiply(self._ray_y.take(index), z, out=points_cam[:, 1])
         points_cam[:, 2] = z
-        if self._r1 is not None:  # rows: p_rect @ R1 = (R1ᵀ·p_rect)ᵀ
-            points_cam = points_cam @ self._r1.astype(np.float32)
+        if p.rectifying_rotation is not None:
+            # Rectifying turned the left camera by R1; extrinsics (tf, calibration files) place the
+            # camera itself, so points are turned back: rows p_rect @ R1 = (R1ᵀ·p_rect)ᵀ.
+            points_cam = points_cam @ np.reshape(p.rectifying_rotation, (3, 3)).astype(np.float32)
         return points_cam, self._pixels.take(index, axis=0)
 
     def _check_images(self, left: np.ndarray, right: np.ndarray) -> None:
@@ -465,10 +462,7 @@ def sky_mask(grey: np.ndarray, pinhole: RectifiedPinhole, extrinsics: Extrinsics
     config : StereoConfig
         ``min_texture`` (0 finds no sky) and ``max_range_m``.
     """
-    above = _above_horizon(
-        pinhole, np.asarray(extrinsics.rotation, np.float64).tobytes(), float(extrinsics.translation[2]),
-        config.max_range_m,
-    )
+    above = _beyond(pinhole, extrinsics, config.max_range_m)
     sky = np.zeros(grey.shape, bool)
     rows = len(above)  # the rows below hold no pixel above the horizon
     if rows == 0:
@@ -484,6 +478,12 @@ def sky_mask(grey: np.ndarray, pinhole: RectifiedPinhole, extrinsics: Extrinsics
     grown[:rows] = reaches_top[labels]
     sky[: len(window)] = cv2.dilate(grown, np.ones((_SKY_WINDOW, _SKY_WINDOW), np.uint8)).view(bool)  # half-width
     return sky
+
+
+def _beyond(pinhole: RectifiedPinhole, extrinsics: Extrinsics, range_m: float) -> np.ndarray:
+    """:func:`_above_horizon` of the camera ``pinhole`` posed by ``extrinsics``."""
+    return _above_horizon(pinhole, np.asarray(extrinsics.rotation, np.float64).tobytes(),
+                          float(extrinsics.translation[2]), range_m)
 
 
 @lru_cache(maxsize=8)

@@ -227,6 +227,14 @@ class McapLog:
             yield from f.messages(topics)
 
 
+def _topics(connections) -> tuple[dict[str, str], dict[str, int]]:
+    """Topic → message type and topic → message count of ``rosbags`` connections."""
+    counts: dict[str, int] = {}
+    for c in connections:
+        counts[c.topic] = counts.get(c.topic, 0) + c.msgcount
+    return {c.topic: normalize_type(c.msgtype) for c in connections}, counts
+
+
 class Ros1Bag:
     """A ROS 1 bag (v2.0), read with ``rosbags``."""
 
@@ -244,10 +252,7 @@ class Ros1Bag:
                 except Exception as exc:  # a definition rosbags cannot parse: only its topic is unreadable
                     logger.info("%s: topic %s: cannot parse the definition of %s (%s)", path, c.topic, c.msgtype,
                                 _reason(exc))
-            self.types = {c.topic: normalize_type(c.msgtype) for c in bag.connections}
-            self.counts = {}
-            for c in bag.connections:
-                self.counts[c.topic] = self.counts.get(c.topic, 0) + c.msgcount
+            self.types, self.counts = _topics(bag.connections)
 
     @contextmanager
     def _open(self):
@@ -296,10 +301,7 @@ class Rosbag2Bag:
             self._bag.open()
         except Exception as exc:  # ReaderError, but also sqlite3, YAML and zstd errors on damaged files
             raise InputError(f"{path}: not a readable rosbag2 ({_reason(exc)})") from exc
-        self.types = {c.topic: normalize_type(c.msgtype) for c in self._bag.connections}
-        self.counts = {}
-        for c in self._bag.connections:
-            self.counts[c.topic] = self.counts.get(c.topic, 0) + c.msgcount
+        self.types, self.counts = _topics(self._bag.connections)
 
     def close(self) -> None:
         if self._bag.is_open:

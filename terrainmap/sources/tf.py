@@ -99,7 +99,6 @@ class TransformTree:
             vehicle_frame_id=target,
         )
 
-
     def _up_to(self, chain: list[str], ancestor: str) -> np.ndarray:
         """``T_ancestor_frame`` (4×4) of ``chain[0]``, ``ancestor`` being in its ``chain``."""
         T = np.eye(4)
