@@ -484,9 +484,12 @@ class ObstacleConfig:
     """Where a cluster is split: a cell-sized stretch along its major axis is a gap when it holds
     at most this fraction of the points of the fuller stretches on both sides of it (of the
     lower of the two peaks). 0 never splits."""
-    split_min_part: float = 0.1
+    split_min_part: float = 0.08
     """A part of a split cluster is kept only if it holds at least this fraction of the
-    cluster's points (smaller parts are smear and are dropped)."""
+    cluster's points (smaller parts are smear and are dropped). A 0.5 m rock at 15 m that SGBM's
+    smear joins to a 3 m pole 3 m in front of it holds 9–11 % of their cluster: with 0.1 it was
+    dropped in two frames and confirmed a frame late (simulated ``--seed 1`` ditch); 0.05 keeps
+    smear clumps beside the ``--seed 2`` mounds' car that take its rock's place."""
     tall_height_m: float = 0.7
     """Positive clusters standing at least this high above the terrain must hold at least
     ``tall_min_share`` of all the points in their cells. A tall object hides the ground behind

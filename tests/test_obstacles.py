@@ -208,6 +208,24 @@ def test_smear_between_two_obstacles_is_cut(per_cell):
     assert person.point_count + car.point_count < int((labels == Label.OBSTACLE).sum())  # the trail is dropped
 
 
+def test_small_obstacle_smeared_into_a_tall_one_is_cut_off():
+    """A 0.5 m rock 3.5 m behind a 3 m pole, joined to it by smear: the rock holds under 10 % of
+    their cluster (as in the simulated ditch) and is still cut off as an obstacle of its own."""
+    plane = Plane()
+    pole = box_points(plane, (11.0, -2.5), 0.3, 0.3, 3.0, spacing=0.011)
+    rock = box_points(plane, (14.5, -2.5), 0.6, 0.6, 0.5, spacing=0.06)
+    trail_x = np.repeat(np.arange(11.4, 14.1, 0.5), 8) + np.random.default_rng(0).uniform(-0.2, 0.2, 48)
+    trail = np.column_stack([trail_x, np.full_like(trail_x, -2.5), np.full_like(trail_x, 0.45)])
+    points, labels = labelled(plane, terrain_points(plane), pole, rock, trail)
+    assert len(rock) < 0.1 * int((labels == Label.OBSTACLE).sum())
+    (merged,) = extract_obstacles(points, labels, GRID, plane, ObstacleConfig(split_min_part=0.1))
+    assert merged.point_count == int((labels == Label.OBSTACLE).sum())
+    found_pole, found_rock = extract_obstacles(points, labels, GRID, plane, ObstacleConfig())
+    np.testing.assert_allclose(found_pole.center_m[:2], [11.0, -2.5], atol=0.1)
+    np.testing.assert_allclose(found_rock.center_m[:2], [14.5, -2.5], atol=0.15)
+    assert found_rock.height_m == pytest.approx(0.5, abs=0.01)
+
+
 def test_long_dense_obstacle_is_not_split():
     plane = Plane()
     wall = box_points(plane, (12.0, -2.0), 8.0, 0.6, 1.0)  # evenly dense along its 8 m
