@@ -296,6 +296,8 @@ class StereoMatcher:
             strip = disparity[:, : self._max_disparity.size]
             with np.errstate(invalid="ignore"):
                 strip[strip > self._max_disparity] = np.nan
+        if self.config.right_margin_px > 0:
+            disparity[:, -self.config.right_margin_px :] = np.nan
         if self.config.min_texture > 0:
             disparity[_texture_energy(grey, self.config) < self.config.min_texture**2] = np.nan
         return disparity

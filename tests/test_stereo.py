@@ -122,6 +122,17 @@ def test_full_width_matches_the_left_border_up_to_the_margin(margin):
     np.testing.assert_allclose(np.nanmedian(full.disparity[:, n:]), np.nanmedian(plain.disparity[:, n:]), atol=0.05)
 
 
+@pytest.mark.parametrize("margin", [0, 4, 9])
+def test_the_rightmost_columns_are_dropped(margin):
+    H, W, shift = 120, 320, 12
+    texture = _textured(H, W + shift, seed=4)
+    calib = StereoCalibration(W, H, fx=400.0, fy=400.0, cx=160.0, cy=60.0, baseline_m=0.3)
+    config = StereoConfig(num_disparities=48, min_texture=0, right_margin_px=margin)
+    disparity = StereoMatcher(calib, config).compute(texture[:, :-shift], texture[:, shift:]).disparity
+    assert np.isnan(disparity[:, W - margin :]).all()
+    assert np.isfinite(disparity[:, W - margin - 10 : W - margin]).mean() > 0.9
+
+
 def test_cx_right_offset_is_applied():
     calib = StereoCalibration(64, 48, 100.0, 100.0, 32.0, 24.0, 0.5, cx_right=28.0, doffs=1.0)
     matcher = StereoMatcher(calib)
