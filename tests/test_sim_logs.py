@@ -186,6 +186,8 @@ def test_bad_options_raise_config_errors_naming_them():
         SimConfig(scene="moon").validate()
     with pytest.raises(ConfigError, match="--baseline-m"):
         SimConfig(baseline_m=-1).validate()
+    with pytest.raises(ConfigError, match="--texture-detail"):
+        SimConfig(texture_detail=0).validate()
 
 
 def test_cli_simulate_writes_a_log_and_guards_existing_output(tmp_path):

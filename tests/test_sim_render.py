@@ -95,6 +95,19 @@ def test_noise_is_gaussian_with_the_requested_sigma():
     assert np.std(noisy[inner] - clean[inner]) == pytest.approx(3.0, rel=0.1)
 
 
+def test_texture_detail_keeps_finer_texture_on_distant_ground():
+    """Twice the detail: more contrast between neighbouring pixels of terrain 10–20 m away."""
+
+    def row_contrast(frame):
+        ground = (frame.label == 1) & (frame.depth > 10) & (frame.depth < 20)
+        both = ground[:, 1:] & ground[:, :-1]
+        return np.mean(np.abs(np.diff(frame.left.astype(float), axis=1))[both])
+
+    plain, sharp = (_renderer(noise_dn=0.0, texture_detail=k).frame(0) for k in (1.0, 2.0))
+    assert row_contrast(sharp) > 1.3 * row_contrast(plain)
+    np.testing.assert_array_equal(plain.depth, sharp.depth)  # the same scene, only its texture differs
+
+
 def test_vehicle_pose_follows_the_terrain_slope():
     terrain = build_scene("climb", 0, length_m=40.0).terrain
     for x in (0.0, 20.0, 30.0):

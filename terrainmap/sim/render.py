@@ -56,6 +56,7 @@ class Renderer:
     fps: float = 10.0
     noise_dn: float = 2.0
     vignetting: float = 0.15
+    texture_detail: float = 1.0
     mono: bool = True
     seed: int = 0
 
@@ -74,7 +75,7 @@ class Renderer:
                 self.scene.terrain, boxes, origin, rotation_cam, self.rig.intrinsics,
                 (self.rig.width, self.rig.height), T_MAX_M,
             )
-            rgb = shade(hits, self.scene, colors, self.rig.focal_px)
+            rgb = shade(hits, self.scene, colors, self.rig.focal_px, self.texture_detail)
             rng = np.random.default_rng([self.seed, index, camera])
             images.append(expose(rgb, rng, noise_dn=self.noise_dn, vignetting=self.vignetting, mono=self.mono))
             left_hits = left_hits or hits

@@ -6,7 +6,11 @@ coordinates on obstacles), so a surface point has the same brightness in both ca
 stereo matching has texture to lock on to. Octaves finer than the pixel footprint fade out; the
 footprint is ``distance / f / max(cos incidence, 0.6)``: foreshortening only partly counted, which
 keeps the horizontal detail SGBM needs (a full 1/cos blurred mid-range ground and doubled SGBM's
-median error, 0.54 → 0.23 px on ``mounds``).
+median error, 0.54 → 0.23 px on ``mounds``). An octave fades from 4 footprints down to 2, while a
+pixel's box filter keeps 64 % of a wavelength of 2 pixels: the texture is blurrier than that of an
+ideal camera, as lens blur and motion make a real one's. ``detail`` 2 halves the footprint; SGBM's
+bias on ground 10–20 m away then falls from −0.24 to −0.06 px and its errors over a pixel from
+10 % to 1 % (simulated flat, hills and mounds drives).
 The terrain blends two scene colours at low frequency (and a dirt road band where the scene has
 one); obstacles take their kind's colour. The sky is a gradient from a pale horizon to a blue
 zenith; distant surfaces fade into the horizon colour (haze). :func:`expose` then applies
@@ -43,8 +47,11 @@ def _terrain_base(scene: Scene, points: np.ndarray) -> np.ndarray:
     return color
 
 
-def shade(hits: Hits, scene: Scene, colors_by_id: dict[int, tuple[float, float, float]], focal_px: float):
-    """Linear RGB image (H, W, 3) float32 in about [0, 1] of one camera's hits."""
+def shade(
+    hits: Hits, scene: Scene, colors_by_id: dict[int, tuple[float, float, float]], focal_px: float, detail: float = 1.0
+):
+    """Linear RGB image (H, W, 3) float32 in about [0, 1] of one camera's hits. ``detail`` divides
+    the texture's footprint (:class:`~terrainmap.sim.SimConfig` ``texture_detail``)."""
     h, w = hits.depth.shape
     d = hits.dirs.reshape(-1, 3)
     ray_norm = np.linalg.norm(d, axis=1)
@@ -52,7 +59,7 @@ def shade(hits: Hits, scene: Scene, colors_by_id: dict[int, tuple[float, float, 
     image = HORIZON + (ZENITH - HORIZON) * np.sqrt(elevation)
     surf = np.flatnonzero(hits.label.ravel() > 0)
     if surf.size:
-        image[surf] = _shade_surfaces(hits, scene, colors_by_id, focal_px, surf, d[surf], ray_norm[surf])
+        image[surf] = _shade_surfaces(hits, scene, colors_by_id, focal_px * detail, surf, d[surf], ray_norm[surf])
     return image.reshape(h, w, 3).astype(np.float32)
 
 
