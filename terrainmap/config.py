@@ -373,15 +373,15 @@ class StereoConfig:
     disparity low (−0.23 px with the defaults on the simulated drives: ground points land below
     the ground, 6 cm at 10–20 m); the upside-down pass reads it high by as much, and the mean is
     unbiased. Doubles the SGBM time (``process`` at 19 instead of 28 frames/s here) for a 10–20 m
-    elevation RMSE lower by 8–49 % on the simulated drives; on KITTI 000005 it reads the road
+    elevation RMSE lower by 8–48 % on the simulated drives; on KITTI 000005 it reads the road
     0.2 px higher than the single pass, further from the ground truth (README, Measured accuracy)."""
     vertical_passes_min_range_m: float = 0.0
     """With ``vertical_passes`` = 2 and the camera pose known, a value above 0 has the upside-down pass
     match only the rows that see level ground at least this far (horizontally), down to 32 rows
-    below them; nearer, the bias is small in metres (at 8 m, 0.25 px is 3 cm of depth). 0: every row.
-    On the simulated drives 8 kept the RMSE within 20 m at 11.7 and 11.6 cm (every row: 11.7 and
-    11.4), the false obstacles at 0.70 and 1.90 per frame summed (0.75 and 1.90) and the recall at
-    0.848 and 0.890 (0.830 and 0.879), with two id switches on one set, for 1.8 instead of 2.1 ×
+    below them; nearer, the bias is small in metres (at 8 m, 0.25 px is 2.4 cm of height on level ground). 0: every row.
+    On the simulated drives 8 kept the RMSE within 20 m at 11.7 and 11.4 cm (every row: 11.6 and
+    11.3), the false obstacles at 0.40 and 1.55 per frame summed (0.65 and 1.70) and the recall at
+    0.855 and 0.894 (0.828 and 0.879), with two id switches on one set, for 1.8 instead of 2.1 ×
     SGBM's time (README, Measured accuracy)."""
     pass_tolerance_px: float = 2.0
     """With ``vertical_passes`` = 2: a pixel whose two disparities differ by more than this is
