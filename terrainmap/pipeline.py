@@ -18,7 +18,7 @@ from .config import Config
 from .extrinsics import estimate_extrinsics, extrinsics_from_calibration
 from .grid import HeightGrid, cell_index, quantize
 from .obstacle_stage import make_tracker, run_obstacle_stage
-from .segmentation import cells_holding, label_cells, label_points, thresholds
+from .segmentation import cells_holding, label_cells, label_points, thresholds, widen_at_edges
 from .slope import layers as grid_layers
 from .stereo import StereoMatcher, StereoResult, to_vehicle
 from .terrain import TerrainEstimate, estimate_terrain
@@ -120,6 +120,7 @@ def map_surface(
     gradient = (terrain.dz_dx, terrain.dz_dy)
     layers = grid_layers(terrain.elevation, *gradient)
     limits = thresholds(config.grid, config.segmentation, camera, terrain.elevation, *gradient)
+    limits = widen_at_edges(limits, terrain.grid.observed, config.segmentation.edge_margin_m)
     layers["label"] = label_cells(terrain.grid, layers["elevation"], config.segmentation, limits=limits)
     layers["valid"] = terrain.grid.valid
     return terrain, layers, limits

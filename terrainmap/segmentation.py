@@ -28,7 +28,7 @@ from __future__ import annotations
 import numpy as np
 
 from .config import GridConfig, SegmentationConfig
-from .grid import HeightGrid, as_points, cell_centers, cell_index, check_shapes
+from .grid import HeightGrid, _neighbour_sum, as_points, cell_centers, cell_index, check_shapes
 from .types import Label, StereoCamera
 
 
@@ -51,6 +51,18 @@ def thresholds(
         above = np.maximum(above, config.disparity_tolerance_px * per_px)
         below = np.maximum(below, config.below_tolerance_px * per_px)
     return np.broadcast_to(above, grid.shape), np.broadcast_to(below, grid.shape)
+
+
+def widen_at_edges(
+    limits: tuple[np.ndarray, np.ndarray], observed: np.ndarray, margin_m: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """``limits`` (above, below), (m0, m1) metres each, raised by ``margin_m`` at the cells on the
+    edge of the ``observed`` area: observed cells with fewer than 8 observed neighbours (cells
+    outside the grid count as unobserved)."""
+    if margin_m <= 0:
+        return limits
+    edge = observed & (_neighbour_sum(observed.astype(float)) < 7.5)
+    return tuple(np.where(edge, limit + margin_m, limit) for limit in limits)
 
 
 def cell_planes(elevation: np.ndarray, dz_dx: np.ndarray, dz_dy: np.ndarray, grid: GridConfig) -> np.ndarray:

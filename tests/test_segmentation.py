@@ -12,6 +12,7 @@ from terrainmap.segmentation import (
     label_points,
     surface_under_points,
     thresholds,
+    widen_at_edges,
 )
 from terrainmap.synthetic import cloud, rolling_terrain
 from terrainmap.types import Extrinsics, Label, StereoCamera
@@ -173,3 +174,18 @@ def test_cells_holding_counts_points_per_cell_and_ignores_the_outside():
     index = np.array([0, 0, 0, 5, 5, 6, 12, 12, 12])  # 12 = outside a 3×4 grid
     held = cells_holding(index, (3, 4), 2)
     assert held.shape == (3, 4) and held.ravel().tolist() == [True] + [False] * 4 + [True] + [False] * 6
+
+
+def test_thresholds_are_widened_at_the_edge_of_the_observed_area_only():
+    observed = np.zeros((8, 9), bool)
+    observed[2:7, 1:9] = True  # touches the grid's last column: cells there have outside neighbours
+    above, below = np.full((8, 9), 0.3), np.full((8, 9), 0.5)
+    wide_above, wide_below = widen_at_edges((above, below), observed, 0.1)
+    interior = np.zeros_like(observed)
+    interior[3:6, 2:8] = True
+    edge = observed & ~interior
+    np.testing.assert_allclose(wide_above[edge], 0.4)
+    np.testing.assert_allclose(wide_below[edge], 0.6)
+    np.testing.assert_allclose(wide_above[~edge], 0.3)
+    np.testing.assert_allclose(wide_below[~edge], 0.5)
+    assert widen_at_edges((above, below), observed, 0.0) == (above, below)
