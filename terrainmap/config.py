@@ -390,8 +390,8 @@ class StereoConfig:
     match only the rows that see level ground at least this far (horizontally), down to 32 rows
     below them; nearer, the bias is small in metres (at 8 m, 0.25 px is 2.4 cm of height on level ground). 0: every row.
     On the simulated drives 8 kept the RMSE within 20 m at 11.7 and 11.4 cm (every row: 11.6 and
-    11.3), the false obstacles at 0.40 and 1.55 per frame summed (0.65 and 1.70) and the recall at
-    0.855 and 0.894 (0.828 and 0.879), with two id switches on one set, for 1.8 instead of 2.1 ×
+    11.3), the false obstacles at 0.15 and 1.25 per frame summed (0.30 and 1.40) and the recall at
+    0.856 and 0.894 (0.835 and 0.885), with no id switch (two on one set), for 1.8 instead of 2.1 ×
     SGBM's time (README, Measured accuracy)."""
     pass_tolerance_px: float = 2.0
     """With ``vertical_passes`` = 2: a pixel whose two disparities differ by more than this is
