@@ -28,7 +28,7 @@ from __future__ import annotations
 import numpy as np
 
 from .config import GridConfig, SegmentationConfig
-from .grid import HeightGrid, _neighbour_sum, as_points, cell_centers, cell_index, check_shapes
+from .grid import HeightGrid, neighbour_sum, as_points, cell_centers, cell_index, check_shapes
 from .types import Label, StereoCamera
 
 
@@ -61,7 +61,7 @@ def widen_at_edges(
     outside the grid count as unobserved)."""
     if margin_m <= 0:
         return limits
-    edge = observed & (_neighbour_sum(observed.astype(float)) < 7.5)
+    edge = observed & (neighbour_sum(observed.astype(float)) < 7.5)
     return tuple(np.where(edge, limit + margin_m, limit) for limit in limits)
 
 
