@@ -28,7 +28,7 @@ from __future__ import annotations
 import numpy as np
 
 from .config import GridConfig, SegmentationConfig
-from .grid import HeightGrid, neighbour_sum, as_points, cell_centers, cell_index, check_shapes
+from .grid import HeightGrid, as_points, cell_centers, cell_index, check_shapes, neighbour_sum
 from .types import Label, StereoCamera
 
 
