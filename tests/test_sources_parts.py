@@ -1,5 +1,6 @@
 """The small parts under the log sources: topic guessing, pairing, the transform tree, raw decoding."""
 
+import cv2
 import numpy as np
 import pytest
 
@@ -191,6 +192,30 @@ def test_decode_raw_reads_yuv422_in_both_byte_orders():
     assert (a[2, :, 2].astype(int) - a[2, :, 0] > 40).all()  # high U: bluer than red
     with pytest.raises(InputError, match="/t: uyvy image of odd width 9"):
         decode_raw(bytes(54), width=9, height=3, step=18, encoding="uyvy", name="/t")
+
+
+@pytest.mark.parametrize("encoding", ["nv12", "nv21", "NV12"])
+def test_decode_raw_reads_yuv420_semi_planar(encoding):
+    """An image turned to planar YUV 4:2:0 (I420) by OpenCV, its chroma planes interleaved as the
+    encoding orders them and the rows padded to a step of 20, reads back as the image."""
+    rgb = _smooth_rgb()  # 12×16
+    i420 = cv2.cvtColor(rgb, cv2.COLOR_RGB2YUV_I420)  # Y (12 rows), U (3 rows of 16), V (3 rows of 16)
+    y, u, v = i420[:12], i420[12:15].reshape(6, 8), i420[15:18].reshape(6, 8)
+    first, second = (u, v) if encoding.lower() == "nv12" else (v, u)
+    chroma = np.stack([first, second], axis=-1).reshape(6, 16)
+    padded = np.zeros((18, 20), np.uint8)
+    padded[:, :16] = np.vstack([y, chroma])
+    out = decode_raw(padded.tobytes(), width=16, height=12, step=20, encoding=encoding, name="/t")
+    assert out.shape == rgb.shape and out.dtype == np.uint8
+    np.testing.assert_array_equal(out, cv2.cvtColor(i420, cv2.COLOR_YUV2RGB_I420))  # OpenCV's planar reading
+    assert np.abs(out.astype(float) - rgb).mean() < 4  # chroma shared by 2×2 pixels of a colour ramp
+    swapped = "nv21" if encoding.lower() == "nv12" else "nv12"  # the other chroma order: wrong colours
+    wrong = decode_raw(padded.tobytes(), width=16, height=12, step=20, encoding=swapped, name="/t")
+    assert np.abs(wrong.astype(float) - rgb).max() > 20
+    with pytest.raises(InputError, match="/t: nv12 image of size 16×11: YUV 4:2:0 needs an even width and height"):
+        decode_raw(bytes(400), width=16, height=11, step=16, encoding="nv12", name="/t")
+    with pytest.raises(InputError, match="needs more than the 200 bytes given"):
+        decode_raw(bytes(200), width=16, height=12, step=16, encoding="nv12", name="/t")
 
 
 @pytest.mark.parametrize("encoding, order", [("rgb16", (0, 1, 2)), ("bgr16", (2, 1, 0)), ("16UC3", (2, 1, 0))])

@@ -49,6 +49,11 @@ _RAW_ENCODINGS: dict[str, tuple[type, int, int | None]] = {
 }
 
 
+# YUV 4:2:0, semi-planar: a Y plane of ``height`` rows, then ``height / 2`` rows of interleaved
+# chroma at half the resolution, U first (nv12) or V first (nv21); both planes have ``step`` bytes a row.
+_YUV420_ENCODINGS = {"nv12": cv2.COLOR_YUV2RGB_NV12, "nv21": cv2.COLOR_YUV2RGB_NV21}
+
+
 def _to_rgb(image: np.ndarray) -> np.ndarray:
     """OpenCV's BGR(A) or gray decoding result → RGB or mono (dtype kept)."""
     if image.ndim == 3 and image.shape[2] == 1:
@@ -113,11 +118,13 @@ def decode_raw(
     Supported encodings (case-insensitive): rgb8, bgr8, rgba8, bgra8, mono8/8UC1, 8UC3 (as BGR),
     their 16-bit forms rgb16, bgr16, rgba16, bgra16, 16UC3 (as BGR), mono16/16UC1; Bayer mosaics
     bayer_rggb8, _bggr8, _gbrg8, _grbg8 and their 16-bit forms (demosaiced bilinearly); YUV 4:2:2
-    uyvy/yuv422 and yuyv/yuv422_yuy2 (even widths).
+    uyvy/yuv422 and yuyv/yuv422_yuy2 (even widths); YUV 4:2:0 nv12 and nv21 (even sizes).
     """
+    if encoding.lower() in _YUV420_ENCODINGS:
+        return _decode_yuv420(data, width, height, step, encoding, name)
     spec = _RAW_ENCODINGS.get(encoding.lower())
     if spec is None:
-        supported = ", ".join(sorted(_RAW_ENCODINGS))
+        supported = ", ".join(sorted([*_RAW_ENCODINGS, *_YUV420_ENCODINGS]))
         raise InputError(f"{name}: unsupported image encoding {encoding!r} (supported: {supported})")
     dtype, channels, conversion = spec
     if channels == 2 and width % 2:
@@ -138,6 +145,23 @@ def decode_raw(
     if channels == 1:
         image = image[:, :, 0]
     return image if conversion is None else cv2.cvtColor(image, conversion)
+
+
+def _decode_yuv420(data: bytes, width: int, height: int, step: int, encoding: str, name: str) -> np.ndarray:
+    """RGB (H, W, 3) uint8 of a semi-planar YUV 4:2:0 image (:data:`_YUV420_ENCODINGS`)."""
+    if width <= 0 or height <= 0 or width % 2 or height % 2:
+        raise InputError(f"{name}: {encoding} image of size {width}×{height}: YUV 4:2:0 needs an even width and height")
+    step = step or width
+    rows = height * 3 // 2
+    if step < width or len(data) < step * (rows - 1) + width:
+        raise InputError(
+            f"{name}: image of {width}×{height} {encoding} with step {step} needs more than the {len(data)} bytes given"
+        )
+    buffer = np.frombuffer(bytes(data), dtype=np.uint8)
+    if buffer.size < step * rows:  # the last row may omit its padding
+        buffer = np.pad(buffer, (0, step * rows - buffer.size))
+    planes = np.ascontiguousarray(buffer[: step * rows].reshape(rows, step)[:, :width])
+    return cv2.cvtColor(planes, _YUV420_ENCODINGS[encoding.lower()])
 
 
 def stereo_pair(
