@@ -18,6 +18,7 @@ from mcap_ros2.writer import Writer as Ros2Writer
 
 from terrainmap.errors import CalibrationError, InputError
 from terrainmap.sources import open_source
+from terrainmap.sources.topics import stereo_topics
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 KITTI = DATA / "kitti2015_000005"
@@ -376,6 +377,16 @@ def test_logs_without_stereo_say_so(log):
     with pytest.raises(InputError, match="no stereo image topics found") as info:
         open_source(DATA / log)
     assert "\n" not in str(info.value)
+
+
+def test_video_topics_are_named_as_not_read():
+    types = {"/cam/left/video": "foxglove.CompressedVideo", "/cam/right/video": "foxglove.CompressedVideo",
+             "/tf": "foxglove.FrameTransforms"}
+    with pytest.raises(InputError, match=r"log.mcap: no stereo image topics found .*; video topics "
+                       r"\(/cam/left/video, /cam/right/video\) are not read: decode them to image messages first"):
+        stereo_topics(types, None, None, "log.mcap")
+    with pytest.raises(InputError, match="left topic '/cam/left/video' is not an image topic .* video topics"):
+        stereo_topics(types, "/cam/left/video", "/cam/right/video", "log.mcap")
 
 
 def test_truncated_log_yields_what_it_can_then_raises(tmp_path):

@@ -19,6 +19,8 @@ from .images import decode_compressed, decode_raw
 RAW_IMAGE_TYPES = ("sensor_msgs/msg/Image", "foxglove.RawImage")
 COMPRESSED_IMAGE_TYPES = ("sensor_msgs/msg/CompressedImage", "foxglove.CompressedImage")
 IMAGE_TYPES = RAW_IMAGE_TYPES + COMPRESSED_IMAGE_TYPES
+VIDEO_TYPES = ("foxglove.CompressedVideo", "foxglove_msgs/msg/CompressedVideo", "foxglove_msgs/CompressedVideo")
+"""Video streams (H.264, H.265, ...): not read; named in the error when a log has only those."""
 CALIBRATION_TYPES = ("sensor_msgs/msg/CameraInfo", "foxglove.CameraCalibration")
 TF_TYPES = ("tf2_msgs/msg/TFMessage", "foxglove.FrameTransform", "foxglove.FrameTransforms")
 

@@ -15,7 +15,7 @@ from __future__ import annotations
 import re
 
 from ..errors import InputError
-from .messages import COMPRESSED_IMAGE_TYPES, IMAGE_TYPES
+from .messages import COMPRESSED_IMAGE_TYPES, IMAGE_TYPES, VIDEO_TYPES
 
 SIDE_PAIRS = (("left", "right"), ("l", "r"), ("0", "1"), ("00", "01"), ("1", "2"), ("2", "3"), ("02", "03"))
 _TOKEN = re.compile(r"[A-Za-z]+|\d+|[^A-Za-z\d]+")
@@ -54,9 +54,13 @@ def stereo_topics(
     """
     images = sorted(t for t, kind in types.items() if kind in IMAGE_TYPES)
     listing = ", ".join(images) or "none"
+    videos = sorted(t for t, kind in types.items() if kind in VIDEO_TYPES)
+    video_note = (f"; video topics ({', '.join(videos)}) are not read: decode them to image messages first"
+                  if videos else "")
     for name, topic in (("left", left_topic), ("right", right_topic)):
         if topic is not None and topic not in images:
-            raise InputError(f"{where}: {name} topic {topic!r} is not an image topic of this log (image topics: {listing})")
+            raise InputError(f"{where}: {name} topic {topic!r} is not an image topic of this log "
+                             f"(image topics: {listing}){video_note}")
     if left_topic and right_topic:
         return left_topic, right_topic
     if left_topic or right_topic:
@@ -71,7 +75,7 @@ def stereo_topics(
         everything = ", ".join(f"{t} [{k}]" for t, k in sorted(types.items())) or "none"
         raise InputError(
             f"{where}: no stereo image topics found (image topics: {listing}; all topics: {everything}); "
-            "give --left-topic and --right-topic"
+            f"give --left-topic and --right-topic{video_note}"
         )
     return min(pairs, key=lambda pair: _preference(*pair, types))
 
