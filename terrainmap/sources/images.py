@@ -131,15 +131,7 @@ def decode_raw(
         raise InputError(f"{name}: {encoding} image of odd width {width} (YUV 4:2:2 pairs the pixels of each row)")
     itemsize = np.dtype(dtype).itemsize
     row_bytes = width * channels * itemsize
-    step = step or row_bytes
-    if width <= 0 or height <= 0 or step < row_bytes or len(data) < step * (height - 1) + row_bytes:
-        raise InputError(
-            f"{name}: image of {width}×{height} {encoding} with step {step} needs more than the {len(data)} bytes given"
-        )
-    buffer = np.frombuffer(bytes(data), dtype=np.uint8)
-    if buffer.size < step * height:  # the last row may omit its padding
-        buffer = np.pad(buffer, (0, step * height - buffer.size))
-    pixels = np.ascontiguousarray(buffer[: step * height].reshape(height, step)[:, :row_bytes])
+    pixels = _rows(data, height, row_bytes, step or row_bytes, f"{name}: image of {width}×{height} {encoding}")
     wire_dtype = np.dtype(dtype).newbyteorder(">" if big_endian else "<")
     image = pixels.view(wire_dtype).astype(dtype).reshape(height, width, channels)
     if channels == 1:
@@ -151,17 +143,19 @@ def _decode_yuv420(data: bytes, width: int, height: int, step: int, encoding: st
     """RGB (H, W, 3) uint8 of a semi-planar YUV 4:2:0 image (:data:`_YUV420_ENCODINGS`)."""
     if width <= 0 or height <= 0 or width % 2 or height % 2:
         raise InputError(f"{name}: {encoding} image of size {width}×{height}: YUV 4:2:0 needs an even width and height")
-    step = step or width
-    rows = height * 3 // 2
-    if step < width or len(data) < step * (rows - 1) + width:
-        raise InputError(
-            f"{name}: image of {width}×{height} {encoding} with step {step} needs more than the {len(data)} bytes given"
-        )
+    planes = _rows(data, height * 3 // 2, width, step or width, f"{name}: image of {width}×{height} {encoding}")
+    return cv2.cvtColor(planes, _YUV420_ENCODINGS[encoding.lower()])
+
+
+def _rows(data: bytes, rows: int, row_bytes: int, step: int, what: str) -> np.ndarray:
+    """The first ``row_bytes`` of each of ``rows`` rows ``step`` bytes apart: (rows, row_bytes)
+    uint8, contiguous; :class:`InputError` starting with ``what`` when ``data`` is too short."""
+    if rows <= 0 or row_bytes <= 0 or step < row_bytes or len(data) < step * (rows - 1) + row_bytes:
+        raise InputError(f"{what} with step {step} needs more than the {len(data)} bytes given")
     buffer = np.frombuffer(bytes(data), dtype=np.uint8)
     if buffer.size < step * rows:  # the last row may omit its padding
         buffer = np.pad(buffer, (0, step * rows - buffer.size))
-    planes = np.ascontiguousarray(buffer[: step * rows].reshape(rows, step)[:, :width])
-    return cv2.cvtColor(planes, _YUV420_ENCODINGS[encoding.lower()])
+    return np.ascontiguousarray(buffer[: step * rows].reshape(rows, step)[:, :row_bytes])
 
 
 def stereo_pair(
