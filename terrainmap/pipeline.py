@@ -20,7 +20,7 @@ from .grid import HeightGrid, cell_index, quantize
 from .obstacle_stage import make_tracker, run_obstacle_stage
 from .segmentation import cells_holding, label_cells, label_points, thresholds, widen_at_edges
 from .slope import layers as grid_layers
-from .stereo import StereoMatcher, StereoResult, to_vehicle
+from .stereo import StereoMatcher, StereoResult, rig_camera, to_vehicle
 from .terrain import TerrainEstimate, estimate_terrain
 from .tracking import ObstacleTracker
 from .types import Extrinsics, FrameResult, Label, StereoCamera, StereoFrame
@@ -177,8 +177,7 @@ class Matched:
     @property
     def camera(self) -> StereoCamera:
         """The rig's noise geometry in the vehicle frame, from the rectified pinhole and extrinsics."""
-        pinhole = self.stereo.pinhole
-        return StereoCamera.from_rig(pinhole.fx, pinhole.baseline_m, self.extrinsics)
+        return rig_camera(self.stereo.pinhole, self.extrinsics)
 
 
 def match_frame(frame: StereoFrame, config: Config, state: PipelineState) -> Matched:

@@ -32,7 +32,7 @@ import numpy as np
 from .config import StereoConfig
 from .errors import CalibrationError, InputError
 from .extrinsics import is_rotation
-from .types import Extrinsics, StereoCalibration
+from .types import Extrinsics, StereoCalibration, StereoCamera
 
 log = logging.getLogger(__name__)
 
@@ -73,6 +73,13 @@ def rectified_camera(extrinsics: Extrinsics, pinhole: RectifiedPinhole) -> Extri
         return extrinsics
     r1 = np.reshape(pinhole.rectifying_rotation, (3, 3))
     return replace(extrinsics, rotation=np.asarray(extrinsics.rotation, np.float64) @ r1.T)
+
+
+def rig_camera(pinhole: RectifiedPinhole, extrinsics: Extrinsics) -> StereoCamera:
+    """The :class:`~terrainmap.types.StereoCamera` (noise geometry and image columns, vehicle frame)
+    of disparities taken with ``pinhole`` by the left camera at ``extrinsics``."""
+    rectified = rectified_camera(extrinsics, pinhole)
+    return StereoCamera.from_rig(pinhole.fx, pinhole.baseline_m, rectified, pinhole.cx, pinhole.width)
 
 
 @dataclass

@@ -159,17 +159,41 @@ class StereoCamera:
     """The stereo rig's noise geometry, vehicle frame: the left camera centre ``center_m`` (3,), its
     unit optical axis ``axis`` (3,), and ``focal_baseline`` = f·B (px·m). A point at camera depth Z
     along the ray ``ρ = p − c`` moves by ``Δp = ρ · Z · Δd / (f·B)`` for a disparity error Δd; the
-    grid (eq. 1 noise) and segmentation (thresholds) use it."""
+    grid (eq. 1 noise) and segmentation (thresholds) use it.
+
+    Where the image is known (:meth:`from_rig` with ``cx_px`` and ``width_px``): ``right`` (3,) the
+    unit vector of the image's x axis, ``fx_px``, ``cx_px`` and ``width_px`` the rectified left
+    camera's focal length, principal column and width (px), for :meth:`column`."""
 
     center_m: np.ndarray
     axis: np.ndarray
     focal_baseline: float
+    right: np.ndarray | None = None
+    fx_px: float = 0.0
+    cx_px: float = 0.0
+    width_px: int = 0
 
     @classmethod
-    def from_rig(cls, fx_px: float, baseline_m: float, extrinsics) -> StereoCamera:
-        """From the rectified focal length, the baseline and the camera's :class:`~terrainmap.types.Extrinsics`."""
+    def from_rig(
+        cls, fx_px: float, baseline_m: float, extrinsics, cx_px: float = 0.0, width_px: int = 0
+    ) -> StereoCamera:
+        """From the rectified focal length, the baseline and the pose of the (rectified) left camera,
+        an :class:`~terrainmap.types.Extrinsics`; with ``width_px`` > 0, its image columns too."""
         rotation = np.asarray(extrinsics.rotation, float)
-        return cls(np.asarray(extrinsics.translation, float), rotation[:, 2], float(fx_px * baseline_m))
+        return cls(np.asarray(extrinsics.translation, float), rotation[:, 2], float(fx_px * baseline_m),
+                   rotation[:, 0], float(fx_px), float(cx_px), int(width_px))
+
+    def column(self, x, y, z) -> np.ndarray:
+        """Image column u (px) where the points (x, y, z) (vehicle frame, m; arrays broadcast) appear:
+        ``u = cx + fx · (ρ·right)/(ρ·axis)``, ``cx`` for points not in front of the camera.
+        Needs the image (class docstring)."""
+        if self.right is None or not self.width_px:
+            raise ValueError("StereoCamera.column needs the image's columns (from_rig with cx_px and width_px)")
+        rx, ry, rz = x - self.center_m[0], y - self.center_m[1], z - self.center_m[2]
+        depth = rx * self.axis[0] + ry * self.axis[1] + rz * self.axis[2]
+        across = rx * self.right[0] + ry * self.right[1] + rz * self.right[2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.where(depth > 0, self.cx_px + self.fx_px * across / depth, self.cx_px)
 
     def height_per_px(self, x, y, z, dz_dx, dz_dy) -> np.ndarray:
         """|Δh| per pixel of disparity error (m/px), the height change above the plane of gradient

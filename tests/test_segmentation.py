@@ -21,7 +21,8 @@ from terrainmap.types import Extrinsics, Label, StereoCamera
 _PITCH = np.deg2rad(6.0)
 _OPTICAL = np.array([[0, 0, 1], [-1, 0, 0], [0, -1, 0]], float)  # optical x, y, z in base_link
 _ROT = np.array([[np.cos(_PITCH), 0, np.sin(_PITCH)], [0, 1, 0], [-np.sin(_PITCH), 0, np.cos(_PITCH)]]) @ _OPTICAL
-CAMERA = StereoCamera.from_rig(500.0, 0.3, Extrinsics(rotation=_ROT, translation=np.array([0.0, 0.0, 1.8])))
+CAMERA_POSE = Extrinsics(rotation=_ROT, translation=np.array([0.0, 0.0, 1.8]))
+CAMERA = StereoCamera.from_rig(500.0, 0.3, CAMERA_POSE)  # no image: the tolerances are the same across it
 
 
 def test_per_point_surface_matches_exact_evaluation():
@@ -189,3 +190,40 @@ def test_thresholds_are_widened_at_the_edge_of_the_observed_area_only():
     np.testing.assert_allclose(wide_above[~edge], 0.3)
     np.testing.assert_allclose(wide_below[~edge], 0.5)
     assert widen_at_edges((above, below), observed, 0.0) == (above, below)
+
+
+def test_column_is_where_a_point_appears_in_the_image():
+    camera = StereoCamera.from_rig(500.0, 0.3, CAMERA_POSE, cx_px=319.5, width_px=640)
+    ahead = np.array([10.0, 0.0, 1.8 - 10.0 * np.tan(_PITCH)])  # on the optical axis
+    assert camera.column(*ahead) == pytest.approx(319.5)
+    # 20 m ahead, 5 m to the right (−y): u = cx + f · 5 / depth, depth along the pitched axis
+    point = np.array([20.0, -5.0, 0.0])
+    depth = (point - camera.center_m) @ camera.axis
+    assert camera.column(*point) == pytest.approx(319.5 + 500.0 * 5.0 / depth)
+    assert camera.column(-5.0, 0.0, 0.0) == pytest.approx(319.5)  # behind the camera: the centre
+    with pytest.raises(ValueError):
+        CAMERA.column(*point)  # no image given
+
+
+def test_tolerances_grow_towards_the_image_sides():
+    config, grid = SegmentationConfig(), GridConfig()
+    assert (config.side_band, config.side_gain) == (0.2, 3.0)
+    camera = StereoCamera.from_rig(500.0, 0.3, CAMERA_POSE, cx_px=319.5, width_px=640)
+    flat, rising = np.zeros(grid.shape), np.full(grid.shape, 0.3)  # the disparity floor binds on the slope
+    plain = thresholds(grid, config, CAMERA, flat, rising, flat)
+    sided = thresholds(grid, config, camera, flat, rising, flat)
+    xs, ys = cell_centers(grid)
+    u = camera.column(xs[:, None], ys[None, :], flat)
+    middle = np.abs(u - 319.5) < 0.25 * 640  # more than a fifth of the width from both sides
+    for with_sides, without in zip(sided, plain):
+        assert np.array_equal(with_sides[middle], without[middle])
+        assert np.all(with_sides >= without)
+    ix = int((15.0 - grid.x_min_m) / grid.cell_size_m)  # 15 m ahead; the image's side is 7.5 m across there
+    side = int(np.argmin(np.abs(u[ix] - 630.0)))  # 10 px from the right side: 1 + 3 · (1 − 10/128)
+    xs_, ys_ = xs[ix], ys[side]
+    per_px = camera.height_per_px(xs_, ys_, 0.0, 0.3, 0.0)
+    gain = 1 + 3.0 * (1 - (640 - u[ix, side]) / 128)
+    assert sided[0][ix, side] == pytest.approx(max(plain[0][ix, side], per_px * gain))
+    assert sided[0][ix, side] > 2.5 * plain[0][ix, side]
+    off = SegmentationConfig(side_gain=0.0)
+    assert all(np.array_equal(a, b) for a, b in zip(thresholds(grid, off, camera, flat, rising, flat), plain))

@@ -66,7 +66,8 @@ from ..grid import cell_index
 from ..pipeline import PipelineState, process_frame
 from ..sim.truth import TruthFrame, open_truth
 from ..sources import open_source
-from ..types import FrameResult, Label, StereoCamera
+from ..stereo import rig_camera
+from ..types import FrameResult, Label
 from . import baselines
 from .scores import BANDS, METRICS, PROFILE_BINS, PROFILE_STEP_M, MethodScores
 from .truth_grid import TERRAIN_PIXEL, GridTruth, depression_depth, grid_truth
@@ -159,7 +160,7 @@ class _Evaluation:
             return baselines.MethodOutput(layers["elevation"].astype(float), layers["slope"], result.point_labels)
         start = time.perf_counter()
         try:
-            camera = StereoCamera.from_rig(result.pinhole.fx, result.pinhole.baseline_m, result.extrinsics)
+            camera = rig_camera(result.pinhole, result.extrinsics)
             output = baselines.METHODS[name](result.points_vehicle, self.config, result.extrinsics, camera)
         except FrameError as exc:
             logger.info("%s failed on frame %d: %s", name, result.index, exc)
