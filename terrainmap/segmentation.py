@@ -13,7 +13,10 @@ at camera depth Z along the ray ``ρ = p − c`` (c the camera centre) moves by
 tangent plane ``S ≈ c₀ + gx·x + gy·y`` by ``Δh = (ρz − gx·ρx − gy·ρy) · Z · Δd / (f·B)``. On flat
 ground 20 m ahead of a camera 1.8 m up with f·B = 150 px·m that is 0.24 m per pixel; on a 17°
 slope facing the camera, 1.0 m per pixel: a fixed threshold there calls stereo noise an obstacle.
-The cell centre and the surface there stand in for the points of the cell.
+The cell centre and the surface there stand in for the points of the cell. Where the camera's
+image is known, both tolerances grow towards its left and right sides, where SGBM errs more:
+linearly over ``side_band`` of its width on each side, to ``1 + side_gain`` times at the side (the
+cell's column is that of its centre at the surface's height).
 
 For speed, S under a point comes from the exact spline value and analytic gradient at the
 centre of the point's cell (first-order Taylor: a few table lookups per point, no spline
@@ -41,7 +44,8 @@ def thresholds(
     dz_dy: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Per-cell (above, below) thresholds, (m0, m1) metres each (see the module docstring). The
-    stereo term needs ``camera`` and the surface (``elevation`` and its gradient at the cell centres)."""
+    stereo term needs ``camera`` and the surface (``elevation`` and its gradient at the cell centres);
+    it grows towards the image's sides where ``camera`` knows its columns."""
     xs, ys = cell_centers(grid)
     x, y = xs[:, None], ys[None, :]
     grow = config.threshold_per_m * np.hypot(x, y)

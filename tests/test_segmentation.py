@@ -218,12 +218,11 @@ def test_tolerances_grow_towards_the_image_sides():
     for with_sides, without in zip(sided, plain):
         assert np.array_equal(with_sides[middle], without[middle])
         assert np.all(with_sides >= without)
-    ix = int((15.0 - grid.x_min_m) / grid.cell_size_m)  # 15 m ahead; the image's side is 7.5 m across there
-    side = int(np.argmin(np.abs(u[ix] - 630.0)))  # 10 px from the right side: 1 + 3 · (1 − 10/128)
-    xs_, ys_ = xs[ix], ys[side]
-    per_px = camera.height_per_px(xs_, ys_, 0.0, 0.3, 0.0)
-    gain = 1 + 3.0 * (1 - (640 - u[ix, side]) / 128)
-    assert sided[0][ix, side] == pytest.approx(max(plain[0][ix, side], per_px * gain))
-    assert sided[0][ix, side] > 2.5 * plain[0][ix, side]
+    ix = int((15.0 - grid.x_min_m) / grid.cell_size_m)  # 15 m ahead
+    iy = int(np.argmin(np.abs(u[ix] - 630.0)))  # the cell about 10 px from the image's right side
+    gain = 1 + 3.0 * (1 - (640 - u[ix, iy]) / 128)  # 128 px: the band, a fifth of 640
+    per_px = camera.height_per_px(xs[ix], ys[iy], 0.0, 0.3, 0.0)
+    assert sided[0][ix, iy] == pytest.approx(max(plain[0][ix, iy], per_px * gain))
+    assert sided[0][ix, iy] > 2.5 * plain[0][ix, iy]
     off = SegmentationConfig(side_gain=0.0)
     assert all(np.array_equal(a, b) for a, b in zip(thresholds(grid, off, camera, flat, rising, flat), plain))
