@@ -55,8 +55,8 @@ def test_toml_round_trip_and_overrides(tmp_path):
         ("stereo.left_margin_px=-1", "stereo.left_margin_px: must be in 0..1024"),
         ("stereo.right_margin_px=2000", "stereo.right_margin_px: must be in 0..1024"),
         ("segmentation.edge_margin_m=-0.1", "segmentation.edge_margin_m: must be in "),
-        ("segmentation.side_band=0", "segmentation.side_band: must be in (0, 0.5]"),
-        ("segmentation.side_gain=-1", "segmentation.side_gain: must be in [0, 100]"),
+        ("segmentation.side_band=0", r"segmentation.side_band: must be in \(0, 0.5\]"),
+        ("segmentation.side_gain=-1", r"segmentation.side_gain: must be in \[0, 100\]"),
         ("stereo.vertical_passes=3", "stereo.vertical_passes: must be 1 or 2, got 3"),
         ("stereo.pass_tolerance_px=0", "stereo.pass_tolerance_px: must be > 0"),
         ("grid.cell_size_m=0.001", "at most 2000 per axis"),  # 34 000 × 22 000 cells: a typo, not a map
