@@ -454,3 +454,19 @@ def test_a_second_pass_on_the_far_rows_only_unbiases_far_ground_and_leaves_the_n
     np.testing.assert_array_equal(disparity[near_rows], single[near_rows])
     with pytest.raises(ConfigError, match="stereo.vertical_passes_min_range_m"):
         StereoConfig(vertical_passes_min_range_m=-1).validate()
+
+
+def test_rig_camera_places_columns_in_the_rectified_image():
+    from terrainmap.stereo import RectifiedPinhole, rig_camera
+
+    turn = cv2.Rodrigues(np.array([0.0, 0.05, 0.0]))[0]  # R1: the rectified camera turned 0.05 rad about its y
+    pinhole = RectifiedPinhole(500.0, 500.0, 320.0, 240.0, 0.3, 0.0, 640, 480, tuple(turn.ravel()))
+    extrinsics = extrinsics_from_pose(1.8, pitch_rad=0.1)
+    camera = rig_camera(pinhole, extrinsics)
+    assert (camera.fx_px, camera.cx_px, camera.width_px, camera.focal_baseline) == (500.0, 320.0, 640, 150.0)
+    # A point on the rectified camera's optical axis (p_rect = R1·p_cam) appears at column cx.
+    axis_cam = turn.T @ np.array([0.0, 0.0, 1.0])
+    point = extrinsics.translation + np.asarray(extrinsics.rotation) @ (10.0 * axis_cam)
+    assert camera.column(*point) == pytest.approx(320.0)
+    # Unturned, the same point would appear 500·tan(0.05) ≈ 25 px off centre.
+    assert abs(rig_camera(dataclasses.replace(pinhole, rectifying_rotation=None), extrinsics).column(*point) - 320.0) > 20
