@@ -176,7 +176,8 @@ class Matched:
 
     @property
     def camera(self) -> StereoCamera:
-        """The rig's noise geometry in the vehicle frame, from the rectified pinhole and extrinsics."""
+        """The rig's noise geometry and image columns in the vehicle frame: the rectified pinhole
+        and the rectified left camera's pose (:func:`~terrainmap.stereo.rig_camera`)."""
         return rig_camera(self.stereo.pinhole, self.extrinsics)
 
 

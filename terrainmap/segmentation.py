@@ -52,10 +52,11 @@ def thresholds(
     above, below = config.obstacle_height_m + grow, config.below_depth_m + grow
     if camera is not None and (config.disparity_tolerance_px > 0 or config.below_tolerance_px > 0):
         per_px = camera.height_per_px(x, y, elevation, dz_dx, dz_dy)
-        if config.side_gain > 0 and camera.width_px:  # SGBM errs more towards the image's sides
+        if config.side_gain > 0 and camera.has_image:  # SGBM errs more towards the image's sides
             u = camera.column(x, y, elevation)
-            border = np.minimum(u, camera.width_px - u)  # px to the nearer side (< 0 outside the image)
-            per_px = per_px * (1 + config.side_gain * np.clip(1 - border / (config.side_band * camera.width_px), 0, 1))
+            border = np.minimum(u + 0.5, camera.width_px - 0.5 - u)  # px to the nearer side (< 0 outside)
+            ramp = np.clip(1 - border / (config.side_band * camera.width_px), 0, 1)  # 1 at a side
+            per_px = per_px * (1 + config.side_gain * ramp)
         above = np.maximum(above, config.disparity_tolerance_px * per_px)
         below = np.maximum(below, config.below_tolerance_px * per_px)
     return np.broadcast_to(above, grid.shape), np.broadcast_to(below, grid.shape)

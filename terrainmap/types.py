@@ -156,13 +156,14 @@ class FrameResult:
 
 @dataclass(frozen=True)
 class StereoCamera:
-    """The stereo rig's noise geometry, vehicle frame: the left camera centre ``center_m`` (3,), its
-    unit optical axis ``axis`` (3,), and ``focal_baseline`` = f·B (px·m). A point at camera depth Z
-    along the ray ``ρ = p − c`` moves by ``Δp = ρ · Z · Δd / (f·B)`` for a disparity error Δd; the
-    grid (eq. 1 noise) and segmentation (thresholds) use it.
+    """The stereo rig's noise geometry, vehicle frame: the centre ``center_m`` (3,) and unit optical
+    axis ``axis`` (3,) of the camera the disparities refer to (the rectified left camera), and
+    ``focal_baseline`` = f·B (px·m). A point at camera depth Z along the ray ``ρ = p − c`` moves by
+    ``Δp = ρ · Z · Δd / (f·B)`` for a disparity error Δd; the grid (eq. 1 noise), segmentation
+    (thresholds) and tracking use it.
 
-    Where the image is known (:meth:`from_rig` with ``cx_px`` and ``width_px``): ``right`` (3,) the
-    unit vector of the image's x axis, ``fx_px``, ``cx_px`` and ``width_px`` the rectified left
+    Where the image is known (:meth:`from_rig` with ``width_px``, :attr:`has_image`): ``right`` (3,)
+    the unit vector of the image's x axis, ``fx_px``, ``cx_px`` and ``width_px`` the rectified left
     camera's focal length, principal column and width (px), for :meth:`column`."""
 
     center_m: np.ndarray
@@ -175,22 +176,35 @@ class StereoCamera:
 
     @classmethod
     def from_rig(
-        cls, fx_px: float, baseline_m: float, extrinsics, cx_px: float = 0.0, width_px: int = 0
+        cls, fx_px: float, baseline_m: float, extrinsics, cx_px: float | None = None, width_px: int = 0
     ) -> StereoCamera:
-        """From the rectified focal length, the baseline and the pose of the (rectified) left camera,
-        an :class:`~terrainmap.types.Extrinsics`; with ``width_px`` > 0, its image columns too."""
+        """From the rectified focal length, the baseline and the pose of the rectified left camera,
+        an :class:`~terrainmap.types.Extrinsics`; with ``width_px`` > 0, its image columns too
+        (``cx_px`` the principal column, the image's centre if omitted)."""
         rotation = np.asarray(extrinsics.rotation, float)
-        return cls(np.asarray(extrinsics.translation, float), rotation[:, 2], float(fx_px * baseline_m),
-                   rotation[:, 0], float(fx_px), float(cx_px), int(width_px))
+        rig = (np.asarray(extrinsics.translation, float), rotation[:, 2], float(fx_px * baseline_m))
+        if width_px <= 0:
+            return cls(*rig)
+        cx = (width_px - 1) / 2 if cx_px is None else float(cx_px)
+        return cls(*rig, rotation[:, 0], float(fx_px), cx, int(width_px))
+
+    @property
+    def has_image(self) -> bool:
+        """Whether the image's columns are known (:meth:`column` works)."""
+        return self.right is not None and self.width_px > 0
+
+    def _ray(self, x, y, z) -> tuple:
+        """``(ρx, ρy, ρz, Z)``: the ray from the camera centre to the points and their camera depth."""
+        rx, ry, rz = x - self.center_m[0], y - self.center_m[1], z - self.center_m[2]
+        return rx, ry, rz, rx * self.axis[0] + ry * self.axis[1] + rz * self.axis[2]
 
     def column(self, x, y, z) -> np.ndarray:
         """Image column u (px) where the points (x, y, z) (vehicle frame, m; arrays broadcast) appear:
         ``u = cx + fx · (ρ·right)/(ρ·axis)``, ``cx`` for points not in front of the camera.
-        Needs the image (class docstring)."""
-        if self.right is None or not self.width_px:
-            raise ValueError("StereoCamera.column needs the image's columns (from_rig with cx_px and width_px)")
-        rx, ry, rz = x - self.center_m[0], y - self.center_m[1], z - self.center_m[2]
-        depth = rx * self.axis[0] + ry * self.axis[1] + rz * self.axis[2]
+        Needs :attr:`has_image`."""
+        if not self.has_image:
+            raise ValueError("StereoCamera.column needs the image's columns (from_rig with width_px)")
+        rx, ry, rz, depth = self._ray(x, y, z)
         across = rx * self.right[0] + ry * self.right[1] + rz * self.right[2]
         with np.errstate(divide="ignore", invalid="ignore"):
             return np.where(depth > 0, self.cx_px + self.fx_px * across / depth, self.cx_px)
@@ -199,9 +213,8 @@ class StereoCamera:
         """|Δh| per pixel of disparity error (m/px), the height change above the plane of gradient
         (dz_dx, dz_dy) through the points (x, y, z): ``Z · |ρz − gx·ρx − gy·ρy| / (f·B)``; arrays
         broadcast together. With a zero gradient, the change of z itself."""
-        rx, ry, rz = x - self.center_m[0], y - self.center_m[1], z - self.center_m[2]
-        depth = np.maximum(rx * self.axis[0] + ry * self.axis[1] + rz * self.axis[2], 0.0)
-        return depth * np.abs(rz - dz_dx * rx - dz_dy * ry) / self.focal_baseline
+        rx, ry, rz, depth = self._ray(x, y, z)
+        return np.maximum(depth, 0.0) * np.abs(rz - dz_dx * rx - dz_dy * ry) / self.focal_baseline
 
     def shift_per_px(self, points: np.ndarray) -> np.ndarray:
         """How far points (N, 3) move along their rays per pixel of disparity error, ``ρ·Z/(f·B)``:

@@ -203,6 +203,7 @@ def test_column_is_where_a_point_appears_in_the_image():
     assert camera.column(-5.0, 0.0, 0.0) == pytest.approx(319.5)  # behind the camera: the centre
     with pytest.raises(ValueError):
         CAMERA.column(*point)  # no image given
+    assert StereoCamera.from_rig(500.0, 0.3, CAMERA_POSE, width_px=640).cx_px == 319.5  # the centre by default
 
 
 def test_tolerances_grow_towards_the_image_sides():
@@ -220,7 +221,7 @@ def test_tolerances_grow_towards_the_image_sides():
         assert np.all(with_sides >= without)
     ix = int((15.0 - grid.x_min_m) / grid.cell_size_m)  # 15 m ahead
     iy = int(np.argmin(np.abs(u[ix] - 630.0)))  # the cell about 10 px from the image's right side
-    gain = 1 + 3.0 * (1 - (640 - u[ix, iy]) / 128)  # 128 px: the band, a fifth of 640
+    gain = 1 + 3.0 * (1 - (639.5 - u[ix, iy]) / 128)  # 128 px: the band, a fifth of 640; 639.5: the side
     per_px = camera.height_per_px(xs[ix], ys[iy], 0.0, 0.3, 0.0)
     assert sided[0][ix, iy] == pytest.approx(max(plain[0][ix, iy], per_px * gain))
     assert sided[0][ix, iy] > 2.5 * plain[0][ix, iy]

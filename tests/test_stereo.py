@@ -470,3 +470,14 @@ def test_rig_camera_places_columns_in_the_rectified_image():
     assert camera.column(*point) == pytest.approx(320.0)
     # Unturned, the same point would appear 500·tan(0.05) ≈ 25 px off centre.
     assert abs(rig_camera(dataclasses.replace(pinhole, rectifying_rotation=None), extrinsics).column(*point) - 320.0) > 20
+
+
+def test_the_pipeline_knows_the_image_columns_of_its_camera():
+    from terrainmap.bench import sim_frame
+    from terrainmap.config import Config
+    from terrainmap.pipeline import PipelineState, match_frame
+
+    config = Config()
+    frame = sim_frame()
+    camera = match_frame(frame, config, PipelineState(config)).camera
+    assert camera.has_image and (camera.width_px, camera.cx_px) == (640, frame.calibration.cx)
