@@ -211,8 +211,8 @@ def finish_frame(frame: StereoFrame, matched: Matched, config: Config, state: Pi
     if matched.matcher is not state.tracked_matcher:  # another camera or scene: its obstacles are
         state.tracker.reset()  # not these (here, as match_frame may run a frame ahead)
         state.tracked_matcher = matched.matcher
-    points = matched.points_vehicle
-    terrain = _map_points(points, config, watch, matched.camera)  # config checked by match_frame
+    points, camera = matched.points_vehicle, matched.camera
+    terrain = _map_points(points, config, watch, camera)  # config checked by match_frame
     if config.segmentation.upright_ratio > 0:
         with watch("upright"):
             labels = label_upright(
@@ -227,7 +227,7 @@ def finish_frame(frame: StereoFrame, matched: Matched, config: Config, state: Pi
     with watch("obstacles"):
         obstacles, cost = run_obstacle_stage(
             points, terrain.point_labels, terrain.grid, terrain.layers, frame.stamp_ns, state.tracker, config,
-            vehicle_pose=frame.vehicle_pose, camera=matched.camera,
+            vehicle_pose=frame.vehicle_pose, camera=camera,
         )
     return FrameResult(
         index=frame.index,
