@@ -307,6 +307,8 @@ class StereoMatcher:
             disparity[:, -self.config.right_margin_px :] = np.nan
         if self.config.min_texture > 0:
             disparity[_texture_energy(grey, self.config) < self.config.min_texture**2] = np.nan
+        if self.config.fattening_trim_px > 0:
+            trim_fattening(disparity, self.config.fattening_jump_px, self.config.fattening_trim_px)
         return disparity
 
     def _sgbm(self, pair) -> np.ndarray:
@@ -402,6 +404,23 @@ class StereoMatcher:
                 f"{name}: images are {_size(left)} but the calibration is for "
                 f"{self.calibration.width}×{self.calibration.height}"
             )
+
+
+def trim_fattening(disparity: np.ndarray, jump_px: float, columns: int) -> None:
+    """Drop (set NaN, in place) the ``columns`` disparities on the near side of every depth edge
+    of an H×W float32 disparity map (pixels): wherever two horizontally neighbouring disparities
+    differ by more than ``jump_px``, the larger one and the ``columns − 1`` beyond it, away from
+    the edge. SGBM's window carries the near surface's disparity onto the background beside it
+    (foreground fattening, ``StereoConfig.fattening_trim_px``); NaN neighbours make no edge."""
+    with np.errstate(invalid="ignore"):  # NaN compares false
+        step = disparity[:, :-1] - disparity[:, 1:]  # column u minus column u + 1
+        near_left, near_right = step > jump_px, step < -jump_px
+    drop = np.zeros(disparity.shape, bool)
+    edges = step.shape[1]
+    for s in range(min(columns, edges)):
+        drop[:, : edges - s] |= near_left[:, s:]  # an edge right of column u + s: u is near
+        drop[:, 1 + s :] |= near_right[:, : edges - s]  # an edge left of column u − s: u is near
+    disparity[drop] = np.nan
 
 
 def to_vehicle(points_cam: np.ndarray, extrinsics: Extrinsics) -> np.ndarray:

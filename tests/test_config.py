@@ -54,6 +54,8 @@ def test_toml_round_trip_and_overrides(tmp_path):
         ("stereo.texture_margin_px=-1", "stereo.texture_margin_px: must be in 0..100"),
         ("stereo.left_margin_px=-1", "stereo.left_margin_px: must be in 0..1024"),
         ("stereo.right_margin_px=2000", "stereo.right_margin_px: must be in 0..1024"),
+        ("stereo.fattening_trim_px=-1", r"stereo.fattening_trim_px: must be in 0..100"),
+        ("stereo.fattening_jump_px=0", "stereo.fattening_jump_px: must be > 0"),
         ("segmentation.edge_margin_m=-0.1", "segmentation.edge_margin_m: must be in "),
         ("segmentation.side_band=0", r"segmentation.side_band: must be in \(0, 0.5\]"),
         ("segmentation.side_gain=-1", r"segmentation.side_gain: must be in \[0, 100\]"),

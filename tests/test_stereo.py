@@ -14,7 +14,7 @@ from terrainmap.errors import CalibrationError, ConfigError, InputError
 from terrainmap.extrinsics import extrinsics_from_pose
 from terrainmap.sim import SimConfig
 from terrainmap.sim.scenes import build_scene
-from terrainmap.stereo import StereoMatcher, _texture_energy, to_vehicle
+from terrainmap.stereo import StereoMatcher, _texture_energy, to_vehicle, trim_fattening
 from terrainmap.types import StereoCalibration
 
 
@@ -131,6 +131,48 @@ def test_the_rightmost_columns_are_dropped(margin):
     disparity = StereoMatcher(calib, config).compute(texture[:, :-shift], texture[:, shift:]).disparity
     assert np.isnan(disparity[:, W - margin :]).all()
     assert np.isfinite(disparity[:, W - margin - 10 : W - margin]).mean() > 0.9
+
+
+@pytest.mark.parametrize("columns", [0, 1, 2, 3])
+def test_trim_fattening_drops_the_near_side_of_depth_edges(columns):
+    """Background 4 px with a slope of 0.1 px per column, a near block of 10 px in columns 20–29:
+    ``columns`` disparities of the block are dropped at each of its edges, nothing else; a block
+    beside invalid pixels has no edge there."""
+    background = 4.0 + 0.1 * np.arange(60, dtype=np.float32)
+    disparity = np.tile(background, (3, 1))
+    disparity[:, 20:30] = 10.0
+    disparity[2, 40:45] = 9.0
+    disparity[2, 45:50] = np.nan  # the second block's right side touches no disparity
+    trimmed = disparity.copy()
+    trim_fattening(trimmed, 1.0, columns)
+    dropped = np.isnan(trimmed) & ~np.isnan(disparity)
+    expected = np.zeros_like(dropped)
+    expected[:, 20 : 20 + columns] = expected[:, 30 - columns : 30] = True
+    expected[2, 40 : 40 + columns] = True
+    np.testing.assert_array_equal(dropped, expected)
+    np.testing.assert_array_equal(trimmed[~dropped], disparity[~dropped])
+
+
+def test_the_matcher_trims_a_near_surface_at_its_depth_edge():
+    """A textured block 20 px of disparity in front of a background at 8 px: with
+    ``fattening_trim_px`` the block's last columns before the background lose their disparities,
+    and the background keeps all of its own."""
+    H, W, bg, fg = 120, 320, 8, 20
+    back, front = _textured(H, W + bg, seed=5), _textured(H, W + fg, seed=6)
+    left, right = back[:, :W].copy(), back[:, bg:].copy()
+    left[40:80, 150:200] = front[40:80, 170:220]  # the block's columns 150–199 in the left image
+    right[40:80, 130:180] = front[40:80, 170:220]
+    calib = StereoCalibration(W, H, fx=400.0, fy=400.0, cx=160.0, cy=60.0, baseline_m=0.3)
+    plain, trimmed = (
+        StereoMatcher(calib, StereoConfig(num_disparities=48, min_texture=0, fattening_trim_px=n))
+        .compute(left, right)
+        .disparity[45:75]
+        for n in (0, 2)
+    )
+    assert np.nanmedian(plain[:, 160:190]) == pytest.approx(fg, abs=0.1)
+    assert (plain[:, 198] > 14).all()  # the block reaches (nearly) to its edge at column 199 ...
+    assert not (trimmed[:, 198:] > 14).any()  # ... and is cut two columns short of it
+    np.testing.assert_array_equal(trimmed[:, 202:], plain[:, 202:])
 
 
 def test_cx_right_offset_is_applied():
