@@ -404,8 +404,8 @@ class StereoConfig:
     fattening_jump_px: float = 1.0
     """The disparity difference between neighbouring columns, pixels, that ``fattening_trim_px``
     treats as a depth edge: more than a surface's disparity steps between neighbouring columns
-    (up to 0.7 px along the simulated car's side, seen at a grazing 10°) and less than a car or a pole stands out from the
-    ground behind it (4 px for a car at 18 m with ground at 34 m behind it)."""
+    (up to 0.7 px along the simulated car's side, seen at a grazing 10°) and less than a car or a
+    pole stands out from the ground behind it (4 px for a car at 18 m with ground 34 m away)."""
     vertical_passes: int = 1
     """1: SGBM as OpenCV runs it. 2: also match the pair upside down and average the two
     disparities. OpenCV's single-pass modes (``sgbm``, ``sgbm_3way``) aggregate costs only along
