@@ -330,16 +330,16 @@ class StereoMatcher:
         """
         left_rect, right_rect = self.rectify(left, right)
         grey = to_grey(left_rect)
-        sky = None if extrinsics is None or not self.config.drop_sky else self.sky(grey, extrinsics)
+        posed = None if extrinsics is None else rectified_camera(extrinsics, self.pinhole)
+        sky = None if posed is None or not self.config.drop_sky else sky_mask(grey, self.pinhole, posed, self.config)
         first_row = 0
         if sky is not None:
             all_sky = sky.all(axis=1)
             rows_of_sky = len(sky) if all_sky.all() else int(all_sky.argmin())
             first_row = max(0, rows_of_sky - max(self.config.block_size, self.config.texture_window))
         last_row = None  # the second pass's rows: those that see ground beyond vertical_passes_min_range_m
-        if extrinsics is not None and self.config.vertical_passes == 2 and self.config.vertical_passes_min_range_m > 0:
-            last_row = len(_beyond(self.pinhole, rectified_camera(extrinsics, self.pinhole),
-                                   self.config.vertical_passes_min_range_m))
+        if posed is not None and self.config.vertical_passes == 2 and self.config.vertical_passes_min_range_m > 0:
+            last_row = len(_beyond(self.pinhole, posed, self.config.vertical_passes_min_range_m))
         result = StereoResult(self.match(grey, right_rect, first_row, last_row), left_rect, self.pinhole, grey)
         if sky is not None:
             result.disparity[sky] = np.nan
