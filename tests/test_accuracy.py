@@ -208,6 +208,27 @@ def test_late_confirmations_id_switches_and_false_obstacles_are_counted(tiny_log
     assert report["methods"]["terrainmap"]["0-10"]["false_obstacles_per_frame"] == 0
 
 
+def test_the_track_that_carries_an_obstacle_into_range_keeps_the_credit(tiny_log, monkeypatch):
+    """The pedestrian (18.3, 17.9, 17.5 m away) comes within an 18 m range in frame 1. Its track
+    (id 0 here, 0.3 m off its centre) carries it from frame 0; in frame 1 a second track sits on its
+    centre. The credit stays with the first track: no id switch when the second one is gone."""
+    import dataclasses
+
+    oracle = _oracle(tiny_log, Config())
+
+    def duplicated(frame, cfg, state):
+        result = oracle(frame, cfg, state)
+        pedestrian = next(o for o in result.obstacles if o.height_m == pytest.approx(1.8, abs=0.05))
+        carried = dataclasses.replace(pedestrian, center_m=pedestrian.center_m + [0.3, 0, 0], track_id=0)
+        fragment = [dataclasses.replace(pedestrian, track_id=99)] if frame.index == 1 else []
+        return dataclasses.replace(result, obstacles=[carried, *fragment])
+
+    monkeypatch.setattr(acc, "process_frame", duplicated)
+    report = acc.evaluate(tiny_log, Config(), methods=["terrainmap"], obstacle_range_m=18.0)
+    assert report["obstacles"]["frames_to_confirmation"]["2 pedestrian"] == 0  # eligible and matched in frame 1
+    assert report["obstacles"]["id_switches"]["2 pedestrian"] == 0
+
+
 def test_report_schema_on_a_simulated_log(tiny_log):
     report = acc.evaluate(tiny_log, Config(), methods=["terrainmap", "ransac_plane"], max_frames=2)
     json.dumps(report)  # JSON-able

@@ -36,8 +36,10 @@ layers, point labels and tracked obstacles) and every other method of
 
 ``obstacles`` (extra key) holds, per truth obstacle, ``frames_to_confirmation`` (frames from
 first being eligible to first being matched, None if never) and ``id_switches``: how often the
-track credited with it changed between frames where it was matched (:func:`credited_track`: an
-obstacle seen as two tracked clusters does not switch while the credited one keeps matching);
+track credited with it changed between frames where it was eligible and matched
+(:func:`credited_track`: an obstacle seen as two tracked clusters does not switch while the
+credited one keeps matching; the credit follows the obstacle from its first match in view, beyond
+``obstacle_range_m`` too, so the track that brings it into range keeps it there);
 and ``false_on_steep_ground_per_frame``: the false positive obstacles within
 ``obstacle_range_m`` whose footprint covers true terrain steeper than ``cost.max_slope_deg``
 (berms, walls: ground the vehicle cannot drive on, which the paper counts out of the
@@ -175,23 +177,30 @@ class _Evaluation:
         tracks = [o for o in confirmed if o.kind == "positive"]
         positive = np.array([o.center_m[:2] for o in tracks]).reshape(-1, 2)
         x_max, y_min = grid.x_min_m + grid.length_m, grid.y_center_m - grid.width_m / 2
-        eligible = [t for t in gt.obstacles if t.height_m >= opt["obstacle_min_height_m"]
-                    and t.pixels >= opt["min_visible_pixels"] and t.range_m <= opt["obstacle_range_m"]
-                    and grid.x_min_m <= t.center_m[0] < x_max and y_min <= t.center_m[1] < y_min + grid.width_m]
-        inside = [t.contains_xy(positive, opt["obstacle_margin_m"]) for t in eligible]
-        matched = np.array([hits.any() for hits in inside], bool)
-        for t, hits in zip(eligible, inside):
-            key = f"{t.id} {t.kind}"
-            self.first_eligible.setdefault(key, self.frames)
+        in_view = [t for t in gt.obstacles if t.height_m >= opt["obstacle_min_height_m"]
+                   and t.pixels >= opt["min_visible_pixels"]
+                   and grid.x_min_m <= t.center_m[0] < x_max and y_min <= t.center_m[1] < y_min + grid.width_m]
+        eligible, matched = [], []
+        for t in in_view:
+            key, hits = f"{t.id} {t.kind}", t.contains_xy(positive, opt["obstacle_margin_m"])
+            is_eligible = t.range_m <= opt["obstacle_range_m"]
+            if is_eligible:
+                eligible.append(t)
+                matched.append(hits.any())
+                self.first_eligible.setdefault(key, self.frames)
             if hits.any():
-                self.first_matched.setdefault(key, self.frames)
+                # The credit follows the obstacle from its first match in view, in range or not, so
+                # that the track that has carried it since beyond the range keeps it within range.
                 matching = np.flatnonzero(hits)
                 previous = self.last_track.get(key)
                 track = credited_track(
                     previous, [tracks[i].track_id for i in matching], np.hypot(*(positive[matching] - t.center_m[:2]).T)
                 )
-                self.id_switches[key] += previous not in (None, track)
+                if is_eligible:
+                    self.first_matched.setdefault(key, self.frames)
+                    self.id_switches[key] += previous not in (None, track)
                 self.last_track[key] = track
+        matched = np.array(matched, bool)
         false = [o for o in confirmed if self._is_false(o, gt, truth_frame)]
         false_range = [float(np.hypot(*o.center_m[:2])) for o in false]
         self.scores["terrainmap"].add_obstacles([t.range_m for t in eligible], matched, false_range)
