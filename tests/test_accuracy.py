@@ -182,6 +182,7 @@ def test_a_pipeline_equal_to_the_truth_scores_perfectly(tiny_log, monkeypatch):
     assert report["methods"]["terrainmap"]["all"]["obstacle_recall"] == 1
     assert all(v == 0 for v in report["obstacles"]["frames_to_confirmation"].values())
     assert all(v == 0 for v in report["obstacles"]["id_switches"].values())
+    assert all(v == 0 for v in report["obstacles"]["duplicate_frames"].values())
 
 
 def test_late_confirmations_id_switches_and_false_obstacles_are_counted(tiny_log, monkeypatch):
@@ -211,7 +212,8 @@ def test_late_confirmations_id_switches_and_false_obstacles_are_counted(tiny_log
 def test_the_track_that_carries_an_obstacle_into_range_keeps_the_credit(tiny_log, monkeypatch):
     """The pedestrian (18.3, 17.9, 17.5 m away) comes within an 18 m range in frame 1. Its track
     (id 0 here, 0.3 m off its centre) carries it from frame 0; in frame 1 a second track sits on its
-    centre. The credit stays with the first track: no id switch when the second one is gone."""
+    centre. The credit stays with the first track: no id switch when the second one is gone; the
+    frame with both is counted as a frame with two tracks."""
     import dataclasses
 
     oracle = _oracle(tiny_log, Config())
@@ -227,6 +229,7 @@ def test_the_track_that_carries_an_obstacle_into_range_keeps_the_credit(tiny_log
     report = acc.evaluate(tiny_log, Config(), methods=["terrainmap"], obstacle_range_m=18.0)
     assert report["obstacles"]["frames_to_confirmation"]["2 pedestrian"] == 0  # eligible and matched in frame 1
     assert report["obstacles"]["id_switches"]["2 pedestrian"] == 0
+    assert report["obstacles"]["duplicate_frames"]["2 pedestrian"] == 1
 
 
 def test_report_schema_on_a_simulated_log(tiny_log):
@@ -297,10 +300,11 @@ def test_table_lists_each_true_obstacle():
 
     report = {"log": "x.mcap", "frames": 3, "methods": {}, "obstacles": {
         "min_height_m": 0.5, "range_m": 20.0,
-        "frames_to_confirmation": {"1 pedestrian": 2, "3 pole": None}, "id_switches": {"1 pedestrian": 1}}}
+        "frames_to_confirmation": {"1 pedestrian": 2, "3 pole": None}, "id_switches": {"1 pedestrian": 1},
+        "duplicate_frames": {"1 pedestrian": 3}}}
     lines = format_table(report).splitlines()
-    assert lines[-2].split() == ["1", "pedestrian", "2", "1"]
-    assert lines[-1].split() == ["3", "pole", "never", "—"]
+    assert lines[-2].split() == ["1", "pedestrian", "2", "1", "3"]
+    assert lines[-1].split() == ["3", "pole", "never", "—", "—"]
 
 
 def test_cli_prints_the_table_and_writes_json_and_plot(tiny_log, tmp_path):

@@ -40,6 +40,8 @@ track credited with it changed between frames where it was eligible and matched
 (:func:`credited_track`: an obstacle seen as two tracked clusters does not switch while the
 credited one keeps matching; the credit follows the obstacle from its first match in view, beyond
 ``obstacle_range_m`` too, so the track that brings it into range keeps it there);
+``duplicate_frames``: the frames where it was eligible and matched by more than one track (one
+obstacle reported twice);
 and ``false_on_steep_ground_per_frame``: the false positive obstacles within
 ``obstacle_range_m`` whose footprint covers true terrain steeper than ``cost.max_slope_deg``
 (berms, walls: ground the vehicle cannot drive on, which the paper counts out of the
@@ -131,6 +133,7 @@ class _Evaluation:
         self.first_matched: dict[str, int] = {}
         self.last_track: dict[str, int] = {}
         self.id_switches: Counter = Counter()
+        self.duplicate_frames: Counter = Counter()
         self.false_on_steep_ground = 0
         self.frames = 0
 
@@ -199,6 +202,7 @@ class _Evaluation:
                 if is_eligible:
                     self.first_matched.setdefault(key, self.frames)
                     self.id_switches[key] += previous not in (None, track)
+                    self.duplicate_frames[key] += matching.size > 1
                 self.last_track[key] = track
         matched = np.array(matched, bool)
         false = [o for o in confirmed if self._is_false(o, gt, truth_frame)]
@@ -231,6 +235,7 @@ class _Evaluation:
                 "range_m": self.options["obstacle_range_m"], "min_visible_pixels": self.options["min_visible_pixels"],
                 "frames_to_confirmation": confirmation,
                 "id_switches": {k: self.id_switches[k] for k in sorted(self.first_matched)},
+                "duplicate_frames": {k: self.duplicate_frames[k] for k in sorted(self.first_matched)},
                 "false_on_steep_ground_per_frame": self.false_on_steep_ground / self.frames if self.frames else None,
             },
             "rmse_vs_range": {

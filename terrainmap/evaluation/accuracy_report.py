@@ -44,16 +44,19 @@ def format_table(report: dict) -> str:
 
 
 def _obstacle_lines(obstacles: dict | None) -> list[str]:
-    """Per true obstacle: frames from first eligible to first confirmed, and track id switches."""
+    """Per true obstacle: frames from first eligible to first confirmed, track id switches and
+    frames matched by more than one track."""
     if not obstacles or not obstacles.get("frames_to_confirmation"):
         return []
     confirm, switches = obstacles["frames_to_confirmation"], obstacles["id_switches"]
+    duplicates = obstacles.get("duplicate_frames", {})
     width = max(len(key) for key in confirm)
     lines = ["", f"true obstacles ≥ {obstacles['min_height_m']} m within {obstacles['range_m']} m "
              "against terrainmap's confirmed tracks",
-             f"{'obstacle':<{width}} {'frames to confirm':>18} {'id switches':>12}"]
+             f"{'obstacle':<{width}} {'frames to confirm':>18} {'id switches':>12} {'frames with 2+ tracks':>22}"]
     for key, frames in confirm.items():
-        lines.append(f"{key:<{width}} {'never' if frames is None else frames:>18} {switches.get(key, '—'):>12}")
+        lines.append(f"{key:<{width}} {'never' if frames is None else frames:>18} {switches.get(key, '—'):>12} "
+                     f"{duplicates.get(key, '—'):>22}")
     steep = obstacles.get("false_on_steep_ground_per_frame")
     if steep is not None:
         lines.append(f"false obstacles per frame within {obstacles['range_m']} m standing on ground steeper than "
