@@ -37,7 +37,8 @@ def _numbers(*, positive: bool = True, whole: bool = False, count: int | None = 
 
 @click.group("eval")
 def eval_group() -> None:
-    """Evaluate terrain estimation: the paper's Fig. 6, robustness, accuracy vs ground truth."""
+    """Evaluate terrain estimation: the paper's Fig. 6, robustness, accuracy vs ground truth,
+    stereo disparity vs ground truth."""
 
 
 @eval_group.command("artificial-obstacle")
@@ -134,6 +135,8 @@ def robustness(noise_m, outlier_fraction, outlier_max_m, empty_fraction, seeds, 
                f"single unweighted fit RMSE {100 * r['single_fit_rmse_m']:.2f} cm ({r['ratio']:.1f}× worse)")
 
 
-from .eval_accuracy import accuracy  # noqa: E402 (the command lives in its own module)
+from .eval_accuracy import accuracy  # noqa: E402 (the commands live in their own modules)
+from .eval_stereo import stereo  # noqa: E402
 
 eval_group.add_command(accuracy)
+eval_group.add_command(stereo)
