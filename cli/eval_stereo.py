@@ -1,4 +1,4 @@
-"""``terrainmap eval stereo``: the stereo front end's disparities against ground-truth disparity."""
+"""``terrainmap eval stereo``: the stereo front end's disparities against ground truth."""
 
 from __future__ import annotations
 
@@ -13,24 +13,25 @@ from .options import config_options, output_file, refuse_overwriting_inputs, wri
 
 
 @click.command("stereo")
-@click.argument("folder", type=click.Path(exists=True, path_type=Path))
+@click.argument("path", type=click.Path(exists=True, path_type=Path))
 @click.option("--calibration", type=click.Path(exists=True, dir_okay=False, path_type=Path),
               help="Calibration file to use instead of the folder's own.")
 @click.option("--max-frames", type=click.IntRange(min=1), default=None, help="Score at most this many pairs.")
 @click.option("--json", "json_path", type=click.Path(dir_okay=False), callback=output_file(),
               help="Write the report as JSON.")
 @config_options
-def stereo(folder, calibration, max_frames, json_path, config_path, overrides):
+def stereo(path, calibration, max_frames, json_path, config_path, overrides):
     """Score terrainmap's disparities (SGBM and its filters, as `process` runs them) against the
-    ground-truth disparity of a KITTI stereo folder (disp_occ_0/) or Middlebury scenes
-    (disp0GT.pfm): coverage, median and mean error, bias, shares over 1 and 3 px and KITTI's D1,
-    by band of true depth. Definitions in terrainmap.evaluation.disparity.
+    ground truth of PATH: a KITTI stereo folder (disp_occ_0/), Middlebury scenes (disp0GT.pfm)
+    or a log written by `terrainmap simulate` (its depth truth). Coverage, median and mean
+    error, bias, shares over 1 and 3 px and KITTI's D1, by band of true depth; definitions in
+    terrainmap.evaluation.disparity.
     """
     from terrainmap.evaluation.disparity import evaluate_disparity, format_table
 
-    refuse_overwriting_inputs({"--json": json_path}, [folder, calibration, config_path])
+    refuse_overwriting_inputs({"--json": json_path}, [path, calibration, config_path])
     config = load_config(config_path, overrides)
-    report = evaluate_disparity(folder, config, max_frames=max_frames, calibration=calibration)
+    report = evaluate_disparity(path, config, max_frames=max_frames, calibration=calibration)
     click.echo(format_table(report))
     if json_path:
         write_text(json_path, json.dumps(report, indent=2) + "\n")

@@ -1,4 +1,4 @@
-"""``terrainmap eval stereo``: disparities against ground-truth disparity (KITTI, Middlebury)."""
+"""``terrainmap eval stereo``: disparities against ground truth (KITTI, Middlebury, simulated logs)."""
 
 import json
 
@@ -154,15 +154,28 @@ def test_a_middlebury_scene_gives_the_same_figures(tmp_path, rendered, kitti_fol
     assert middlebury["median_abs_error_px"] == pytest.approx(kitti["median_abs_error_px"], abs=0.02)
 
 
+def test_a_simulated_log_is_scored_from_its_depth_truth(tiny_mcap):
+    report = ev.evaluate_disparity(tiny_mcap, Config())
+    assert report["pairs"] == 2 and report["pairs_without_truth"] == 0
+    every = report["bands"]["all"]
+    assert every["truth_pixels"] > 0.5 * 2 * 160 * 120 and every["coverage"] > 0.5
+    assert every["median_abs_error_px"] < 0.5
+
+
 def test_folders_and_logs_without_ground_truth_are_named(tmp_path, kitti_folder, tiny_mcap):
     import shutil
 
+    from test_accuracy import _strip_truth
+
     bare = tmp_path / "bare"
     shutil.copytree(kitti_folder, bare, ignore=shutil.ignore_patterns("disp_occ_0"))
-    with pytest.raises(InputError, match=r"bare: no ground-truth disparity found \(KITTI: disp_occ_0/"):
+    with pytest.raises(InputError, match=r"bare: no ground-truth disparity found \(KITTI: disp_occ_0/.*"
+                                         r"or a log written by terrainmap simulate: no ground truth"):
         ev.evaluate_disparity(bare, Config())
-    with pytest.raises(InputError, match=r"read from KITTI stereo and Middlebury folders, not from a"):
-        ev.evaluate_disparity(tiny_mcap, Config())
+    plain = tmp_path / "plain.mcap"
+    _strip_truth(tiny_mcap, plain)
+    with pytest.raises(InputError, match=r"plain\.mcap: no ground-truth disparity found .*missing topics"):
+        ev.evaluate_disparity(plain, Config())
 
 
 @pytest.fixture(scope="module")
@@ -170,7 +183,7 @@ def tiny_mcap(tmp_path_factory):
     from terrainmap.sim import SimConfig, simulate
 
     path = tmp_path_factory.mktemp("sim") / "drive.mcap"
-    simulate(path, SimConfig(scene="flat", frames=1, seed=1, width=160, height=120))
+    simulate(path, SimConfig(scene="flat", frames=2, seed=1, width=160, height=120))
     return path
 
 

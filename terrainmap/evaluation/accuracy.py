@@ -59,16 +59,16 @@ from __future__ import annotations
 import logging
 import time
 from collections import Counter, defaultdict
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 
 from ..config import Config
-from ..errors import ConfigError, FrameError, InputError
+from ..errors import ConfigError, FrameError
 from ..grid import cell_index
 from ..pipeline import PipelineState, process_frame
-from ..sim.truth import TruthFrame, open_truth
+from ..sim.truth import TruthFrame, open_truth, truth_at
 from ..sources import open_source
 from ..stereo import rig_camera
 from ..types import FrameResult, Label
@@ -101,16 +101,6 @@ def select_methods(methods: list[str] | None) -> list[str]:
     if not methods:
         raise ConfigError(f"--methods: no method given; available: {', '.join(available)}")
     return list(dict.fromkeys(methods))
-
-
-def _truth_for(frames: Iterator[TruthFrame], stamp_ns: int, log: Path) -> TruthFrame:
-    """Advance the (stamp-ordered) truth frames to the one of ``stamp_ns``."""
-    for truth_frame in frames:
-        if truth_frame.stamp_ns == stamp_ns:
-            return truth_frame
-        if truth_frame.stamp_ns > stamp_ns:
-            break
-    raise InputError(f"{log}: no ground truth for the stereo frame at stamp {stamp_ns}")
 
 
 def credited_track(previous: int | None, ids: list[int], distances: np.ndarray) -> int:
@@ -316,7 +306,7 @@ def evaluate(
         state = PipelineState(config)
         truth_frames = truth.frames()
         for done, frame in enumerate(source.frames(max_frames=max_frames), 1):
-            truth_frame = _truth_for(truth_frames, frame.stamp_ns, log_path)
+            truth_frame = truth_at(truth_frames, frame.stamp_ns, log_path)
             t0 = time.perf_counter()
             try:
                 result = process_frame(frame, config, state)

@@ -1,4 +1,4 @@
-"""Stereo disparity against ground-truth disparity maps: KITTI stereo and Middlebury folders.
+"""Stereo disparity against ground truth: KITTI stereo and Middlebury folders, simulated logs.
 
     from terrainmap.config import Config
     from terrainmap.evaluation.disparity import evaluate_disparity
@@ -15,6 +15,8 @@ ground-truth disparity, and compares the disparities pixel by pixel:
   disparity = value / 256, 0 = unknown. Only the ``_10`` pairs have one.
 - Middlebury: ``disp0GT.pfm`` (MiddEval3), else ``disp0.pfm`` (2014 scenes), in the scene
   folder; ``inf`` = unknown.
+- A log written by ``terrainmap simulate`` (MCAP or folder): ``f·B / depth − doffs`` from its
+  per-pixel depth truth; the sky has none.
 
 Pairs without a ground-truth file are skipped (``pairs_without_truth``); pairs the front end
 cannot match are counted by reason (``failed_frames``). Metrics over the pixels with a true
@@ -35,6 +37,8 @@ from __future__ import annotations
 
 import logging
 from collections import Counter
+from collections.abc import Callable
+from contextlib import ExitStack
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -44,7 +48,9 @@ import numpy as np
 from ..config import Config
 from ..errors import FrameError, InputError
 from ..pipeline import PipelineState, match_frame
+from ..sim.truth import open_truth, truth_at
 from ..sources import open_source
+from ..types import StereoFrame
 from .scores import BANDS, Histogram, _ratio
 
 logger = logging.getLogger(__name__)
@@ -156,29 +162,25 @@ def score_disparity(
 def evaluate_disparity(
     path: str | Path, config: Config, *, max_frames: int | None = None, calibration: str | Path | None = None
 ) -> dict:
-    """Score terrainmap's disparities against a folder's ground truth (module docstring).
+    """Score terrainmap's disparities against the ground truth of ``path`` (module docstring):
+    a KITTI stereo or Middlebury folder, or a log written by ``terrainmap simulate``.
 
     Returns ``{"path", "pairs", "pairs_without_truth", "failed_frames", "bands": {band: {metric:
-    value or None}}}``. Raises :class:`InputError` when the path is not a folder layout with
-    ground-truth disparity (the message says which files are looked for) or a file cannot be
-    read, and :class:`ConfigError` for a bad config.
+    value or None}}}``. Raises :class:`InputError` when the path holds no ground-truth disparity
+    (the message says what is looked for) or a file cannot be read, and :class:`ConfigError` for
+    a bad config.
     """
     config.validate()
     stats = {name: _BandStats() for name in BANDS}
     failed: Counter = Counter()
     scored = without_truth = 0
-    with open_source(path, calibration=calibration) as source:
-        pairs = getattr(source, "pairs", None)
-        if pairs is None:
-            raise InputError(f"{path}: ground-truth disparity is read from KITTI stereo and Middlebury folders, "
-                             f"not from a {source.format} log")
-        truths = [truth_file(pair.left) for pair in pairs]
-        if not any(truths):
-            raise InputError(f"{path}: no ground-truth disparity found (KITTI: disp_occ_0/ or disp_noc_0/ beside "
-                             f"image_2/, named like its images; Middlebury: disp0GT.pfm or disp0.pfm beside im0.png)")
+    with ExitStack() as stack:
+        source = stack.enter_context(open_source(path, calibration=calibration))
+        truth_for = _truth_reader(Path(path), source, stack)
         state = PipelineState(config)
         for frame in source.frames(max_frames=max_frames):
-            if truths[frame.index] is None:
+            truth = truth_for(frame)
+            if truth is None:
                 without_truth += 1
                 continue
             if not frame.calibration.rectified:
@@ -190,12 +192,37 @@ def evaluate_disparity(
                 failed[exc.reason] += 1
                 logger.info("pair %d failed: %s", frame.index, exc)
                 continue
-            truth = read_truth(truths[frame.index], frame.left.shape[:2])
             pinhole = matched.stereo.pinhole
             score_disparity(stats, matched.stereo.disparity, truth, pinhole.fx * pinhole.baseline_m, pinhole.doffs)
             scored += 1
     return {"path": str(path), "pairs": scored, "pairs_without_truth": without_truth, "failed_frames": dict(failed),
             "bands": {name: s.summary() for name, s in stats.items()}}
+
+
+def _truth_reader(path: Path, source, stack: ExitStack) -> Callable[[StereoFrame], np.ndarray | None]:
+    """frame → its H×W ground-truth disparity (NaN unknown), or None where it has none: from the
+    files beside a KITTI or Middlebury folder's images, else from a simulated log's depth truth."""
+    pairs = getattr(source, "pairs", [])
+    files = [truth_file(pair.left) for pair in pairs]
+    if any(files):
+        return lambda frame: None if files[frame.index] is None else read_truth(files[frame.index], frame.left.shape[:2])
+    try:
+        truth = stack.enter_context(open_truth(path))
+    except InputError as exc:
+        raise InputError(f"{path}: no ground-truth disparity found (KITTI: disp_occ_0/ or disp_noc_0/ beside "
+                         "image_2/, named like its images; Middlebury: disp0GT.pfm or disp0.pfm beside im0.png; "
+                         f"or a log written by terrainmap simulate: {str(exc).removeprefix(f'{path}: ')})") from None
+    frames = truth.frames()
+
+    def simulated(frame: StereoFrame) -> np.ndarray:
+        depth = truth_at(frames, frame.stamp_ns, path).depth  # along the optical axis, inf: sky
+        calib = frame.calibration
+        with np.errstate(divide="ignore"):
+            disparity = (calib.fx * calib.baseline_m / depth - calib.doffs).astype(np.float32)
+        disparity[~(disparity > 0)] = np.nan  # the sky
+        return disparity
+
+    return simulated
 
 
 def format_table(report: dict) -> str:

@@ -94,6 +94,17 @@ class Truth:
         return None
 
 
+def truth_at(frames: Iterator[TruthFrame], stamp_ns: int, log: Path) -> TruthFrame:
+    """Advance the (stamp-ordered) truth ``frames`` of ``log`` to the one of ``stamp_ns``, or
+    :class:`InputError` when it has none."""
+    for truth_frame in frames:
+        if truth_frame.stamp_ns == stamp_ns:
+            return truth_frame
+        if truth_frame.stamp_ns > stamp_ns:
+            break
+    raise InputError(f"{log}: no ground truth for the stereo frame at stamp {stamp_ns}")
+
+
 def open_truth(path: str | Path) -> Truth:
     """Open the truth of a log written by ``terrainmap simulate`` (an .mcap file or a folder).
 
