@@ -109,6 +109,8 @@ def _read_pfm(path: Path) -> np.ndarray:
 
 @dataclass
 class _BandStats:
+    """Counts, sums and |Δd| / Δd histograms of one depth band, over every pair so far."""
+
     truth: int = 0
     matched: int = 0
     total_abs: float = 0.0
