@@ -84,11 +84,16 @@ def read_truth(path: Path, shape: tuple[int, int]) -> np.ndarray:
         if raw is None or raw.dtype != np.uint16 or raw.ndim != 2:
             raise InputError(f"{path}: not a 16-bit single-channel PNG (KITTI disparity × 256)")
         disparity = raw.astype(np.float32) / 256
-        disparity[raw == 0] = np.nan
     if disparity.shape != tuple(shape):
         raise InputError(f"{path}: ground truth is {disparity.shape[1]}×{disparity.shape[0]}, "
                          f"the left image {shape[1]}×{shape[0]}")
-    disparity[~np.isfinite(disparity) | (disparity <= 0)] = np.nan
+    return _unknown_as_nan(disparity)
+
+
+def _unknown_as_nan(disparity: np.ndarray) -> np.ndarray:
+    """``disparity`` with every value that is not finite and positive (KITTI's 0, Middlebury's
+    inf, the sky's f·B / inf) set to NaN, in place."""
+    disparity[~(np.isfinite(disparity) & (disparity > 0))] = np.nan
     return disparity
 
 
@@ -220,9 +225,7 @@ def _truth_reader(path: Path, source, stack: ExitStack) -> Callable[[StereoFrame
         depth = truth_at(frames, frame.stamp_ns, path).depth  # along the optical axis, inf: sky
         calib = frame.calibration
         with np.errstate(divide="ignore"):
-            disparity = (calib.fx * calib.baseline_m / depth - calib.doffs).astype(np.float32)
-        disparity[~(disparity > 0)] = np.nan  # the sky
-        return disparity
+            return _unknown_as_nan((calib.fx * calib.baseline_m / depth - calib.doffs).astype(np.float32))
 
     return simulated
 
