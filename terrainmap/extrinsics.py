@@ -15,7 +15,7 @@ camera's right side** (rotation about +x, forward).
 
 On KITTI 2015 pair 000005 the fit gives height 1.62 m, pitch −0.45° (optical axis slightly above
 the road plane), roll +1.87° (camera's right side lower than its left relative to the road) on
-the ground-truth points, and 1.63 m, −0.39°, +2.16° on SGBM points. The data README quotes
+the ground-truth points, and 1.62 m, −0.45°, +2.15° on SGBM points. The data README quotes
 "pitch ≈ 0.5°, roll ≈ −1.9°": the same magnitudes with both signs flipped, i.e. the road plane's
 tilt as seen from the camera rather than the camera's tilt relative to the road.
 

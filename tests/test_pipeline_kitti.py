@@ -58,6 +58,6 @@ def test_road_ahead_is_terrain_with_slope_under_5_degrees(kitti):
 def test_parked_cars_are_obstacles(kitti):
     _, result, gt, pixels = kitti
     cars = (gt[:, 2] > 0.5) & (gt[:, 2] < 1.6) & (np.abs(gt[:, 1]) > 2.0) & (np.abs(gt[:, 1]) < 6) & (gt[:, 0] < 20)
-    assert np.mean(_labels_at(result, pixels[cars]) == Label.OBSTACLE) > 0.65  # 0.684 measured (2026-11-26)
+    assert np.mean(_labels_at(result, pixels[cars]) == Label.OBSTACLE) > 0.65  # 0.676 measured (2026-11-26)
     big = [o for o in result.obstacles if o.kind == "positive" and o.height_m > 0.8 and o.range_m < 20]
     assert len(big) >= 3  # the van ahead and parked cars on both kerbs
