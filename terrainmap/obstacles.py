@@ -108,22 +108,27 @@ def extract_obstacles(
     return result
 
 
-def terrain_at(points_xy: np.ndarray, elevation: np.ndarray, grid_config: GridConfig) -> np.ndarray:
-    """Terrain height (m) under (x, y) points, bilinear between cell-centre values, (N,) float64.
+def terrain_at(x: np.ndarray, y: np.ndarray, elevation: np.ndarray, grid_config: GridConfig) -> np.ndarray:
+    """Terrain height (m) under the points ``(x, y)`` ((N,) each, vehicle frame, m), bilinear
+    between cell-centre values, (N,) float64.
 
     Exact where the terrain is a plane; points beyond the outermost cell centres take the
     nearest value along that axis.
     """
     m0, m1 = elevation.shape
     c = grid_config.cell_size_m
-    fx = np.clip((points_xy[:, 0] - grid_config.x_min_m) / c - 0.5, 0, m0 - 1)
-    fy = np.clip((points_xy[:, 1] - grid_config.y_min_m) / c - 0.5, 0, m1 - 1)
+    fx = np.clip((x - grid_config.x_min_m) / c - 0.5, 0, m0 - 1)
+    fy = np.clip((y - grid_config.y_min_m) / c - 0.5, 0, m1 - 1)
     ix = np.minimum(fx.astype(np.intp), max(m0 - 2, 0))
     iy = np.minimum(fy.astype(np.intp), max(m1 - 2, 0))
     tx, ty = fx - ix, fy - iy
-    ix1, iy1 = np.minimum(ix + 1, m0 - 1), np.minimum(iy + 1, m1 - 1)
-    top = elevation[ix, iy] * (1 - ty) + elevation[ix, iy1] * ty
-    bottom = elevation[ix1, iy] * (1 - ty) + elevation[ix1, iy1] * ty
+    # Flat indices into the grid with its last row and column repeated once more (so that a grid
+    # one cell wide needs no special case): 3× faster than indexing the 2-D array with (ix, iy).
+    flat = np.pad(np.asarray(elevation, np.float64), ((0, 1), (0, 1)), mode="edge").ravel()
+    i00 = ix * (m1 + 1) + iy
+    top = flat.take(i00) * (1 - ty) + flat.take(i00 + 1) * ty
+    i00 += m1 + 1
+    bottom = flat.take(i00) * (1 - ty) + flat.take(i00 + 1) * ty
     return top * (1 - tx) + bottom * tx
 
 
@@ -143,28 +148,36 @@ def _clusters(
     half their points in steep cells."""
     m0, m1 = grid_config.shape
     idx = cell_index(points, grid_config)
-    inside = idx < m0 * m1
-    points, idx = points[inside].astype(np.float64), idx[inside]
-    if len(points) == 0:
+    if not (idx < m0 * m1).any():
         return []
     cells, n = ndimage.label(cells_holding(idx, (m0, m1), config.min_cell_points), structure=_EIGHT)
     if n == 0:
         return []
-    cid = cells.ravel()[idx] - 1  # cluster of each point, -1 where its cell has too few points
-    keep = cid >= 0
-    points, cid, idx = points[keep], cid[keep], idx[keep]
+    # Cluster of each point (-1: outside the area, or its cell has too few points); from here on
+    # the points of clusters only, as contiguous float64 rows x, y, z (numpy runs 2–3× faster on
+    # them than on the columns of an N×3 array).
+    cid = np.append(cells.ravel(), 0)[idx] - 1
+    keep = np.flatnonzero(cid >= 0)
+    cid, idx = cid[keep], idx[keep]
+    x, y, z = np.array(points[keep].T, np.float64)
     per_cell = np.ones(m0 * m1) if cell_counts is None else np.asarray(cell_counts, float).ravel()
     ncells, in_cells = (np.bincount(cells.ravel(), w, n + 1)[1:] for w in (None, per_cell))
     if config.split_gap_fraction > 0:
-        cut, split = _split_at_gaps(points, cid, n, grid_config.cell_size_m, config)
+        cut, split = _split_at_gaps(x, y, cid, n, grid_config.cell_size_m, config)
         if split > n:  # the parts of a cut cluster may share cells: count each part's from its points
-            kept = cut >= 0
-            points, cid, idx, n = points[kept], cut[kept], idx[kept], split
-            part_cell = np.unique(cid * (m0 * m1) + idx)
+            recount = np.zeros(split, bool)  # the cut clusters (their first part keeps the id) and the new parts
+            recount[cid[cut != cid]] = recount[n:] = True
+            kept = np.flatnonzero(cut >= 0)
+            x, y, z, cid, idx = x[kept], y[kept], z[kept], cut[kept], idx[kept]
+            redo = recount[cid]
+            part_cell = np.unique(cid[redo] * (m0 * m1) + idx[redo])
             part, cell = part_cell // (m0 * m1), part_cell % (m0 * m1)
-            ncells, in_cells = (np.bincount(part, w, n) for w in (None, per_cell[cell]))
-    x, y, z = points[:, 0], points[:, 1], points[:, 2]
-    height = z - terrain_at(points, elevation, grid_config)
+            ncells, in_cells = (
+                np.where(recount, np.bincount(part, w, split), np.append(old, np.zeros(split - n, old.dtype)))
+                for w, old in ((None, ncells), (per_cell[cell], in_cells))
+            )
+            n = split
+    height = z - terrain_at(x, y, elevation, grid_config)
     if kind == "negative":
         height = -height
 
@@ -188,7 +201,7 @@ def _clusters(
     (uc, u_half), (vc, v_half) = (_robust_extent(w, cid, k, npts) for w in (u, v))
     cos, sin = np.cos(yaw), np.sin(yaw)
     cx, cy = uc * cos - vc * sin, uc * sin + vc * cos
-    ground = terrain_at(np.column_stack([cx, cy]), elevation, grid_config)
+    ground = terrain_at(cx, cy, elevation, grid_config)
     if kind == "positive":
         z_lo, z_hi = ground, np.maximum(_reduce(np.maximum, z, cid, k, -np.inf), ground)
     else:
@@ -209,7 +222,7 @@ def _clusters(
 
 
 def _split_at_gaps(
-    points: np.ndarray, cid: np.ndarray, n: int, bin_m: float, config: ObstacleConfig
+    x: np.ndarray, y: np.ndarray, cid: np.ndarray, n: int, bin_m: float, config: ObstacleConfig
 ) -> tuple[np.ndarray, int]:
     """Split clusters at least ``split_min_length_m`` long where their points thin out along the
     major axis, and drop the thin stretches.
@@ -226,7 +239,7 @@ def _split_at_gaps(
     (``n`` when nothing was cut).
     """
     npts = np.bincount(cid, minlength=n)
-    _, u, _ = _principal_axes(points[:, 0], points[:, 1], cid, npts)
+    _, u, _ = _principal_axes(x, y, cid, npts)
     lo = _reduce(np.minimum, u, cid, n, np.inf)
     hi = _reduce(np.maximum, u, cid, n, -np.inf)
     cid = cid.copy()

@@ -165,7 +165,7 @@ def test_terrain_at_is_exact_on_a_plane():
     elevation = plane.on_grid(
         GRID.x_min_m + (np.arange(68) + 0.5) * 0.5, GRID.y_min_m + (np.arange(44) + 0.5) * 0.5
     )
-    got = terrain_at(np.column_stack([xs, ys]), elevation, GRID)
+    got = terrain_at(xs, ys, elevation, GRID)
     np.testing.assert_allclose(got, plane.evaluate(xs, ys), atol=1e-9)
 
 
