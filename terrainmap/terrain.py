@@ -47,7 +47,7 @@ Decisions where the paper's text is garbled or silent, each with the property it
    sample moved more than ``epsilon_m`` or when the net grows to the final one — as in the
    pseudo-code, where the loop ends as ``δn`` reaches ``n_max``, so no iteration fits the final
    net before the last fit (until 2026-11-26 one did: a 25×25 fit more per frame, 20 % of the
-   estimation's time, for a slope error 0.1–0.2° larger on the simulated drives); then one last
+   estimation's time, for a median slope error 0.07–0.20° larger on the simulated drives); then one last
    fit on the final net with the last W, R (remapped onto it) and P gives the surface. A net
    that starts final (``start_control_points`` ≥ the final net) is fitted once plain, then last.
 7. **Stereo noise on slopes.** Eq. 1 with the grid's noise discount (:mod:`terrainmap.grid`)

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from obstacle_scenes import GRID, Plane, box_points, labelled, terrain_points
 
-from terrainmap.config import ConfigError, ObstacleConfig
+from terrainmap.config import ConfigError, GridConfig, ObstacleConfig
 from terrainmap.errors import InputError
 from terrainmap.obstacles import extract_obstacles, terrain_at
 from terrainmap.types import Label
@@ -167,6 +167,14 @@ def test_terrain_at_is_exact_on_a_plane():
     )
     got = terrain_at(xs, ys, elevation, GRID)
     np.testing.assert_allclose(got, plane.evaluate(xs, ys), atol=1e-9)
+
+
+def test_terrain_at_on_a_grid_one_cell_long():
+    """One row of cells: linear along y between the cell centres, constant along x and beyond the ends."""
+    grid = GridConfig(x_min_m=2.0, length_m=0.5, y_center_m=0.0, width_m=2.0, cell_size_m=0.5)  # 1 × 4 cells
+    elevation = np.array([[0.0, 1.0, 3.0, 4.0]])  # centres at y = -0.75, -0.25, 0.25, 0.75
+    got = terrain_at(np.array([1.0, 2.25, 9.0, 2.25, 2.25]), np.array([-0.5, 0.0, 0.25, -5.0, 5.0]), elevation, grid)
+    np.testing.assert_allclose(got, [0.5, 2.0, 3.0, 0.0, 4.0])
 
 
 @pytest.mark.parametrize(
