@@ -15,16 +15,24 @@ from .options import config_options, output_file, refuse_overwriting_inputs, wri
 @click.option("--runs", type=click.IntRange(1, 10_000), default=30, show_default=True, help="Timed runs per stage.")
 @click.option("--json", "json_path", type=click.Path(dir_okay=False), callback=output_file(),
               help="Write {stage: {median_ms, ...}} here.")
+@click.option("--log", "log_path", type=click.Path(exists=True),
+              help="Time the stages on the first stereo pair of this log or folder instead of synthetic input.")
 @config_options
-def bench(runs: int, json_path: str | None, config_path: str | None, overrides: tuple[str, ...]) -> None:
-    """Time each pipeline stage at the paper configuration on synthetic input."""
+def bench(
+    runs: int, json_path: str | None, log_path: str | None, config_path: str | None, overrides: tuple[str, ...]
+) -> None:
+    """Time each pipeline stage at the paper configuration on synthetic input (or on a log's first pair)."""
     from terrainmap import bench as lib
 
-    refuse_overwriting_inputs({"--json": json_path}, [config_path])
+    refuse_overwriting_inputs({"--json": json_path}, [config_path, log_path])
     config = load_config(config_path, overrides)
     env = lib.environment()
     click.echo("machine: " + ", ".join(f"{k}={v}" for k, v in env.items()))
-    results = lib.run(config, runs=runs)
+    frame = None
+    if log_path:
+        frame = lib.first_frame(log_path)
+        click.echo(f"input: the first stereo pair of {log_path}, {frame.left.shape[1]}×{frame.left.shape[0]}")
+    results = lib.run(config, runs=runs, stages=lib.all_stages(config, frame))
     click.echo(f"{'stage':<14}{'median ms':>10}{'min ms':>10}{'max ms':>10}{'runs':>6}")
     for name, r in results.items():
         click.echo(f"{name:<14}{r['median_ms']:10.2f}{r['min_ms']:10.2f}{r['max_ms']:10.2f}{r['runs']:6d}")

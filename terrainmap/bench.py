@@ -20,6 +20,10 @@ speed goals. The inputs are synthetic so the figures are comparable anywhere:
 - ``upright``: the upright-surface cue on that frame (:mod:`terrainmap.upright`; in
   ``frame_total`` too).
 - ``mcap_write``: writing that frame's result to a Foxglove MCAP (lz4), the default output.
+
+With a log of one's own (:func:`first_frame`, ``terrainmap bench --log PATH``), :func:`all_stages`
+times the same stages on its first stereo pair instead: the frame stages on its images, the core
+stages on that pair's points as the pipeline makes them, seen from its rig.
 """
 
 from __future__ import annotations
@@ -47,8 +51,12 @@ def _summary(times: list[float]) -> dict[str, float]:
     }
 
 
-def core_stages(config: Config, n_points: int = 300_000) -> dict[str, Stage]:
-    """Stage name → zero-argument callable, for the terrain core on a synthetic cloud."""
+def core_stages(
+    config: Config, n_points: int = 300_000, *, points: np.ndarray | None = None, camera=None
+) -> dict[str, Stage]:
+    """Stage name → zero-argument callable, for the terrain core on a synthetic cloud of
+    ``n_points``, or on ``points`` ((N, 3), vehicle frame, m) seen by ``camera`` (a
+    :class:`~terrainmap.types.StereoCamera`)."""
     from .grid import cell_index, quantize
     from .obstacle_stage import make_tracker, run_obstacle_stage
     from .pipeline import map_points, map_surface
@@ -56,8 +64,9 @@ def core_stages(config: Config, n_points: int = 300_000) -> dict[str, Stage]:
     from .synthetic import cloud
     from .types import StereoCamera
 
-    points = cloud(n_points, grid=config.grid)
-    camera = StereoCamera(np.array([0.0, 0.0, 1.8]), np.array([1.0, 0.0, 0.0]), 150.0)  # the cloud's viewpoint
+    if points is None:
+        points = cloud(n_points, grid=config.grid)
+        camera = StereoCamera(np.array([0.0, 0.0, 1.8]), np.array([1.0, 0.0, 0.0]), 150.0)  # the cloud's viewpoint
     result = map_points(points, config, camera=camera)
     grid = quantize(points, config.grid, camera=camera)  # the surface stage's input
     terrain, _, limits = map_surface(grid, config, camera)
@@ -96,9 +105,39 @@ def sim_frame(scene: str = "mounds", seed: int = 7, width: int = 640, height: in
     return StereoFrame(0, rendered.stamp_ns, rendered.left, rendered.right, rig.calibration(), rig.extrinsics())
 
 
-def frame_stages(config: Config) -> dict[str, Stage]:
+def first_frame(path) -> object:
+    """The first stereo pair of a log or folder (anything ``terrainmap process`` reads), as a
+    :class:`~terrainmap.types.StereoFrame`; :class:`~terrainmap.errors.InputError` if it has none."""
+    from .errors import InputError
+    from .sources import open_source
+
+    with open_source(path) as source:
+        for frame in source.frames():
+            return frame
+    raise InputError(f"{path}: holds no stereo pair to time")
+
+
+def all_stages(config: Config, frame=None) -> dict[str, Stage]:
+    """Every stage: the core on the synthetic cloud and the frame stages on the simulated pair, or,
+    given ``frame`` (a :class:`~terrainmap.types.StereoFrame`), all of them on that pair.
+    :class:`~terrainmap.errors.InputError` if the pipeline finds no terrain in ``frame``."""
+    if frame is None:
+        return {**core_stages(config), **frame_stages(config)}
+    from .errors import FrameError, InputError
+    from .pipeline import PipelineState, process_frame
+    from .stereo import rig_camera
+
+    try:
+        result = process_frame(frame, config, PipelineState(config))
+    except FrameError as exc:
+        raise InputError(f"cannot time the first stereo pair: {exc}") from exc
+    camera = rig_camera(result.pinhole, result.extrinsics)
+    return {**core_stages(config, points=result.points_vehicle, camera=camera), **frame_stages(config, frame)}
+
+
+def frame_stages(config: Config, frame=None) -> dict[str, Stage]:
     """``sgbm_alone``, ``frame_total``, ``frame_every_row``, ``upright`` and ``mcap_write`` on a
-    simulated 640×480 pair."""
+    simulated 640×480 pair, or on ``frame``."""
     import tempfile
 
     from .grid import cell_index
@@ -107,7 +146,7 @@ def frame_stages(config: Config) -> dict[str, Stage]:
     from .stereo import to_grey
     from .upright import label_upright
 
-    frame = sim_frame()
+    frame = frame or sim_frame()
     state = PipelineState(config)
     result = process_frame(frame, config, state)
     every_row = copy.deepcopy(config)  # a frame with no rows of only sky: SGBM matches them all
@@ -171,7 +210,7 @@ def run(config: Config | None = None, *, runs: int = 30, stages: dict[str, Stage
     alike and ratios such as ``frame_total / sgbm_alone`` compare like with like.
     """
     config = config or Config()
-    stages = stages if stages is not None else {**core_stages(config), **frame_stages(config)}
+    stages = stages if stages is not None else all_stages(config)
     times: dict[str, list[float]] = {name: [] for name in stages}
     for round_ in range(warmup + runs):
         for name, fn in stages.items():

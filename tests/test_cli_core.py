@@ -104,6 +104,29 @@ def test_bench_reports_every_stage(tmp_path):
         assert 0 < stages[name]["min_ms"] <= stages[name]["median_ms"] <= stages[name]["max_ms"]
 
 
+def test_bench_times_the_first_pair_of_a_log(tmp_path):
+    from terrainmap.sim import SimConfig, simulate
+
+    log = tmp_path / "sim.mcap"
+    simulate(log, SimConfig(scene="flat", frames=2, seed=1, width=320, height=240, focal_px=250.0))
+    result = CliRunner().invoke(cli, ["bench", "--log", str(log), "--runs", "1", "--json", str(tmp_path / "b.json")])
+    assert result.exit_code == 0, result.output
+    assert f"input: the first stereo pair of {log}, 320×240" in result.output
+    stages = json.loads((tmp_path / "b.json").read_text())
+    assert {"grid", "surface", "labels", "obstacles", "sgbm_alone", "frame_total", "upright", "mcap_write"} <= set(stages)
+
+
+def test_bench_refuses_a_log_without_stereo(tmp_path, capsys):
+    from terrainmap.cli.main import main
+
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(SystemExit) as exc:
+        main(["bench", "--log", str(tmp_path / "empty")])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"Error: {tmp_path / 'empty'}: not a known stereo source")
+
+
 def test_bench_stages_take_turns_and_goals_follow_the_medians():
     from terrainmap import bench
 
