@@ -34,10 +34,14 @@ import platform
 import statistics
 import time
 from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from .config import Config
+
+if TYPE_CHECKING:
+    from .types import StereoCamera, StereoFrame
 
 Stage = Callable[[], object]
 
@@ -52,7 +56,7 @@ def _summary(times: list[float]) -> dict[str, float]:
 
 
 def core_stages(
-    config: Config, n_points: int = 300_000, *, points: np.ndarray | None = None, camera=None
+    config: Config, n_points: int = 300_000, *, points: np.ndarray | None = None, camera: StereoCamera | None = None
 ) -> dict[str, Stage]:
     """Stage name → zero-argument callable, for the terrain core on a synthetic cloud of
     ``n_points``, or on ``points`` ((N, 3), vehicle frame, m) seen by ``camera`` (a
@@ -105,7 +109,7 @@ def sim_frame(scene: str = "mounds", seed: int = 7, width: int = 640, height: in
     return StereoFrame(0, rendered.stamp_ns, rendered.left, rendered.right, rig.calibration(), rig.extrinsics())
 
 
-def first_frame(path) -> object:
+def first_frame(path) -> StereoFrame:
     """The first stereo pair of a log or folder (anything ``terrainmap process`` reads), as a
     :class:`~terrainmap.types.StereoFrame`; :class:`~terrainmap.errors.InputError` if it has none."""
     from .errors import InputError
@@ -117,7 +121,7 @@ def first_frame(path) -> object:
     raise InputError(f"{path}: holds no stereo pair to time")
 
 
-def all_stages(config: Config, frame=None) -> dict[str, Stage]:
+def all_stages(config: Config, frame: StereoFrame | None = None) -> dict[str, Stage]:
     """Every stage: the core on the synthetic cloud and the frame stages on the simulated pair, or,
     given ``frame`` (a :class:`~terrainmap.types.StereoFrame`), all of them on that pair.
     :class:`~terrainmap.errors.InputError` if the pipeline finds no terrain in ``frame``."""
@@ -135,7 +139,7 @@ def all_stages(config: Config, frame=None) -> dict[str, Stage]:
     return {**core_stages(config, points=result.points_vehicle, camera=camera), **frame_stages(config, frame)}
 
 
-def frame_stages(config: Config, frame=None) -> dict[str, Stage]:
+def frame_stages(config: Config, frame: StereoFrame | None = None) -> dict[str, Stage]:
     """``sgbm_alone``, ``frame_total``, ``frame_every_row``, ``upright`` and ``mcap_write`` on a
     simulated 640×480 pair, or on ``frame``."""
     import tempfile
@@ -146,7 +150,7 @@ def frame_stages(config: Config, frame=None) -> dict[str, Stage]:
     from .stereo import to_grey
     from .upright import label_upright
 
-    frame = frame or sim_frame()
+    frame = frame if frame is not None else sim_frame()
     state = PipelineState(config)
     result = process_frame(frame, config, state)
     every_row = copy.deepcopy(config)  # a frame with no rows of only sky: SGBM matches them all
