@@ -47,9 +47,10 @@ Decisions where the paper's text is garbled or silent, each with the property it
    sample moved more than ``epsilon_m`` or when the net grows to the final one — as in the
    pseudo-code, where the loop ends as ``δn`` reaches ``n_max``, so no iteration fits the final
    net before the last fit (until 2026-11-26 one did: a 25×25 fit more per frame, 20 % of the
-   estimation's time, for a median slope error 0.07–0.20° larger on the simulated drives); then one last
-   fit on the final net with the last W, R (remapped onto it) and P gives the surface. A net
-   that starts final (``start_control_points`` ≥ the final net) is fitted once plain, then last.
+   estimation's time, for a median slope error 0.07–0.20° larger on the simulated drives); then
+   one last fit on the final net with the last W, R (remapped onto it) and P gives the surface.
+   A net that starts final (``start_control_points`` ≥ the final net) is fitted once plain, then
+   last.
 7. **Stereo noise on slopes.** Eq. 1 with the grid's noise discount (:mod:`terrainmap.grid`)
    needs the terrain's slope, which only the fit knows: a disparity error moves a point on ground
    that slopes towards the camera several times more in height than on level ground, so the
@@ -222,12 +223,12 @@ def estimate_terrain(grid: HeightGrid, config: TerrainConfig) -> TerrainEstimate
             converged = n != final
             break
         n = tuple(min(max(k + 1, round(k * config.control_point_growth)), top) for k, top in zip(n, final))
+        if n == final:  # the pseudo-code's loop ends as δn reaches n_max: the final fit is the only one on it
+            break
         fit = fitter_for(gcfg, *n, config.degree)
         R = _control_weights(fit, base * W, config.control_weight_min)
-        if n == final:  # the pseudo-code's loop ends as δn reaches n_max: the final fit is the one at n_max
-            break
     fit = fitter_for(gcfg, *final, config.degree)
-    if R.shape != final:
+    if R.shape != final:  # R of the last iteration's net, remapped onto the final one
         R = _control_weights(fit, base * W, config.control_weight_min)
     Q = fit.fit(P, base * W, R, config.smoothness)
     if not np.all(np.isfinite(Q)):
