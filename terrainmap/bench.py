@@ -85,7 +85,7 @@ def core_stages(
 
     def obstacles_stage():
         run_obstacle_stage(points, result.point_labels, result.grid, result.layers, next(stamp), tracker, config,
-                           camera=camera)
+                           camera=camera, index=index)
 
     return {
         "grid": lambda: quantize(points, config.grid, camera=camera),

@@ -33,6 +33,7 @@ def run_obstacle_stage(
     *,
     vehicle_pose: np.ndarray | None = None,
     camera: StereoCamera | None = None,
+    index: np.ndarray | None = None,
 ) -> tuple[list[Obstacle], np.ndarray]:
     """Obstacles of this frame (tracked) and the cost layer.
 
@@ -55,6 +56,8 @@ def run_obstacle_stage(
         ``world_from_vehicle`` from odometry; tracks then live in the world frame.
     camera : StereoCamera, optional
         The stereo rig of the points: the tracker then knows how a detection's depth jitters.
+    index : (N,) int array, optional
+        The points' :func:`~terrainmap.grid.cell_index`, reused from the grid stage.
 
     Returns
     -------
@@ -67,7 +70,7 @@ def run_obstacle_stage(
     steep = layers["slope"] >= np.radians(config.cost.max_slope_deg) if config.obstacles.drop_on_steep_ground else None
     detections = extract_obstacles(
         points_vehicle, point_labels, grid.config, None, config.obstacles, elevation=elevation,
-        cell_counts=grid.count, steep=steep,
+        cell_counts=grid.count, steep=steep, index=index,
     )
     obstacles = tracker.update(detections, stamp_ns, vehicle_pose, camera)
     relief_cells = grid.observed & (layers["label"] != Label.OBSTACLE)

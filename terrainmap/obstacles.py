@@ -30,7 +30,7 @@ from scipy import ndimage
 
 from .config import GridConfig, ObstacleConfig
 from .errors import InputError
-from .grid import as_points, cell_centers, cell_index, check_shapes
+from .grid import PerBin, as_points, cell_centers, cell_index, check_shapes
 from .segmentation import cells_holding
 from .types import Label, Obstacle
 
@@ -47,6 +47,7 @@ def extract_obstacles(
     elevation: np.ndarray | None = None,
     cell_counts: np.ndarray | None = None,
     steep: np.ndarray | None = None,
+    index: np.ndarray | None = None,
 ) -> list[Obstacle]:
     """Cluster above/below-terrain points into positive and negative obstacles.
 
@@ -73,6 +74,8 @@ def extract_obstacles(
         Cells whose terrain is too steep to drive (the cost's ``max_slope_deg``): positive
         clusters lower than ``config.tall_height_m`` with more than half their points in such
         cells are dropped (``ObstacleConfig.drop_on_steep_ground``).
+    index : (N,) int array, optional
+        :func:`~terrainmap.grid.cell_index` of the points, reused from the grid stage.
 
     Returns
     -------
@@ -95,15 +98,18 @@ def extract_obstacles(
             raise InputError("obstacles: give the terrain as elevation (or a surface)")
         elevation = surface.on_grid(*cell_centers(grid_config))
     check_shapes("obstacles", grid_config.shape, elevation=elevation, cell_counts=cell_counts, steep=steep)
+    check_shapes("obstacles", point_labels.shape, index=index)
     kinds = [(Label.OBSTACLE, "positive", config.min_height_m)]
     if config.negative:
         kinds.append((Label.BELOW, "negative", config.min_depth_m))
     result: list[Obstacle] = []
     for label, kind, min_height in kinds:
-        selected = points_vehicle[np.flatnonzero(point_labels == label)]  # 10× faster than a mask
+        selected = np.flatnonzero(point_labels == label)  # 10× faster than a mask
+        idx = cell_index(points_vehicle[selected], grid_config) if index is None else index[selected]
         counts, on_steep = (cell_counts, steep) if kind == "positive" else (None, None)
         result += _clusters(
-            selected, grid_config, np.asarray(elevation, float), config, kind, min_height, counts, on_steep
+            points_vehicle, selected, idx, grid_config, np.asarray(elevation, float), config, kind, min_height,
+            counts, on_steep,
         )
     return result
 
@@ -134,6 +140,8 @@ def terrain_at(x: np.ndarray, y: np.ndarray, elevation: np.ndarray, grid_config:
 
 def _clusters(
     points: np.ndarray,
+    selected: np.ndarray,
+    idx: np.ndarray,
     grid_config: GridConfig,
     elevation: np.ndarray,
     config: ObstacleConfig,
@@ -142,12 +150,12 @@ def _clusters(
     cell_counts: np.ndarray | None = None,
     steep: np.ndarray | None = None,
 ) -> list[Obstacle]:
-    """Obstacles of one kind from the points of that kind (see the module docstring); with
+    """Obstacles of one kind from the points ``points[selected]`` of that kind, in cells ``idx``
+    (:func:`~terrainmap.grid.cell_index`), see the module docstring; with
     ``cell_counts`` (all points per cell), tall clusters must hold ``config.tall_min_share`` of
     the points in their cells; with ``steep`` (bool per cell), low clusters must hold at most
     half their points in steep cells."""
     m0, m1 = grid_config.shape
-    idx = cell_index(points, grid_config)
     if not (idx < m0 * m1).any():
         return []
     cells, n = ndimage.label(cells_holding(idx, (m0, m1), config.min_cell_points), structure=_EIGHT)
@@ -158,7 +166,7 @@ def _clusters(
     cid = np.append(cells.ravel(), 0)[idx] - 1
     keep = np.flatnonzero(cid >= 0)
     cid, idx = cid[keep], idx[keep]
-    x, y, z = np.array(points[keep].T, np.float64)
+    x, y, z = np.array(points[selected[keep]].T, np.float64)
     per_cell = np.ones(m0 * m1) if cell_counts is None else np.asarray(cell_counts, float).ravel()
     ncells, in_cells = (np.bincount(cells.ravel(), w, n + 1)[1:] for w in (None, per_cell))
     if config.split_gap_fraction > 0:
@@ -180,13 +188,14 @@ def _clusters(
     if kind == "negative":
         height = -height
 
-    npts = np.bincount(cid, minlength=n)
-    top = _reduce(np.maximum, height, cid, n, -np.inf)
+    per = PerBin(cid, n)
+    npts = per.sum()
+    top = per.reduce(np.maximum, height)
     ok = (npts >= config.min_points) & (ncells >= config.min_cells) & (top >= min_height)
     if cell_counts is not None:  # tall objects hide the ground behind them (ObstacleConfig.tall_height_m)
         ok &= (top < config.tall_height_m) | (npts >= config.tall_min_share * in_cells)
     if steep is not None:  # low relief on ground the cost already forbids (drop_on_steep_ground)
-        on_steep = np.bincount(cid, np.asarray(steep, float).ravel()[idx], n)
+        on_steep = per.sum(np.asarray(steep, float).ravel()[idx])
         ok &= (top >= config.tall_height_m) | (2 * on_steep <= npts)
     if not ok.any():
         return []
@@ -196,17 +205,18 @@ def _clusters(
     x, y, z, cid = x[sel], y[sel], z[sel], new_id[cid[sel]]
     k, npts, top = int(ok.sum()), npts[ok], top[ok]
 
-    yaw, u, v = _principal_axes(x, y, cid, npts)
-    (uc, u_half), (vc, v_half) = (_robust_extent(w, cid, k, npts) for w in (u, v))
+    per = PerBin(cid, k)
+    yaw, u, v = _principal_axes(x, y, cid, per, npts)
+    (uc, u_half), (vc, v_half) = (_robust_extent(w, per, npts) for w in (u, v))
     cos, sin = np.cos(yaw), np.sin(yaw)
     cx, cy = uc * cos - vc * sin, uc * sin + vc * cos
     ground = terrain_at(cx, cy, elevation, grid_config)
     if kind == "positive":
-        z_lo, z_hi = ground, np.maximum(_reduce(np.maximum, z, cid, k, -np.inf), ground)
+        z_lo, z_hi = ground, np.maximum(per.reduce(np.maximum, z), ground)
     else:
-        z_lo = np.minimum(_reduce(np.minimum, z, cid, k, np.inf), ground)
+        z_lo = np.minimum(per.reduce(np.minimum, z), ground)
         z_hi = ground
-    rng = np.sqrt(_reduce(np.minimum, x * x + y * y + z * z, cid, k, np.inf))
+    rng = np.sqrt(per.reduce(np.minimum, x * x + y * y + z * z))
 
     order = np.argsort(rng, kind="stable")
     centers = np.column_stack([cx, cy, (z_lo + z_hi) / 2])[order]
@@ -237,14 +247,20 @@ def _split_at_gaps(
     Returns the cluster of each point (−1: dropped; a new array) and the number of clusters
     (``n`` when nothing was cut).
     """
-    npts = np.bincount(cid, minlength=n)
-    _, u, _ = _principal_axes(x, y, cid, npts)
-    lo = _reduce(np.minimum, u, cid, n, np.inf)
-    hi = _reduce(np.maximum, u, cid, n, -np.inf)
+    per = PerBin(cid, n)
+    npts = per.sum()
+    _, u, _ = _principal_axes(x, y, cid, per, npts, minor=False)
+    long = np.flatnonzero(per.reduce(np.maximum, u) - per.reduce(np.minimum, u) >= config.split_min_length_m)
+    if not long.size:
+        return cid.copy(), n
+    is_long = np.zeros(n, bool)
+    is_long[long] = True
+    in_long = np.flatnonzero(is_long[cid])  # the long clusters' points, cluster by cluster:
+    in_long = in_long[np.argsort(cid[in_long], kind="stable")]
     cid = cid.copy()
-    for c in np.flatnonzero(hi - lo >= config.split_min_length_m):
-        members = np.flatnonzero(cid == c)
-        bins = ((u[members] - lo[c]) / bin_m).astype(np.intp)
+    for c, members in zip(long, np.split(in_long, np.cumsum(npts[long])[:-1]), strict=True):
+        lo = u[members].min()
+        bins = ((u[members] - lo) / bin_m).astype(np.intp)
         counts = np.bincount(bins)
         peak = np.minimum(np.maximum.accumulate(counts), np.maximum.accumulate(counts[::-1])[::-1])
         dense = counts > config.split_gap_fraction * peak  # an end bin is its own peak: never a gap
@@ -260,34 +276,26 @@ def _split_at_gaps(
     return cid, n
 
 
-def _robust_extent(w: np.ndarray, cid: np.ndarray, k: int, npts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _robust_extent(w: np.ndarray, per: PerBin, npts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per-cluster centre and half-size along one axis, of the interval [mean − 2σ, mean + 2σ]
     cut to the points' extent. Compact objects keep their full extent (2σ of a uniform spread
     exceeds half its length); the sparse tails that stereo depth error smears out behind and in
     front of an obstacle at range are cut off instead of stretching its box."""
-    mean = np.bincount(cid, w, k) / npts
-    sigma = np.sqrt(np.maximum(np.bincount(cid, w * w, k) / npts - mean * mean, 0.0))
-    lo = np.maximum(_reduce(np.minimum, w, cid, k, np.inf), mean - 2 * sigma)
-    hi = np.minimum(_reduce(np.maximum, w, cid, k, -np.inf), mean + 2 * sigma)
+    mean = per.sum(w) / npts
+    sigma = np.sqrt(np.maximum(per.sum(w * w) / npts - mean * mean, 0.0))
+    lo = np.maximum(per.reduce(np.minimum, w), mean - 2 * sigma)
+    hi = np.minimum(per.reduce(np.maximum, w), mean + 2 * sigma)
     return (lo + hi) / 2, (hi - lo) / 2
 
 
-def _reduce(ufunc: np.ufunc, values: np.ndarray, cid: np.ndarray, n: int, identity: float) -> np.ndarray:
-    """Per-cluster ``ufunc`` reduction (np.minimum / np.maximum) of ``values``, (n,)."""
-    out = np.full(n, identity)
-    ufunc.at(out, cid, values)
-    return out
-
-
-def _principal_axes(x: np.ndarray, y: np.ndarray, cid: np.ndarray, npts: np.ndarray):
-    """Per-cluster major-axis angle (k,) and every point's coordinates (u, v) along the axes."""
-    k = len(npts)
-    mx = np.bincount(cid, x, k) / npts
-    my = np.bincount(cid, y, k) / npts
-    dx, dy = x - mx[cid], y - my[cid]
-    sxx = np.bincount(cid, dx * dx, k)
-    syy = np.bincount(cid, dy * dy, k)
-    sxy = np.bincount(cid, dx * dy, k)
+def _principal_axes(x: np.ndarray, y: np.ndarray, cid: np.ndarray, per: PerBin, npts: np.ndarray, minor: bool = True):
+    """Per-cluster major-axis angle (k,) and every point's coordinates (u, v) along the axes
+    (``cid``: each point's cluster, ``per`` its :class:`PerBin`, ``npts`` the points per cluster;
+    v is None unless ``minor``)."""
+    mx, my = per.sum(x) / npts, per.sum(y) / npts
+    sxx = per.sum(x * x) - npts * mx * mx  # float64 sums of coordinates within ~50 m: cancellation
+    syy = per.sum(y * y) - npts * my * my  # costs < 1e-10 m² against variances of 1e-4 m² and more
+    sxy = per.sum(x * y) - npts * mx * my
     yaw = 0.5 * np.arctan2(2 * sxy, sxx - syy)  # in (−π/2, π/2]; 0 for a single point
     cos, sin = np.cos(yaw)[cid], np.sin(yaw)[cid]
-    return yaw, x * cos + y * sin, -x * sin + y * cos
+    return yaw, x * cos + y * sin, (y * cos - x * sin) if minor else None

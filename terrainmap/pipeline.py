@@ -227,7 +227,7 @@ def finish_frame(frame: StereoFrame, matched: Matched, config: Config, state: Pi
     with watch("obstacles"):
         obstacles, cost = run_obstacle_stage(
             points, terrain.point_labels, terrain.grid, terrain.layers, frame.stamp_ns, state.tracker, config,
-            vehicle_pose=frame.vehicle_pose, camera=camera,
+            vehicle_pose=frame.vehicle_pose, camera=camera, index=terrain.index,
         )
     return FrameResult(
         index=frame.index,

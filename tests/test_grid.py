@@ -161,3 +161,20 @@ def test_grid_does_not_depend_on_the_order_of_the_points():
 def test_an_index_of_the_wrong_length_is_named():
     with pytest.raises(InputError, match=r"quantize: index must have shape \(3,\), got \(5,\)"):
         quantize(np.ones((3, 3)), GridConfig(), index=np.zeros(5, np.intp))
+
+
+def test_per_bin_sums_and_extremes_match_a_plain_reduction():
+    """PerBin spreads each bin over lanes (grid._LANES); folded back, its sums, minima and maxima
+    are those of one bin per index, with empty bins at 0 and ±inf."""
+    from terrainmap.grid import PerBin
+
+    rng = np.random.default_rng(3)
+    idx = np.repeat(rng.integers(0, 7, 40), rng.integers(1, 9, 40))  # runs, as a camera gives them
+    values = rng.normal(size=idx.size)
+    per = PerBin(idx, 9)  # bins 7 and 8 stay empty; 9 is not a power of two
+    np.testing.assert_array_equal(per.sum(), np.bincount(idx, minlength=9))
+    np.testing.assert_allclose(per.sum(values), np.bincount(idx, values, 9), atol=1e-12)
+    for ufunc, identity in ((np.minimum, np.inf), (np.maximum, -np.inf)):
+        expected = np.full(9, identity)
+        ufunc.at(expected, idx, values)
+        np.testing.assert_array_equal(per.reduce(ufunc, values), expected)

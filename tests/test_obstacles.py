@@ -29,6 +29,25 @@ def test_box_on_flat_ground_is_one_positive_obstacle():
     assert obstacle.range_m == pytest.approx(nearest, abs=1e-4)
 
 
+def test_reused_cell_index_gives_the_same_obstacles():
+    """The pipeline hands over the grid stage's cell index instead of computing it again."""
+    from terrainmap.grid import cell_index
+
+    plane = Plane()
+    points, labels = labelled(
+        plane, terrain_points(plane), box_points(plane, (10.0, 2.0), 1.5, 1.0, 1.2),
+        box_points(plane, (18.0, -4.0), 0.6, 0.6, 1.8),
+    )
+    plain = extract_obstacles(points, labels, GRID, plane, ObstacleConfig())
+    reused = extract_obstacles(points, labels, GRID, plane, ObstacleConfig(), index=cell_index(points, GRID))
+    assert len(plain) == len(reused) == 2
+    for a, b in zip(plain, reused, strict=True):
+        np.testing.assert_array_equal(np.r_[a.center_m, a.size_m], np.r_[b.center_m, b.size_m])
+        assert (a.yaw_rad, a.height_m, a.point_count, a.range_m) == (b.yaw_rad, b.height_m, b.point_count, b.range_m)
+    with pytest.raises(InputError, match="index"):
+        extract_obstacles(points, labels, GRID, plane, ObstacleConfig(), index=np.zeros(3, int))
+
+
 def test_rotated_box_on_tilted_plane_height_is_above_the_surface():
     plane = Plane(gx=np.tan(np.deg2rad(10)), gy=-0.05, z0=0.4)
     yaw = np.deg2rad(30)
@@ -269,6 +288,7 @@ def test_boxes_found_on_the_real_terrain_estimate():
 def test_box_ignores_a_sparse_smeared_tail():
     """Stereo smears far obstacles along the viewing ray: a few stray points behind a compact
     object must not stretch its box or pull its centre off the object."""
+    from terrainmap.grid import PerBin
     from terrainmap.obstacles import _robust_extent
 
     rng = np.random.default_rng(0)
@@ -276,9 +296,9 @@ def test_box_ignores_a_sparse_smeared_tail():
     tail = np.linspace(0.5, 6.0, 12)  # sparse smear up to 6 m behind it
     cid = np.zeros(len(compact) + len(tail), int)
     npts = np.array([len(cid)], float)
-    centre, half = _robust_extent(np.concatenate([compact, tail]), cid, 1, npts)
+    centre, half = _robust_extent(np.concatenate([compact, tail]), PerBin(cid, 1), npts)
     assert abs(centre[0]) < 0.6 and half[0] < 1.1  # the plain extent would give centre 2.75, half 3.25
-    centre, half = _robust_extent(compact, np.zeros(400, int), 1, np.array([400.0]))
+    centre, half = _robust_extent(compact, PerBin(np.zeros(400, int), 1), np.array([400.0]))
     assert half[0] == pytest.approx(0.5, abs=0.01) and abs(centre[0]) < 0.05  # compact: full extent kept
 
 
