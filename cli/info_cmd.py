@@ -65,6 +65,9 @@ def info(log: str, source_opts: SourceOptions, as_json: bool, check: bool) -> No
                     for _frame in source.frames():
                         pairs += 1
                     description["check"] = f"{counted(pairs, 'stereo pair')} read and decoded, to the end"
+                    if skipped := source.skipped():
+                        readable = False
+                        description["check"] += f", skipping {counted(len(skipped), 'damaged chunk')}: " + "; ".join(skipped)
                 except InputError as exc:
                     readable = False
                     description["check"] = f"fails after {counted(pairs, 'stereo pair')}: {_reason(exc, log)}"

@@ -14,6 +14,7 @@ from .options import (
     Failed,
     GracefulStop,
     config_options,
+    counted,
     output_file,
     refuse_overwriting_inputs,
     writable,
@@ -88,7 +89,7 @@ def process(log, output, flavor, compression, rrd, overwrite, source_opts, confi
             finally:
                 if show:
                     click.echo(err=True)
-    _report(summary, outputs)
+    _report(summary, outputs, source.skipped())
     if summary.frames_done == 0:
         raise Failed(f"no frame of {log} could be processed ({_reasons(summary)})")
 
@@ -120,11 +121,13 @@ def _reasons(summary) -> str:
     return ", ".join(f"{reason} ×{n}" for reason, n in summary.failures.most_common()) or _NOTHING_SELECTED
 
 
-def _report(summary, outputs) -> None:
+def _report(summary, outputs, skipped: list[str]) -> None:
     from terrainmap.extrinsics import describe_extrinsics
 
     failed = f", {summary.frames_failed} failed ({_reasons(summary)})" if summary.frames_failed else ""
     click.echo(f"processed {summary.frames_done} frames{failed} in {summary.wall_s:.1f} s ({summary.fps:.1f} frames/s)")
+    if skipped:
+        click.echo(f"skipped {counted(len(skipped), 'damaged chunk')} of the log, whose frames are lost: " + "; ".join(skipped))
     medians = summary.median_ms()
     if medians:
         click.echo("median ms per frame: " + ", ".join(f"{k} {v:.1f}" for k, v in medians.items()))

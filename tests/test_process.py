@@ -155,26 +155,39 @@ def test_log_cut_after_a_frame_gives_one_error_line_and_that_frame(tmp_path, cap
     assert f"damage:             {cut}: truncated or corrupt after" in captured.out and captured.err == ""
 
 
-def test_log_with_damaged_image_data_stops_there(tmp_path, capsys):
-    """Bytes changed inside a chunk (a bad disk, a broken copy) fail its CRC: the run stops at the
-    damage like a truncated log, instead of processing a frame of wrong pixels."""
+def test_a_damaged_chunk_is_skipped_and_the_run_goes_on(tmp_path, capsys, caplog):
+    """Bytes changed inside a chunk (a bad disk, a broken copy) fail its CRC: the chunk is skipped
+    with a warning naming it, never processed as a frame of wrong pixels, and the frames of the
+    other chunks are processed; the summary says what was lost."""
     from terrainmap.cli.main import main
     from terrainmap.sim import SimConfig, simulate
 
     log = tmp_path / "sim.mcap"
     simulate(log, SimConfig(scene="flat", frames=4, seed=1, width=320, height=240, focal_px=250.0))
+    with open(log, "rb") as f:
+        reader = make_reader(f)
+        summary = reader.get_summary()
+        left = next(i for i, c in summary.channels.items() if c.topic == "/stereo/left/image_rect")
+        chunks = sorted((c for c in summary.chunk_indexes if left in c.message_index_offsets),
+                        key=lambda c: c.chunk_start_offset)
+        victim = chunks[1]  # frames lie before and after it
+        stamps = [m.log_time for _, _, m in reader.iter_messages(topics=["/stereo/left/image_rect"])]
     data = bytearray(log.read_bytes())
-    middle = len(data) * 7 // 10
+    middle = victim.chunk_start_offset + victim.chunk_length // 2
     data[middle : middle + 16] = bytes(b ^ 0x5A for b in data[middle : middle + 16])
     bad = tmp_path / "bad.mcap"
     bad.write_bytes(data)
     out = tmp_path / "o.mcap"
-    with pytest.raises(SystemExit) as exc:
-        main(["process", str(bad), "-o", str(out)])
-    assert exc.value.code == 2
-    (line,) = capsys.readouterr().err.splitlines()
-    assert line.startswith(f"Error: {bad}: log is truncated or corrupt after") and "CRC" in line.upper()
-    assert 1 <= len(_grids(out)) < 4
+    main(["process", str(bad), "-o", str(out)])
+    captured = capsys.readouterr()
+    where = f"{bad}: chunk at byte {victim.chunk_start_offset}, log time "
+    (warning,) = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]  # stderr outside pytest
+    assert where in warning and "CRC" in warning.upper() and warning.endswith("damaged, skipped with its messages")
+    assert f"skipped 1 damaged chunk of the log, whose frames are lost: {where}" in captured.out
+    written = [g.timestamp.seconds * 10**9 + g.timestamp.nanos for g in _grids(out)]
+    lost = sorted(set(stamps) - set(written))  # the frames whose left image the chunk held
+    assert 1 <= len(lost) < len(stamps) and all(victim.message_start_time <= t <= victim.message_end_time for t in lost)
+    assert max(written) > victim.message_end_time  # the run went on past the damage
 
 
 def test_unusable_calibration_is_reported(shared_data, tmp_path, capsys):

@@ -115,6 +115,11 @@ class Source(ABC):
                 yield ref.load()
             in_window += 1
 
+    def skipped(self) -> list[str]:
+        """What reading has skipped so far, one line each (the damaged chunks of an indexed
+        MCAP, whose frames are lost); empty for folders."""
+        return []
+
     def close(self) -> None:
         self._closed = True
 

@@ -224,6 +224,9 @@ class LogSource(Source):
             odometry_frame_id=odometry_frame_id,
         )
 
+    def skipped(self) -> list[str]:
+        return list(self.reader.skipped)
+
     def _contents(self) -> dict:
         """What the log holds, whatever its topics: format, files, damage, topics."""
         counts = self.reader.counts

@@ -11,6 +11,7 @@ that could be read.
 
 from __future__ import annotations
 
+import heapq
 import io
 import logging
 from collections.abc import Iterator
@@ -86,6 +87,8 @@ class McapFile:
         self.indexed = False
         self.damage: str | None = None
         """Why a scan of a file without a summary stopped early (None: read to the end)."""
+        self.skipped: dict[int, str] = {}
+        """Damaged chunks of an indexed file met while reading messages: byte offset → what."""
         try:
             with open(path, "rb") as stream:
                 reader = make_reader(stream)
@@ -128,17 +131,23 @@ class McapFile:
             logger.info("%s", self.damage)
 
     def messages(self, topics: list[str]) -> Iterator[tuple[str, int, Any]]:
-        """(topic, log_time_ns, decoded message) of ``topics`` in log-time order."""
-        from mcap.reader import NonSeekingReader, SeekingReader
+        """(topic, log_time_ns, decoded message) of ``topics`` in log-time order.
+
+        Chunk CRCs are checked (0.6 ms a 640×480 frame), so that damaged image data never goes
+        through as a wrong frame. In an indexed file a damaged chunk is skipped with a warning
+        (and noted in :attr:`skipped`): the messages of the other chunks are read all the same.
+        Damage that a linear read meets (a file without a summary) ends the messages there."""
+        from mcap.reader import NonSeekingReader
 
         factories, decoders = _decoder_factories(), {}
         count = 0
         try:
             with open(self.path, "rb") as stream:
-                # Chunk CRCs checked (0.6 ms a 640×480 frame): damaged image data stops the run
-                # like a truncated log instead of going through as a wrong frame.
-                reader = (SeekingReader if self.indexed else NonSeekingReader)(stream, validate_crcs=True)
-                for schema, channel, message in reader.iter_messages(topics=topics, log_time_order=self.indexed):
+                if self.indexed:
+                    records = self._indexed_messages(stream, set(topics))
+                else:
+                    records = NonSeekingReader(stream, validate_crcs=True).iter_messages(topics=topics, log_time_order=False)
+                for schema, channel, message in records:
                     if channel.id not in decoders:
                         decoders[channel.id] = self._decoder(factories, channel, schema)
                     if decoders[channel.id] is None:
@@ -151,6 +160,42 @@ class McapFile:
             raise InputError(
                 f"{self.path}: log is truncated or corrupt after {count} messages of {', '.join(topics)} ({_reason(exc)})"
             ) from exc
+
+    def _indexed_messages(self, stream, topics: set[str]) -> Iterator[tuple[Any, Any, Any]]:
+        """(schema, channel, message) of ``topics`` from the chunks of an indexed file, merged in
+        log-time order as ``SeekingReader.iter_messages`` does, skipping chunks that fail to read."""
+        from mcap.data_stream import ReadDataStream
+        from mcap.reader import SeekingReader, breakup_chunk
+        from mcap.records import Chunk, Message
+
+        summary = SeekingReader(stream, validate_crcs=True).get_summary()
+        wanted = {cid for cid, channel in summary.channels.items() if channel.topic in topics}
+        # A heap of chunks (keyed by their first message's time) and of the messages of the chunks
+        # opened so far: a chunk opens before any message at or after its start time is yielded.
+        heap = [(c.message_start_time, 0, c.chunk_start_offset, -1, c) for c in summary.chunk_indexes
+                if not c.message_index_offsets or wanted & c.message_index_offsets.keys()]
+        heapq.heapify(heap)
+        while heap:
+            *_, offset, index, item = heapq.heappop(heap)
+            if index >= 0:
+                yield item
+                continue
+            try:
+                stream.seek(offset + 1 + 8)  # past the opcode and the record length
+                records = list(breakup_chunk(Chunk.read(ReadDataStream(stream)), validate_crc=True))
+            except Exception as exc:
+                if offset not in self.skipped:
+                    self.skipped[offset] = (
+                        f"{self.path}: chunk at byte {offset}, log time {item.message_start_time / 1e9:.3f}–"
+                        f"{item.message_end_time / 1e9:.3f} s ({_reason(exc)})"
+                    )
+                    logger.warning("%s: damaged, skipped with its messages", self.skipped[offset])
+                continue
+            for i, record in enumerate(records):
+                if isinstance(record, Message) and record.channel_id in wanted:
+                    channel = summary.channels[record.channel_id]
+                    schema = summary.schemas.get(channel.schema_id)
+                    heapq.heappush(heap, (record.log_time, 1, offset, i, (schema, channel, record)))
 
     def _decoder(self, factories, channel, schema):
         """The first decoder the factories offer for ``channel`` (None if none does), or
@@ -222,6 +267,11 @@ class McapLog:
             for topic, n in f.counts.items():
                 self.counts[topic] = (self.counts.get(topic) or 0) + (n or 0)
 
+    @property
+    def skipped(self) -> list[str]:
+        """The damaged chunks skipped so far (:attr:`McapFile.skipped`), one line each."""
+        return [line for f in self.files for line in f.skipped.values()]
+
     def messages(self, topics: list[str]) -> Iterator[tuple[str, int, Any]]:
         for f in self.files:
             yield from f.messages(topics)
@@ -240,6 +290,7 @@ class Ros1Bag:
 
     format = "ros1-bag"
     damage: str | None = None  # rosbags reads the index at open and fails there on a damaged bag
+    skipped: tuple[str, ...] = ()  # and stops at damage inside: nothing is skipped
 
     def __init__(self, path: Path):
         self.path = path
@@ -288,6 +339,7 @@ class Rosbag2Bag:
 
     format = "rosbag2"
     damage: str | None = None  # rosbags reads the storage's index at open and fails there
+    skipped: tuple[str, ...] = ()
 
     def __init__(self, path: Path):
         from rosbags.rosbag2 import Reader
