@@ -103,12 +103,13 @@ def extract_obstacles(
     if config.negative:
         kinds.append((Label.BELOW, "negative", config.min_depth_m))
     result: list[Obstacle] = []
+    terrain = _Bilinear(elevation, grid_config)
     for label, kind, min_height in kinds:
         selected = np.flatnonzero(point_labels == label)  # 10× faster than a mask
         idx = cell_index(points_vehicle[selected], grid_config) if index is None else index[selected]
         counts, on_steep = (cell_counts, steep) if kind == "positive" else (None, None)
         result += _clusters(
-            points_vehicle, selected, idx, grid_config, np.asarray(elevation, float), config, kind, min_height,
+            points_vehicle, selected, idx, grid_config, terrain, config, kind, min_height,
             counts, on_steep,
         )
     return result
@@ -121,21 +122,39 @@ def terrain_at(x: np.ndarray, y: np.ndarray, elevation: np.ndarray, grid_config:
     Exact where the terrain is a plane; points beyond the outermost cell centres take the
     nearest value along that axis.
     """
-    m0, m1 = elevation.shape
-    c = grid_config.cell_size_m
-    fx = np.clip((x - grid_config.x_min_m) / c - 0.5, 0, m0 - 1)
-    fy = np.clip((y - grid_config.y_min_m) / c - 0.5, 0, m1 - 1)
-    ix = np.minimum(fx.astype(np.intp), max(m0 - 2, 0))
-    iy = np.minimum(fy.astype(np.intp), max(m1 - 2, 0))
-    tx, ty = fx - ix, fy - iy
-    # Flat indices into the grid with its last row and column repeated once more (so that a grid
-    # one cell wide needs no special case): a take is 5× faster than indexing the 2-D array.
-    flat = np.pad(np.asarray(elevation, np.float64), ((0, 1), (0, 1)), mode="edge").ravel()
-    i00 = ix * (m1 + 1) + iy
-    top = flat.take(i00) * (1 - ty) + flat.take(i00 + 1) * ty
-    i00 += m1 + 1
-    bottom = flat.take(i00) * (1 - ty) + flat.take(i00 + 1) * ty
-    return top * (1 - tx) + bottom * tx
+    return _Bilinear(elevation, grid_config)(x, y)
+
+
+class _Bilinear:
+    """:func:`terrain_at` with its per-cell table built once (for several sets of points).
+
+    Per dual cell (the rectangle between four neighbouring cell centres, or the half cell beyond
+    the outermost ones, where the edge padding makes the surface flat along that axis) the
+    bilinear interpolation is A + B·x + C·y + D·x·y: four takes and five operations a point."""
+
+    def __init__(self, elevation: np.ndarray, grid_config: GridConfig):
+        m0, m1 = np.shape(elevation)
+        c = self.cell = grid_config.cell_size_m
+        e = np.pad(np.asarray(elevation, np.float64), 1, mode="edge")
+        f00, f10, f01, f11 = e[:-1, :-1], e[1:, :-1], e[:-1, 1:], e[1:, 1:]
+        x0 = (grid_config.x_min_m + (np.arange(m0 + 1) - 0.5) * c)[:, None]  # the dual cells' corners
+        y0 = (grid_config.y_min_m + (np.arange(m1 + 1) - 0.5) * c)[None, :]
+        a, b, d = (f10 - f00) / c, (f01 - f00) / c, (f11 - f10 - f01 + f00) / (c * c)
+        self.coefficients = [
+            (f00 - a * x0 - b * y0 + d * x0 * y0).ravel(), (a - d * y0).ravel(), (b - d * x0).ravel(), d.ravel()
+        ]
+        self.shape = (m0, m1)
+        self.offset = (0.5 - grid_config.x_min_m / c, 0.5 - grid_config.y_min_m / c)
+
+    def __call__(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        (m0, m1), (ox, oy) = self.shape, self.offset
+        # Truncation sends everything below 1 to 0 (the first dual cell), as the clip would.
+        jx = np.clip((x * (1 / self.cell) + ox).astype(np.intp), 0, m0)
+        jy = np.clip((y * (1 / self.cell) + oy).astype(np.intp), 0, m1)
+        jx *= m1 + 1
+        jx += jy
+        A, B, C, D = (k.take(jx) for k in self.coefficients)
+        return A + x * (B + D * y) + C * y
 
 
 def _clusters(
@@ -143,7 +162,7 @@ def _clusters(
     selected: np.ndarray,
     idx: np.ndarray,
     grid_config: GridConfig,
-    elevation: np.ndarray,
+    terrain: _Bilinear,
     config: ObstacleConfig,
     kind: str,
     min_height: float,
@@ -151,7 +170,7 @@ def _clusters(
     steep: np.ndarray | None = None,
 ) -> list[Obstacle]:
     """Obstacles of one kind from the points ``points[selected]`` of that kind, in cells ``idx``
-    (:func:`~terrainmap.grid.cell_index`), see the module docstring; with
+    (:func:`~terrainmap.grid.cell_index`), over ``terrain`` (see the module docstring); with
     ``cell_counts`` (all points per cell), tall clusters must hold ``config.tall_min_share`` of
     the points in their cells; with ``steep`` (bool per cell), low clusters must hold at most
     half their points in steep cells."""
@@ -184,7 +203,7 @@ def _clusters(
                 for w, old in ((None, ncells), (per_cell[cell], in_cells))
             )
             n = split
-    height = z - terrain_at(x, y, elevation, grid_config)
+    height = z - terrain(x, y)
     if kind == "negative":
         height = -height
 
@@ -210,7 +229,7 @@ def _clusters(
     (uc, u_half), (vc, v_half) = (_robust_extent(w, per, npts) for w in (u, v))
     cos, sin = np.cos(yaw), np.sin(yaw)
     cx, cy = uc * cos - vc * sin, uc * sin + vc * cos
-    ground = terrain_at(cx, cy, elevation, grid_config)
+    ground = terrain(cx, cy)
     if kind == "positive":
         z_lo, z_hi = ground, np.maximum(per.reduce(np.maximum, z), ground)
     else:

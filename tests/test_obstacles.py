@@ -188,6 +188,20 @@ def test_terrain_at_is_exact_on_a_plane():
     np.testing.assert_allclose(got, plane.evaluate(xs, ys), atol=1e-9)
 
 
+def test_terrain_at_is_bilinear_between_cell_centres_and_clamped_beyond():
+    """Against scipy's bilinear interpolation over the cell centres, the points clamped to them."""
+    from scipy.interpolate import RegularGridInterpolator
+
+    rng = np.random.default_rng(5)
+    elevation = rng.normal(size=GRID.shape)
+    cx = GRID.x_min_m + (np.arange(GRID.shape[0]) + 0.5) * GRID.cell_size_m
+    cy = GRID.y_min_m + (np.arange(GRID.shape[1]) + 0.5) * GRID.cell_size_m
+    xs = rng.uniform(GRID.x_min_m - 2, cx[-1] + 2, 2000)  # inside, in the outer half cells and beyond
+    ys = rng.uniform(GRID.y_min_m - 2, cy[-1] + 2, 2000)
+    expected = RegularGridInterpolator((cx, cy), elevation)(np.column_stack([np.clip(xs, cx[0], cx[-1]), np.clip(ys, cy[0], cy[-1])]))
+    np.testing.assert_allclose(terrain_at(xs, ys, elevation, GRID), expected, atol=1e-9)
+
+
 def test_terrain_at_on_a_grid_one_cell_long():
     """One row of cells: linear along y between the cell centres, constant along x and beyond the ends."""
     grid = GridConfig(x_min_m=2.0, length_m=0.5, y_center_m=0.0, width_m=2.0, cell_size_m=0.5)  # 1 × 4 cells
