@@ -3,10 +3,11 @@ a rosbag2 directory of them), and through ``rosbags`` the rosbag2 directories th
 cannot read (sqlite3 storage, zstd-compressed files or messages) and ROS 1 bags.
 
 A reader knows its files (``paths``), its topics (``types``: topic → message type, ``counts``:
-topic → number of messages) and ``damage`` (why reading stopped early, or None),
-and streams decoded messages of chosen topics in log-time order, one file at a time. Read errors
-(truncated or corrupt files) become :class:`InputError` naming the file, raised after the messages
-that could be read.
+topic → number of messages), ``damage`` (why reading stopped early, or None) and ``skipped`` (the
+damaged chunks of indexed MCAP files passed over so far, one line each), and streams decoded
+messages of chosen topics in log-time order, one file at a time. Other read errors (truncated or
+corrupt files) become :class:`InputError` naming the file, raised after the messages that could
+be read.
 """
 
 from __future__ import annotations
