@@ -331,7 +331,7 @@ class StereoMatcher:
         left_rect, right_rect = self.rectify(left, right)
         grey = to_grey(left_rect)
         posed = None if extrinsics is None else rectified_camera(extrinsics, self.pinhole)
-        sky = None if posed is None or not self.config.drop_sky else sky_mask(grey, self.pinhole, posed, self.config)
+        sky = None if posed is None or not self.config.drop_sky else self.sky(grey, extrinsics)
         first_row = 0
         if sky is not None:
             all_sky = sky.all(axis=1)

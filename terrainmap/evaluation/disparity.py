@@ -51,7 +51,7 @@ from ..pipeline import PipelineState, match_frame
 from ..sim.truth import open_truth, truth_at
 from ..sources import open_source
 from ..types import StereoFrame
-from .scores import BANDS, Histogram, _ratio
+from .scores import BANDS, Histogram, ratio
 
 logger = logging.getLogger(__name__)
 
@@ -143,13 +143,13 @@ class _BandStats:
         median_signed = self.signed_hist.quantile(0.5)
         return {
             "truth_pixels": self.truth,
-            "coverage": _ratio(self.matched, self.truth),
+            "coverage": ratio(self.matched, self.truth),
             "median_abs_error_px": self.abs_hist.quantile(0.5),
-            "mean_abs_error_px": _ratio(self.total_abs, self.matched),
+            "mean_abs_error_px": ratio(self.total_abs, self.matched),
             "bias_px": None if median_signed is None else median_signed - _SIGNED_OFFSET_PX,
-            "over_1px": _ratio(self.over_1, self.matched),
-            "over_3px": _ratio(self.over_3, self.matched),
-            "d1": _ratio(self.d1, self.matched),
+            "over_1px": ratio(self.over_1, self.matched),
+            "over_3px": ratio(self.over_3, self.matched),
+            "d1": ratio(self.d1, self.matched),
         }
 
 

@@ -32,7 +32,8 @@ def band_masks(range_m: np.ndarray) -> dict[str, np.ndarray]:
     return {name: (range_m >= lo) & (range_m < hi) for name, (lo, hi) in BANDS.items()}
 
 
-def _ratio(num: float, den: float) -> float | None:
+def ratio(num: float, den: float) -> float | None:
+    """``num / den`` as a float, None when ``den`` is 0 (a metric with nothing to measure)."""
     return float(num) / den if den > 0 else None
 
 
@@ -75,8 +76,8 @@ class ErrorStats:
 
     def summary(self) -> dict[str, float | None]:
         rmse = math.sqrt(self.total_sq / self.n) if self.n else None
-        return {"elevation_rmse_m": rmse, "elevation_mae_m": _ratio(self.total_abs, self.n),
-                "elevation_bias_m": _ratio(self.total, self.n), "elevation_p95_m": self.hist.quantile(0.95)}
+        return {"elevation_rmse_m": rmse, "elevation_mae_m": ratio(self.total_abs, self.n),
+                "elevation_bias_m": ratio(self.total, self.n), "elevation_p95_m": self.hist.quantile(0.95)}
 
 
 @dataclass
@@ -95,17 +96,17 @@ class BandScores:
     false_obstacles: int = 0
 
     def summary(self, frames: int, *, slope: bool, labels: bool, obstacles: bool) -> dict[str, float | None]:
-        precision, recall = _ratio(self.tp, self.tp + self.fp), _ratio(self.tp, self.tp + self.fn)
-        f1 = _ratio(2 * self.tp, 2 * self.tp + self.fp + self.fn)
+        precision, recall = ratio(self.tp, self.tp + self.fp), ratio(self.tp, self.tp + self.fn)
+        f1 = ratio(2 * self.tp, 2 * self.tp + self.fp + self.fn)
         out = {
             **self.elevation.summary(),
             "slope_error_median_deg": self.slope_deg.quantile(0.5) if slope else None,
-            "coverage": _ratio(self.covered_cells, self.observed_cells),
+            "coverage": ratio(self.covered_cells, self.observed_cells),
             "terrain_precision": precision if labels else None,
             "terrain_recall": recall if labels else None,
             "terrain_f1": f1 if labels else None,
-            "obstacle_recall": _ratio(self.obstacles_matched, self.obstacles_eligible) if obstacles else None,
-            "false_obstacles_per_frame": _ratio(self.false_obstacles, frames) if obstacles else None,
+            "obstacle_recall": ratio(self.obstacles_matched, self.obstacles_eligible) if obstacles else None,
+            "false_obstacles_per_frame": ratio(self.false_obstacles, frames) if obstacles else None,
         }
         return {k: out[k] for k in METRICS}
 
