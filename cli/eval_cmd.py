@@ -132,7 +132,7 @@ def robustness(noise_m, outlier_fraction, outlier_max_m, empty_fraction, seeds, 
     r = lib.run(config, seeds=range(seeds), noise_m=noise_m, outlier_fraction=outlier_fraction,
                 outlier_max_m=outlier_max_m, empty_fraction=empty_fraction)
     click.echo(f"iterative (Algorithm V-B.1) RMSE {100 * r['iterative_rmse_m']:.2f} cm; "
-               f"single unweighted fit RMSE {100 * r['single_fit_rmse_m']:.2f} cm ({r['ratio']:.1f}× worse)")
+               f"single unweighted fit RMSE {100 * r['single_fit_rmse_m']:.2f} cm ({r['ratio']:.1f}× the iterative's)")
 
 
 from .eval_accuracy import accuracy  # noqa: E402 (the commands live in their own modules)
