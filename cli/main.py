@@ -84,7 +84,7 @@ def main(argv: list[str] | None = None) -> None:
         if verbose:
             raise
         click.echo(f"Error: {exc}", err=True)
-        sys.exit(2)
+        _exit(2)
     except KeyboardInterrupt:
         click.echo("Interrupted.", err=True)
         sys.exit(_signal_exit_code())
@@ -94,6 +94,17 @@ def main(argv: list[str] | None = None) -> None:
         where = f"{exc.filename}: " if exc.filename else ""
         click.echo(f"Error: {where}{exc.strerror or exc}", err=True)
         sys.exit(2)
+
+
+def _exit(code: int) -> None:
+    """``sys.exit(code)``, or ``os._exit`` where Rerun would keep the process from ending
+    (:func:`terrainmap.sinks.rerun_recording.exit_would_hang`)."""
+    rerun_sink = sys.modules.get("terrainmap.sinks.rerun_recording")
+    if rerun_sink is not None and rerun_sink.exit_would_hang():
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
+    sys.exit(code)
 
 
 if __name__ == "__main__":

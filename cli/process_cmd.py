@@ -83,8 +83,9 @@ def process(log, output, flavor, compression, rrd, overwrite, source_opts, confi
             try:
                 summary = runner.run(frames, config, sinks, on_frame=on_frame)
             except BaseException:
-                if progress and progress[0].frames_done:  # the sinks were closed: what they hold reads back
-                    click.echo(wrote_before_stopping(progress[0].frames_done, outputs))
+                finished = [sink.path for sink in sinks if sink.finished]  # what they hold reads back
+                if progress and progress[0].frames_done and finished:
+                    click.echo(wrote_before_stopping(progress[0].frames_done, finished))
                 raise
             finally:
                 if show:

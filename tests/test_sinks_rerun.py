@@ -1,6 +1,7 @@
 """Rerun recordings: verified by the SDK's own tool and read back with its reader."""
 
 import collections
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -210,3 +211,34 @@ def test_camera_model_and_pose_are_logged_per_frame_where_they_change(log, tmp_p
     assert pinholes[2][0][7] == pinholes[0][0][7] - 40  # cy, in the column-major 3×3
     np.testing.assert_allclose(translations[0][0], results[0].extrinsics.translation, atol=1e-6)
     np.testing.assert_allclose(translations[2][0], [0.5, 0.0, 2.0])
+
+
+def test_a_recording_that_cannot_be_finished_fails_with_one_line(log, tmp_path, monkeypatch, capsys):
+    """Rerun's file writer dies on a full disk, and its flush then waits for ever: the sink gives
+    up once the file stops growing, the run says which output is lost and which is readable, and
+    the CLI ends the process (os._exit) instead of hanging in Rerun's exit handler."""
+    from terrainmap.cli.main import main
+    from terrainmap.sinks import rerun_recording
+
+    def dead_writer(self, *, timeout_sec):
+        raise RuntimeError("File-writer thread shut down prematurely")
+
+    monkeypatch.setattr(rerun_recording, "_STUCK", [])
+    monkeypatch.setattr(rerun_recording, "_FLUSH_WAIT_S", 0.01)
+    monkeypatch.setattr(rerun_recording.rr.RecordingStream, "flush", dead_writer)
+    exits = []
+
+    def os_exit(code):
+        exits.append(code)
+        raise SystemExit(code)
+
+    monkeypatch.setattr(os, "_exit", os_exit)
+    out, rrd = tmp_path / "o.mcap", tmp_path / "o.rrd"
+    with pytest.raises(SystemExit):
+        main(["process", str(log), "-o", str(out), "--rrd", str(rrd), "--max-frames", "2"])
+    captured = capsys.readouterr()
+    assert exits == [2]
+    assert captured.err.strip().splitlines()[-1] == f"Error: cannot finish Rerun output {rrd}: its file writer " \
+                                                    "stopped (File-writer thread shut down prematurely)"
+    assert f"wrote 2 frames to {out} before stopping" in captured.out  # the MCAP only: it reads back
+    assert rerun_recording.exit_would_hang()

@@ -46,7 +46,11 @@ def _utf8(value) -> str:
 
 @runtime_checkable
 class Sink(Protocol):
-    """Receives each processed frame; ``close`` finalises the output (idempotent)."""
+    """Receives each processed frame; ``close`` finalises the output (idempotent) and sets
+    ``finished`` once the output is complete and readable."""
+
+    path: Path
+    finished: bool
 
     def write(self, frame: StereoFrame, result: FrameResult) -> None: ...
 
@@ -76,6 +80,7 @@ class McapSink:
         self._last_static: tuple | None = None
         self.frames_written = 0
         self._closed = False
+        self.finished = False
         try:
             self._stream = open(self.path, "wb")  # noqa: SIM115 (closed in close())
         except OSError as exc:
@@ -126,6 +131,7 @@ class McapSink:
                 self._stream.close()
         except OSError as exc:  # disk full, device gone: the summary could not be written
             raise InputError(f"cannot finish MCAP output {self.path}: {exc.strerror or exc}") from exc
+        self.finished = True
         log.info("wrote %d frames to %s", self.frames_written, self.path)
 
     def __enter__(self):

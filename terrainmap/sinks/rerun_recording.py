@@ -34,6 +34,7 @@ Written for rerun-sdk 0.41 (pinned); the files open in the Rerun viewer 0.41.
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -95,6 +96,21 @@ def _triangles(m0: int, m1: int) -> np.ndarray:
     return np.concatenate([np.stack([i, i + m1, i + 1], 1), np.stack([i + 1, i + m1, i + m1 + 1], 1)]).astype(np.uint32)
 
 
+_FLUSH_WAIT_S = 5.0
+"""How long :meth:`RerunSink.close` waits for the recording's file to grow before giving up, s."""
+
+
+_STUCK: list = []
+"""Recording streams whose file writer died (:meth:`RerunSink.close`)."""
+
+
+def exit_would_hang() -> bool:
+    """Whether a recording's file writer died (a full disk): Rerun 0.41 then waits for it for ever
+    once the stream is flushed, so that a process exiting normally would not end. The CLI ends
+    with ``os._exit`` then, its outputs already closed."""
+    return bool(_STUCK)
+
+
 class RerunSink:
     """Writes a Rerun recording; a :class:`~terrainmap.sinks.base.Sink`.
 
@@ -110,6 +126,7 @@ class RerunSink:
         self.path = Path(path)
         self._config = config
         self._closed = False
+        self.finished = False
         self._mesh_key: tuple | None = None
         self._camera_key: tuple | None = None
         self.frames_written = 0
@@ -220,8 +237,30 @@ class RerunSink:
         if self._closed:
             return
         self._closed = True
-        self._rec.flush()
-        self._rec.disconnect()
+        try:
+            self._flush()
+            self._rec.disconnect()
+        except (RuntimeError, OSError) as exc:  # Rerun's file writer stopped on an error it logged itself
+            _STUCK.append(self._rec)  # never flushed again (exit_would_hang)
+            full = shutil.disk_usage(self.path.parent).free == 0
+            raise InputError(f"cannot finish Rerun output {self.path}: "
+                             + ("No space left on device" if full else f"its file writer stopped ({exc})")) from exc
+        self.finished = True
+
+    def _flush(self) -> None:
+        """Wait until the recording is on disk. Rerun's flush waits for ever once its file writer
+        has died (a full disk), so it is given :data:`_FLUSH_WAIT_S` at a time, for as long as the
+        file still grows; RuntimeError once it does not."""
+        size = None
+        while True:
+            try:
+                self._rec.flush(timeout_sec=_FLUSH_WAIT_S)
+                return
+            except RuntimeError:
+                now = self.path.stat().st_size
+                if now == size:
+                    raise
+                size = now
 
     def __enter__(self):
         return self
