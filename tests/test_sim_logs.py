@@ -263,3 +263,12 @@ def test_the_bundled_example_is_regenerated_byte_for_byte(tmp_path):
     result = CliRunner().invoke(cli, args)
     assert result.exit_code == 0, result.output
     assert out.read_bytes() == example.read_bytes()
+
+
+@pytest.mark.parametrize("options", [{"fps": 1e-6, "frames": 2}, {"fps": 1e-300, "frames": 2},
+                                     {"frames": 100_000, "speed_mps": 40.0}])
+def test_a_drive_too_long_to_hold_is_refused_before_anything_is_built(options):
+    """The scene's terrain spans the whole drive: one that would not fit in memory is refused."""
+    with pytest.raises(ConfigError, match=r"--frames: a drive of .* m .* more than the 5e\+06 the simulator holds"):
+        SimConfig(**options).validate()
+    SimConfig(frames=5000, speed_mps=4.0).validate()  # 2 km at 0.2 m: built

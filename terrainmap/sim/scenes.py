@@ -137,6 +137,17 @@ SHAPES: dict[str, tuple[Callable, tuple, float]] = {
 SCENES = tuple(SHAPES)
 
 
+MAX_SCENE_CELLS = 5_000_000
+"""Most cells of a scene's height grid (:func:`grid_size`): a drive of 2.3 km at 0.2 m, about
+0.7 GB of memory while the scene is built."""
+
+
+def grid_size(length_m: float, resolution_m: float = 0.2, half_width_m: float = 40.0) -> tuple[float, float]:
+    """Cells (nx, ny) of the height grid :func:`build_scene` makes for a drive of ``length_m``
+    (whole numbers as floats; inf for an endless drive)."""
+    return np.ceil((length_m + 115.0) / resolution_m), np.ceil(2 * half_width_m / resolution_m)
+
+
 def build_scene(
     name: str, seed: int, *, length_m: float, resolution_m: float = 0.2, half_width_m: float = 40.0
 ) -> Scene:
@@ -152,8 +163,7 @@ def build_scene(
     relief_noise = ValueNoise(rng)
     texture = ValueNoise(rng)
     x_min, y_min = -15.0, -half_width_m
-    nx = int(np.ceil((length_m + 115.0) / resolution_m))
-    ny = int(np.ceil(2 * half_width_m / resolution_m))
+    nx, ny = (int(n) for n in grid_size(length_m, resolution_m, half_width_m))
     x = x_min + (np.arange(nx) + 0.5) * resolution_m
     y = y_min + (np.arange(ny) + 0.5) * resolution_m
     grid_x, grid_y = np.meshgrid(x, y, indexing="ij")

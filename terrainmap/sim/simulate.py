@@ -18,7 +18,7 @@ from .folder_log import FolderLog
 from .mcap_log import McapLog
 from .render import Renderer
 from .rig import LEFT_FRAME, VEHICLE_FRAME, WORLD_FRAME, CameraRig
-from .scenes import SCENES, Scene, build_scene
+from .scenes import MAX_SCENE_CELLS, SCENES, Scene, build_scene, grid_size
 
 logger = logging.getLogger(__name__)
 
@@ -79,6 +79,11 @@ class SimConfig:
         check(0 <= self.vignetting < 1, "vignetting", f"must be within [0, 1), got {self.vignetting}")
         check(0.25 <= self.texture_detail <= 8, "texture_detail", f"must be within [0.25, 8], got {self.texture_detail}")
         check(0 <= self.speed_mps <= 40, "speed_mps", f"must be within [0, 40] m/s, got {self.speed_mps}")
+        cells = math.prod(grid_size(self.length_m, self.terrain_resolution_m))
+        check(cells <= MAX_SCENE_CELLS, "frames",
+              f"a drive of {self.length_m:.4g} m ((frames − 1) × speed / fps) needs a terrain of {cells:.3g} cells, "
+              f"more than the {MAX_SCENE_CELLS:.3g} the simulator holds: give fewer frames, a lower --speed-mps "
+              "or a higher --fps")
 
     def rig(self) -> CameraRig:
         return CameraRig(
