@@ -36,6 +36,7 @@ of pairs.
 from __future__ import annotations
 
 import logging
+import os
 from collections import Counter
 from collections.abc import Callable
 from contextlib import ExitStack
@@ -104,10 +105,14 @@ def _read_pfm(path: Path) -> np.ndarray:
             kind = f.readline().strip()
             width, height = (int(v) for v in f.readline().split())
             scale = float(f.readline())
+            held = (os.fstat(f.fileno()).st_size - f.tell()) // 4
+            if kind != b"Pf" or not 0 < width * height <= held:  # before allocating what the header says
+                raise InputError(f"{path}: not a one-channel PFM image of the size its header gives "
+                                 f"({width}×{height}, the file holds {held} values)")
             data = np.fromfile(f, "<f4" if scale < 0 else ">f4", width * height)
     except (OSError, ValueError) as exc:
         raise InputError(f"{path}: cannot read as PFM ({exc})") from None
-    if kind != b"Pf" or data.size != width * height:
+    if data.size != width * height:
         raise InputError(f"{path}: not a one-channel PFM image of the size its header gives")
     return np.flipud(data.reshape(height, width)).astype(np.float32)  # PFM stores the bottom row first
 
