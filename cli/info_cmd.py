@@ -65,6 +65,10 @@ def info(log: str, source_opts: SourceOptions, as_json: bool, check: bool) -> No
                     for _frame in source.frames():
                         pairs += 1
                     description["check"] = f"{counted(pairs, 'stereo pair')} read and decoded, to the end"
+                    if pairs == 0:  # stereo topics, but no left and right images within the pairing tolerance
+                        readable = False
+                        description["check"] += (" (no left and right images whose stamps agree within "
+                                                 "--pair-tolerance-ms)")
                     if skipped := source.skipped():
                         readable = False
                         description["check"] += f", skipping {counted(len(skipped), 'damaged chunk')}: " + "; ".join(skipped)
