@@ -9,6 +9,7 @@ import click
 from terrainmap.config import load_config
 
 from .options import config_options, output_file, refuse_overwriting_inputs, write_text
+from .source_options import SourceOptions, open_options
 
 
 @click.command()
@@ -17,20 +18,22 @@ from .options import config_options, output_file, refuse_overwriting_inputs, wri
               help="Write {stage: {median_ms, ...}} here.")
 @click.option("--log", "log_path", type=click.Path(exists=True),
               help="Time the stages on the first stereo pair of this log or folder instead of synthetic input.")
+@open_options
 @config_options
 def bench(
-    runs: int, json_path: str | None, log_path: str | None, config_path: str | None, overrides: tuple[str, ...]
+    runs: int, json_path: str | None, log_path: str | None, source_opts: SourceOptions, config_path: str | None,
+    overrides: tuple[str, ...],
 ) -> None:
     """Time each pipeline stage at the paper configuration on synthetic input (or on a log's first pair)."""
     from terrainmap import bench as lib
 
-    refuse_overwriting_inputs({"--json": json_path}, [config_path, log_path])
+    refuse_overwriting_inputs({"--json": json_path}, [config_path, log_path, source_opts.calibration])
     config = load_config(config_path, overrides)
     env = lib.environment()
     click.echo("machine: " + ", ".join(f"{k}={v}" for k, v in env.items()))
     frame = None
     if log_path:
-        frame = lib.first_frame(log_path)
+        frame = lib.first_frame(log_path, **source_opts.open_kwargs())
         click.echo(f"input: the first stereo pair of {log_path}, {frame.left.shape[1]}×{frame.left.shape[0]}")
     results = lib.run(config, runs=runs, stages=lib.all_stages(config, frame))
     click.echo(f"{'stage':<14}{'median ms':>10}{'min ms':>10}{'max ms':>10}{'runs':>6}")

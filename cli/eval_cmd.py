@@ -12,6 +12,7 @@ import click
 from terrainmap.config import load_config
 
 from .options import PLOT_SUFFIXES, Finite, config_options, output_file, refuse_overwriting_inputs, write_text
+from .source_options import open_options
 
 
 def _numbers(*, positive: bool = True, whole: bool = False, count: int | None = None):
@@ -62,10 +63,11 @@ def eval_group() -> None:
               "or folder (its stereo points, vehicle frame) instead of a flat plane; the area is then the config's grid.")
 @click.option("--frame", "frame_index", type=click.IntRange(min=0), default=0, show_default=True,
               help="With --base: which stereo pair of the log (0 = first).")
+@open_options
 @config_options
 def artificial_obstacle(
     length_m, width_m, cell_m, degree, nets, widths, heights, position, json_path, csv_path, plot_path,
-    base_log, frame_index, config_path, overrides,
+    base_log, frame_index, source_opts, config_path, overrides,
 ):
     """Max surface deviation caused by a w×w×h box, in % of h (paper Fig. 6).
 
@@ -77,10 +79,11 @@ def artificial_obstacle(
     from terrainmap.config import GridConfig
     from terrainmap.evaluation import artificial_obstacle as ao
 
-    refuse_overwriting_inputs({"--json": json_path, "--csv": csv_path, "--plot": plot_path}, [base_log, config_path])
+    refuse_overwriting_inputs({"--json": json_path, "--csv": csv_path, "--plot": plot_path},
+                              [base_log, config_path, source_opts.calibration])
     config = load_config(config_path, overrides)
     if base_log:
-        grid, base_points = config.grid, ao.points_from_log(base_log, config, frame_index)
+        grid, base_points = config.grid, ao.points_from_log(base_log, config, frame_index, **source_opts.open_kwargs())
     else:
         grid, base_points = GridConfig(x_min_m=0.0, length_m=length_m, width_m=width_m, y_center_m=0.0, cell_size_m=cell_m), None
     grid.validate()

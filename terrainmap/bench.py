@@ -109,13 +109,15 @@ def sim_frame(scene: str = "mounds", seed: int = 7, width: int = 640, height: in
     return StereoFrame(0, rendered.stamp_ns, rendered.left, rendered.right, rig.calibration(), rig.extrinsics())
 
 
-def first_frame(path) -> StereoFrame:
+def first_frame(path, **open_kwargs) -> StereoFrame:
     """The first stereo pair of a log or folder (anything ``terrainmap process`` reads), as a
-    :class:`~terrainmap.types.StereoFrame`; :class:`~terrainmap.errors.InputError` if it has none."""
+    :class:`~terrainmap.types.StereoFrame`; :class:`~terrainmap.errors.InputError` if it has none.
+    ``open_kwargs``: topics, calibration and pairing tolerance, as for
+    :func:`~terrainmap.sources.open_source`."""
     from .errors import InputError
     from .sources import open_source
 
-    with open_source(path) as source:
+    with open_source(path, **open_kwargs) as source:
         for frame in source.frames():
             return frame
     raise InputError(f"{path}: holds no stereo pair to time")

@@ -114,6 +114,9 @@ def test_bench_times_the_first_pair_of_a_log(tmp_path):
     assert f"input: the first stereo pair of {log}, 320×240" in result.output
     stages = json.loads((tmp_path / "b.json").read_text())
     assert {"grid", "surface", "labels", "obstacles", "sgbm_alone", "frame_total", "upright", "mcap_write"} <= set(stages)
+    # the log's topics can be named, as for process (a log whose names do not give them away)
+    topic = CliRunner().invoke(cli, ["bench", "--log", str(log), "--runs", "1", "--left-topic", "/stereo/left/raw"])
+    assert "left topic '/stereo/left/raw' is not an image topic of this log" in str(topic.exception)
 
 
 def test_bench_refuses_a_log_without_stereo(tmp_path, capsys):
@@ -158,6 +161,12 @@ def test_eval_artificial_obstacle_on_a_simulated_base_frame(tmp_path):
     assert result.exit_code == 0, result.output
     thin, wide = json.loads((tmp_path / "r.json").read_text())
     assert thin["max_deviation_pct"] < wide["max_deviation_pct"]
+    topics = ["--left-topic", "/stereo/left/image_rect", "--right-topic", "/stereo/right/image_rect"]
+    named = CliRunner().invoke(cli, ["eval", "artificial-obstacle", "--base", str(log), "--nets", "25", "--widths",
+                                     "0.8,12", "--heights", "2", "--position", "12,0", *topics,
+                                     "--json", str(tmp_path / "n.json")])
+    assert named.exit_code == 0, named.output
+    assert json.loads((tmp_path / "n.json").read_text()) == [thin, wide]
 
 
 def test_eval_robustness_reports_both_fits():

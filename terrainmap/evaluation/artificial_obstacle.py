@@ -143,15 +143,17 @@ def _check_box_is_seen(base: np.ndarray, scene: np.ndarray, grid: GridConfig, po
         )
 
 
-def points_from_log(path, config: Config, frame_index: int = 0) -> np.ndarray:
-    """The vehicle-frame stereo points of one frame of a log or folder, as the pipeline sees them.
+def points_from_log(path, config: Config, frame_index: int = 0, **open_kwargs) -> np.ndarray:
+    """The vehicle-frame stereo points of one frame of a log or folder, as the pipeline sees them
+    (``open_kwargs``: topics, calibration and pairing tolerance, as for
+    :func:`~terrainmap.sources.open_source`).
 
     Raises :class:`InputError` if the log has fewer frames, and the pipeline's errors otherwise.
     """
     from ..pipeline import PipelineState, process_frame
     from ..sources import open_source
 
-    with open_source(path) as source:
+    with open_source(path, **open_kwargs) as source:
         for frame in source.frames(max_frames=frame_index + 1):
             if frame.index == frame_index:
                 return process_frame(frame, config, PipelineState(config)).points_vehicle.astype(float)
