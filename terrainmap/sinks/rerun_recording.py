@@ -241,7 +241,7 @@ class RerunSink:
             self._flush()
             self._rec.disconnect()
         except (RuntimeError, OSError) as exc:  # Rerun's file writer stopped on an error it logged itself
-            _STUCK.append(self._rec)  # never flushed again (exit_would_hang)
+            _STUCK.append(self._rec)  # kept: its destructor would wait for the dead writer (exit_would_hang)
             full = shutil.disk_usage(self.path.parent).free == 0
             raise InputError(f"cannot finish Rerun output {self.path}: "
                              + ("No space left on device" if full else f"its file writer stopped ({exc})")) from exc
