@@ -178,3 +178,15 @@ def test_eval_robustness_reports_both_fits():
 def test_eval_robustness_takes_outliers_lower_than_the_usual_20_cm():
     result = CliRunner().invoke(cli, ["eval", "robustness", "--seeds", "1", "--outlier-max", "0.1"])
     assert result.exit_code == 0, result.output
+
+
+@pytest.mark.parametrize("argv", [[], ["eval"]])
+def test_a_bare_command_group_shows_its_help_not_an_error(argv, capsys):
+    from terrainmap.cli.main import main
+
+    with pytest.raises(SystemExit) as exc:
+        main(argv)
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"Usage: terrainmap {' '.join(argv)}".rstrip() + " [OPTIONS] COMMAND [ARGS]...")
+    assert "Error" not in err
