@@ -272,3 +272,26 @@ def test_a_drive_too_long_to_hold_is_refused_before_anything_is_built(options):
     with pytest.raises(ConfigError, match=r"--frames: a drive of .* m .* more than the 5e\+06 the simulator holds"):
         SimConfig(**options).validate()
     SimConfig(frames=5000, speed_mps=4.0).validate()  # 2 km at 0.2 m: built
+
+
+def test_a_folder_output_replaces_only_a_simulated_drive(tmp_path):
+    """``--overwrite`` replaces an earlier simulation's folder, but never writes into a folder of
+    other files (a user's data); the size reported counts only the files written."""
+    from terrainmap.errors import InputError
+    from terrainmap.sim import simulate
+
+    small = SimConfig(scene="flat", frames=2, width=32, height=24, focal_px=25.0, format="folder")
+    run = tmp_path / "run"
+    first = simulate(run, small)
+    (run / "notes.txt").write_text("x" * 10_000)  # a file of the user's: not counted, not removed
+    again = simulate(run, SimConfig(**{**small.__dict__, "frames": 1}))
+    assert again["bytes"] < first["bytes"] and (run / "notes.txt").is_file()
+    assert again["bytes"] == sum(p.stat().st_size for p in run.rglob("*") if p.is_file() and p.name != "notes.txt")
+    assert not (run / "left" / "000001.png").exists()  # the longer run's last frame is gone
+    data = tmp_path / "data"
+    (data / "left").mkdir(parents=True)
+    (data / "left" / "000001.png").write_bytes(b"mine")
+    with pytest.raises(InputError, match=r"data: holds files that are not a simulated drive"):
+        simulate(data, small)
+    assert (data / "left" / "000001.png").read_bytes() == b"mine" and sorted(data.rglob("*")) == [
+        data / "left", data / "left" / "000001.png"]

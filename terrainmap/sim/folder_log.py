@@ -27,6 +27,7 @@ import cv2
 import numpy as np
 import yaml
 
+from ..errors import InputError
 from .render import SimFrame
 from .rig import CameraRig
 from .scenes import Scene
@@ -39,6 +40,10 @@ class FolderLog:
 
     def __init__(self, path: str | Path, scene: Scene, rig: CameraRig, description: dict):
         self.path = Path(path)
+        if self.path.is_dir() and any(self.path.iterdir()) and not (self.path / "truth" / "scene.json").is_file():
+            raise InputError(f"{self.path}: holds files that are not a simulated drive (no truth/scene.json); "
+                             "give a new or empty folder")
+        self.written: list[Path] = []  # every file written, for the summary's size
         for sub, pattern in (("left", "[0-9]*.png"), ("right", "[0-9]*.png"), ("truth", "[0-9]*.npz")):
             (self.path / sub).mkdir(parents=True, exist_ok=True)
             for stale in (self.path / sub).glob(pattern):  # frames of an earlier, longer run
@@ -58,6 +63,8 @@ class FolderLog:
             y_min_m=terrain.y_min_m, resolution_m=terrain.resolution_m,
         )
         self._stamps = open(self.path / "timestamps.txt", "w")  # noqa: SIM115 - closed in close()
+        self.written += [self.path / name for name in ("calibration.yaml", "truth/scene.json", "truth/terrain.npz",
+                                                       "timestamps.txt")]
 
     def __enter__(self) -> FolderLog:
         return self
@@ -72,11 +79,14 @@ class FolderLog:
         name = FRAME_NAME.format(frame.index)
         for side, image in (("left", frame.left), ("right", frame.right)):
             bgr = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2BGR)
-            cv2.imwrite(str(self.path / side / f"{name}.png"), bgr)
+            if not cv2.imwrite(str(self.path / side / f"{name}.png"), bgr):  # OpenCV says no more than that
+                raise InputError(f"{self.path / side / name}.png: cannot be written")
         self._stamps.write(f"{frame.stamp_ns}\n")
         boxes = frame.obstacles
+        truth = self.path / "truth" / f"{name}.npz"
+        self.written += [self.path / "left" / f"{name}.png", self.path / "right" / f"{name}.png", truth]
         np.savez_compressed(
-            self.path / "truth" / f"{name}.npz",
+            truth,
             stamp_ns=np.int64(frame.stamp_ns),
             rotation_world_base=frame.rotation_world_base,
             position_world_base=frame.position_world_base,

@@ -148,6 +148,6 @@ def simulate(out: str | Path, config: SimConfig, progress: Callable[[int], None]
             if progress is not None:
                 progress(index)
     seconds = time.perf_counter() - start
-    size = out.stat().st_size if out.is_file() else sum(p.stat().st_size for p in out.rglob("*") if p.is_file())
+    size = out.stat().st_size if out.is_file() else sum(p.stat().st_size for p in log.written)
     logger.info("wrote %d frames of %s to %s in %.1f s", config.frames, config.scene, out, seconds)
     return {"path": str(out), "frames": config.frames, "seconds": seconds, "bytes": size}
