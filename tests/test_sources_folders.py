@@ -93,6 +93,21 @@ def test_selection_start_end_every_max_and_index_from_source_start(tmp_path):
                 list(source.frames(**bad))
 
 
+def test_a_left_image_without_its_right_one_keeps_the_later_pairs_stamps(tmp_path):
+    """timestamps.txt has one line per left image: a pair lost to a missing right image takes its
+    line with it, so the pairs after it keep their own stamps."""
+    root = generic_folder(tmp_path, n=4)
+    (root / "right" / "000001.png").unlink()
+    (root / "timestamps.txt").write_text("10\n20\n30\n40\n")
+    with open_source(root) as source:
+        frames = list(source.frames())
+    assert [(f.stamp_ns, Path(f.source.split(" + ")[0]).name) for f in frames] == [
+        (10, "000000.png"), (30, "000002.png"), (40, "000003.png")]
+    (root / "timestamps.txt").write_text("10\n30\n40\n")  # one line per pair: taken in order
+    with open_source(root) as source:
+        assert [f.stamp_ns for f in source.frames()] == [10, 30, 40]
+
+
 def test_extra_timestamps_are_warned_about(tmp_path, caplog):
     root = generic_folder(tmp_path, n=3)
     (root / "timestamps.txt").write_text("10\n20\n30\n40\n")

@@ -6,7 +6,7 @@ Generic layout::
       left/   000000.png 000001.png ...   (png, jpg, pgm, ppm, bmp, tif)
       right/  000000.png 000001.png ...   (the same file names)
       calibration.yaml                     (or .yml / .toml; format in terrainmap.sources.calibration)
-      timestamps.txt                       (optional: one integer stamp in nanoseconds per line)
+      timestamps.txt                       (optional: one integer stamp in nanoseconds per left image, in name order)
 
 Without timestamps, pair ``i`` is stamped ``i × 100 ms``.
 """
@@ -85,6 +85,8 @@ class FolderSource(Source):
         if not self.pairs:
             raise InputError(f"{self.path}: {self.format} layout but no left/right image pairs in it")
         stamps = self._stamps_ns()
+        if stamps is not None:
+            stamps = self._stamps_of_pairs(stamps)
         if stamps is not None and len(stamps) < len(self.pairs):
             raise InputError(f"{self.path}: {len(stamps)} timestamps for {len(self.pairs)} image pairs")
         if stamps is not None and len(stamps) > len(self.pairs):
@@ -94,6 +96,16 @@ class FolderSource(Source):
             )
         self.stamps_ns = stamps or [i * DEFAULT_PERIOD_NS for i in range(len(self.pairs))]
         self._calibrations: dict[Path, tuple[StereoCalibration, Extrinsics | None]] = {}
+
+    def _stamps_of_pairs(self, stamps: list[int]) -> list[int]:
+        """The pairs' stamps from a stamp file of one line per left image in name order: where a
+        left image has no right one, its line is skipped, so that the later pairs keep theirs. A
+        file with as many lines as there are pairs, or fewer than left images, is taken in order."""
+        names = image_names(self.pairs[0].left.parent)
+        if len(names) == len(self.pairs) or len(stamps) < len(names):
+            return stamps
+        by_name = dict(zip(names, stamps, strict=False))
+        return [by_name[pair.left.name] for pair in self.pairs]
 
     @abstractmethod
     def _find_pairs(self) -> list[ImagePair]:
