@@ -98,6 +98,10 @@ class StereoResult:
     grey: np.ndarray
 
 
+_PLAUSIBLE = {"fx": (1.0, 1e6, "pixels"), "fy": (1.0, 1e6, "pixels"), "baseline_m": (1e-3, 100.0, "m")}
+"""Ranges that a stereo camera's focal lengths and baseline fall in (:func:`check_calibration`)."""
+
+
 def check_calibration(calibration: StereoCalibration, *, size_known: bool = True) -> StereoCalibration:
     """Return ``calibration``, or raise :class:`CalibrationError` (one line, naming its source and
     the problem) if it is unusable. ``size_known=False`` accepts an image size of 0×0, for
@@ -110,6 +114,9 @@ def check_calibration(calibration: StereoCalibration, *, size_known: bool = True
     ):
         if not (math.isfinite(value) and value > 0):
             raise CalibrationError(f"{name}: {field} must be > 0, got {value}")
+        low, high, unit = _PLAUSIBLE[field]
+        if not low <= value <= high:  # a wrong unit or a typo, which would only end in "no ground" later
+            raise CalibrationError(f"{name}: {field} must be within {low:g}..{high:g} {unit}, got {value:g}")
     for field in ("cx", "cy", "doffs", "cx_right"):
         value = getattr(calibration, field)
         if value is not None and not (math.isfinite(value) and abs(value) < 1e6):

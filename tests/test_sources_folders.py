@@ -143,7 +143,11 @@ def test_calibration_toml_extrinsics_and_unrectified(tmp_path):
         ("translation_m = [0.5, 0.0, 1.5]", "translation_m = [nan, 0.0, 1.5]", "'translation_m' must be a list of finite"),
         ("translation_m = [0.5, 0.0, 1.5]", "translation_m = [0.5, 0.0, 1e30]", "translation_m must be within 1 km"),
         ("rectified = false", 'rectified = "false"', "rectified must be true or false"),
-        ("width = 8", "width = 8.5", "width, height \\(whole pixels\\)"),
+        ("width = 8", "width = 8.5", "width must be a whole number of pixels, got 8.5$"),
+        ("width = 8", "width = true", "width must be a number, got True$"),
+        ("width = 8", 'width = "abc"', "width must be a number, got 'abc'$"),
+        ("fx = 500.0", "fx = 1e308", "fx must be within 1..1e\\+06 pixels, got 1e\\+308$"),
+        ("baseline_m = 0.3", "baseline_m = 1e-300", "baseline_m must be within 0.001..100 m, got 1e-300$"),
         ("rectified = false", "cx_right = nan\nrectified = false", "cx_right must be a finite number of pixels"),
     ],
 )
@@ -153,6 +157,13 @@ def test_nonsense_in_a_calibration_file_is_named(tmp_path, old, new, message):
     path.write_text(path.read_text().replace(old, new))
     with pytest.raises(CalibrationError, match=message):
         next(open_source(path.parent).frames())
+
+
+def test_an_unknown_calibration_key_is_warned_about(tmp_path, caplog):
+    root = generic_folder(tmp_path, n=1, calib=CALIB_YAML + "dofs: 2.5\n")  # doffs misspelt
+    frame = next(open_source(root).frames())
+    assert frame.calibration.doffs == 0.0
+    assert "calibration.yaml: ignoring unknown calibration keys: dofs (known: width, height" in caplog.text
 
 
 def kitti_stereo(root: Path, left="image_2", right="image_3", calib_dir="calib_cam_to_cam", names=("000000_10", "000000_11")):

@@ -24,6 +24,7 @@ Calibrations read from KITTI/Middlebury text may not know the image size (``widt
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
 import re
 import tomllib
@@ -38,8 +39,11 @@ from ..stereo import check_calibration as stereo_check
 from ..types import Extrinsics, StereoCalibration
 from .tf import quaternion_to_matrix, usable
 
+logger = logging.getLogger(__name__)
+
 _REQUIRED = ("width", "height", "fx", "fy", "cx", "cy", "baseline_m")
 _UNRECTIFIED = ("K_left", "K_right", "dist_left", "dist_right", "R", "T")
+_KNOWN = (*_REQUIRED, "cx_right", "doffs", "rectified", "extrinsics", *_UNRECTIFIED)
 
 
 def check_calibration(calib: StereoCalibration) -> StereoCalibration:
@@ -150,6 +154,18 @@ def middlebury_calibration(path: Path) -> StereoCalibration:
     return check_calibration(calib)
 
 
+def _number(data: dict, key: str, path: Path) -> float:
+    """``data[key]`` as a float, or :class:`CalibrationError` naming the key (a YAML ``true`` is
+    not a number here)."""
+    value = data[key]
+    try:
+        if isinstance(value, bool):
+            raise TypeError
+        return float(value)  # a text too: PyYAML reads 1e3 (no dot) as one
+    except (TypeError, ValueError):
+        raise CalibrationError(f"{path}: {key} must be a number, got {value!r}") from None
+
+
 def _whole(text) -> int:
     """A whole number of pixels from a text value (ValueError otherwise, also for 1242.7)."""
     value = float(text)
@@ -211,14 +227,16 @@ def terrainmap_calibration(path: Path) -> tuple[StereoCalibration, Extrinsics | 
     missing = [key for key in _REQUIRED if key not in data]
     if missing:
         raise CalibrationError(f"{path}: missing calibration keys: {', '.join(missing)}")
-    try:
-        numbers = {key: float(data[key]) for key in (*_REQUIRED, "doffs") if key in data}
-        numbers.update({key: _whole(numbers[key]) for key in ("width", "height")})
-        cx_right = None if data.get("cx_right") is None else float(data["cx_right"])
-    except (TypeError, ValueError):
-        raise CalibrationError(
-            f"{path}: width, height (whole pixels), fx, fy, cx, cy, baseline_m must be numbers"
-        ) from None
+    unknown = sorted(set(data) - set(_KNOWN))
+    if unknown:  # a misspelt optional key would otherwise pass unnoticed
+        logger.warning("%s: ignoring unknown calibration keys: %s (known: %s)", path, ", ".join(map(str, unknown)),
+                       ", ".join(_KNOWN))
+    numbers = {key: _number(data, key, path) for key in (*_REQUIRED, "doffs", "cx_right") if data.get(key) is not None}
+    for key in ("width", "height"):
+        if not float(numbers[key]).is_integer():
+            raise CalibrationError(f"{path}: {key} must be a whole number of pixels, got {data[key]!r}")
+        numbers[key] = int(numbers[key])
+    cx_right = numbers.pop("cx_right", None)
     rectified = data.get("rectified", True)
     if not isinstance(rectified, bool):
         raise CalibrationError(f"{path}: rectified must be true or false, got {rectified!r}")
