@@ -71,7 +71,7 @@ def info(log: str, source_opts: SourceOptions, as_json: bool, check: bool) -> No
                                                  "--pair-tolerance-ms)")
                     if skipped := source.skipped():
                         readable = False
-                        description["check"] += f", skipping {counted(len(skipped), 'damaged chunk')}: " + "; ".join(skipped)
+                        description["check"] += f", skipping {counted(len(skipped), 'damaged part')}: " + "; ".join(skipped)
                 except InputError as exc:
                     readable = False
                     description["check"] = f"fails after {counted(pairs, 'stereo pair')}: {_reason(exc, log)}"

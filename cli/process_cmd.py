@@ -128,7 +128,7 @@ def _report(summary, outputs, skipped: list[str]) -> None:
     failed = f", {summary.frames_failed} failed ({_reasons(summary)})" if summary.frames_failed else ""
     click.echo(f"processed {summary.frames_done} frames{failed} in {summary.wall_s:.1f} s ({summary.fps:.1f} frames/s)")
     if skipped:
-        click.echo(f"skipped {counted(len(skipped), 'damaged chunk')} of the log, whose frames are lost: " + "; ".join(skipped))
+        click.echo(f"skipped {counted(len(skipped), 'damaged part')} of the log, whose frames are lost: " + "; ".join(skipped))
     medians = summary.median_ms()
     if medians:
         click.echo("median ms per frame: " + ", ".join(f"{k} {v:.1f}" for k, v in medians.items()))

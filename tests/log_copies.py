@@ -52,3 +52,23 @@ def ros1_mcap(bag: Path, dst: Path) -> Path:
             writer.add_message(channels[connection.id], stamp, data, stamp)
         writer.finish()
     return dst
+
+
+def rewrite_mcap(src: Path, dst: Path, edit) -> Path:
+    """``src`` (an MCAP file) copied message by message by the ``mcap`` writer, each message's
+    bytes passed through ``edit(topic, data) -> data``."""
+    from mcap.reader import make_reader
+    from mcap.writer import Writer
+
+    with open(src, "rb") as f, open(dst, "wb") as g:
+        reader, writer = make_reader(f), Writer(g)
+        summary = reader.get_summary()
+        writer.start(profile=reader.get_header().profile, library="tests")
+        schemas = {i: writer.register_schema(s.name, s.encoding, s.data) for i, s in summary.schemas.items()}
+        channels = {i: writer.register_channel(c.topic, c.message_encoding, schemas.get(c.schema_id, 0), c.metadata)
+                    for i, c in summary.channels.items()}
+        for _, channel, message in reader.iter_messages():
+            data = edit(channel.topic, message.data)
+            writer.add_message(channels[channel.id], message.log_time, data, message.publish_time)
+        writer.finish()
+    return dst

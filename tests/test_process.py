@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from click.testing import CliRunner
-from log_copies import rewrite_rosbag2
+from log_copies import rewrite_mcap, rewrite_rosbag2
 from mcap.reader import make_reader
 from mcap_protobuf.decoder import DecoderFactory
 
@@ -182,12 +182,41 @@ def test_a_damaged_chunk_is_skipped_and_the_run_goes_on(tmp_path, capsys, caplog
     captured = capsys.readouterr()
     where = f"{bad}: chunk at byte {victim.chunk_start_offset}, log time "
     (warning,) = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]  # stderr outside pytest
-    assert where in warning and "CRC" in warning.upper() and warning.endswith("damaged, skipped with its messages")
-    assert f"skipped 1 damaged chunk of the log, whose frames are lost: {where}" in captured.out
+    assert where in warning and "CRC" in warning.upper() and warning.endswith("damaged, skipped")
+    assert f"skipped 1 damaged part of the log, whose frames are lost: {where}" in captured.out
     written = [g.timestamp.seconds * 10**9 + g.timestamp.nanos for g in _grids(out)]
     lost = sorted(set(stamps) - set(written))  # the frames whose left image the chunk held
     assert 1 <= len(lost) < len(stamps) and all(victim.message_start_time <= t <= victim.message_end_time for t in lost)
     assert max(written) > victim.message_end_time  # the run went on past the damage
+
+
+def test_a_message_that_cannot_be_decoded_is_skipped_and_the_run_goes_on(tmp_path, capsys, caplog):
+    """Bytes of one image message that its reader cannot decode (written so, the chunk's CRC
+    holds): that frame is lost with a warning naming the topic and time, the others are processed."""
+    from terrainmap.cli.main import main
+    from terrainmap.sim import SimConfig, simulate
+
+    log = tmp_path / "sim.mcap"
+    simulate(log, SimConfig(scene="flat", frames=3, seed=1, width=160, height=120, focal_px=125.0))
+    seen = []
+
+    def garble_second_left(topic: str, data: bytes) -> bytes:
+        if topic == "/stereo/left/image_rect":
+            seen.append(topic)
+            if len(seen) == 2:
+                return data[:4] + b"\xff" * 40  # a CDR header, then no readable Image
+        return data
+
+    bad = rewrite_mcap(log, tmp_path / "bad.mcap", garble_second_left)
+    out = tmp_path / "o.mcap"
+    main(["process", str(bad), "-o", str(out)])
+    captured = capsys.readouterr()
+    warning, unpaired = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert "1 of 5 image messages had no partner" in unpaired  # the lost image's right one
+    assert warning.startswith(f"{bad}: /stereo/left/image_rect message at log time ") and \
+        "not a readable sensor_msgs/msg/Image" in warning
+    assert "processed 2 frames" in captured.out and "skipped 1 damaged part of the log" in captured.out
+    assert len(_grids(out)) == 2
 
 
 def test_unusable_calibration_is_reported(shared_data, tmp_path, capsys):

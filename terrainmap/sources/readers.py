@@ -88,8 +88,9 @@ class McapFile:
         self.indexed = False
         self.damage: str | None = None
         """Why a scan of a file without a summary stopped early (None: read to the end)."""
-        self.skipped: dict[int, str] = {}
-        """Damaged chunks of an indexed file met while reading messages: byte offset → what."""
+        self.skipped: dict[int | tuple, str] = {}
+        """Damaged chunks of an indexed file (byte offset → what) and messages that could not be
+        decoded (("message", channel id, log time) → what), met while reading messages."""
         try:
             with open(path, "rb") as stream:
                 reader = make_reader(stream)
@@ -137,6 +138,7 @@ class McapFile:
         Chunk CRCs are checked (0.6 ms a 640×480 frame), so that damaged image data never goes
         through as a wrong frame. In an indexed file a damaged chunk is skipped with a warning
         (and noted in :attr:`skipped`): the messages of the other chunks are read all the same.
+        A message that cannot be decoded is skipped likewise, in any file.
         Damage that a linear read meets (a file without a summary) ends the messages there."""
         from mcap.reader import NonSeekingReader
 
@@ -153,7 +155,14 @@ class McapFile:
                         decoders[channel.id] = self._decoder(factories, channel, schema)
                     if decoders[channel.id] is None:
                         raise InputError(f"{self.path}: no decoder for topic {channel.topic} ({channel.message_encoding})")
-                    yield channel.topic, message.log_time, decoders[channel.id](message.data)
+                    try:
+                        decoded = decoders[channel.id](message.data)
+                    except Exception as exc:  # one bad message (its chunk's CRC held): skipped, reading goes on
+                        kind = schema.name if schema is not None else channel.message_encoding
+                        self._skip(("message", channel.id, message.log_time), f"{channel.topic} message at log time "
+                                   f"{message.log_time / 1e9:.3f} s, not a readable {kind}", exc)
+                        continue
+                    yield channel.topic, message.log_time, decoded
                     count += 1
         except InputError:
             raise
@@ -161,6 +170,12 @@ class McapFile:
             raise InputError(
                 f"{self.path}: log is truncated or corrupt after {count} messages of {', '.join(topics)} ({_reason(exc)})"
             ) from exc
+
+    def _skip(self, key, what: str, exc: Exception) -> None:
+        """Note a damaged chunk or message in :attr:`skipped` (once) and warn about it."""
+        if key not in self.skipped:
+            self.skipped[key] = f"{self.path}: {what} ({_reason(exc)})"
+            logger.warning("%s: damaged, skipped", self.skipped[key])
 
     def _indexed_messages(self, stream, topics: set[str]) -> Iterator[tuple[Any, Any, Any]]:
         """(schema, channel, message) of ``topics`` from the chunks of an indexed file, merged in
@@ -185,12 +200,8 @@ class McapFile:
                 stream.seek(offset + 1 + 8)  # past the opcode and the record length
                 records = list(breakup_chunk(Chunk.read(ReadDataStream(stream)), validate_crc=True))
             except Exception as exc:
-                if offset not in self.skipped:
-                    self.skipped[offset] = (
-                        f"{self.path}: chunk at byte {offset}, log time {item.message_start_time / 1e9:.3f}–"
-                        f"{item.message_end_time / 1e9:.3f} s ({_reason(exc)})"
-                    )
-                    logger.warning("%s: damaged, skipped with its messages", self.skipped[offset])
+                self._skip(offset, f"chunk at byte {offset}, log time {item.message_start_time / 1e9:.3f}–"
+                                   f"{item.message_end_time / 1e9:.3f} s", exc)
                 continue
             for i, record in enumerate(records):
                 if isinstance(record, Message) and record.channel_id in wanted:
@@ -270,7 +281,7 @@ class McapLog:
 
     @property
     def skipped(self) -> list[str]:
-        """The damaged chunks skipped so far (:attr:`McapFile.skipped`), one line each."""
+        """The damaged chunks and messages skipped so far (:attr:`McapFile.skipped`), one line each."""
         return [line for f in self.files for line in f.skipped.values()]
 
     def messages(self, topics: list[str]) -> Iterator[tuple[str, int, Any]]:
