@@ -10,7 +10,15 @@ import click
 
 from terrainmap.config import load_config
 
-from .options import PLOT_SUFFIXES, Finite, config_options, output_file, refuse_overwriting_inputs, write_text
+from .options import (
+    PLOT_SUFFIXES,
+    Finite,
+    config_options,
+    output_file,
+    refuse_overwriting_inputs,
+    write_text,
+    writing,
+)
 
 
 @click.command("accuracy")
@@ -53,4 +61,5 @@ def accuracy(log, methods, max_frames, json_path, plot_path, obstacle_margin, co
     if json_path:
         write_text(json_path, json.dumps(report, indent=2) + "\n")
     if plot_path:
-        plot_rmse_vs_range(report, plot_path)
+        with writing(plot_path):
+            plot_rmse_vs_range(report, plot_path)

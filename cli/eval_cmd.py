@@ -11,7 +11,15 @@ import click
 
 from terrainmap.config import load_config
 
-from .options import PLOT_SUFFIXES, Finite, config_options, output_file, refuse_overwriting_inputs, write_text
+from .options import (
+    PLOT_SUFFIXES,
+    Finite,
+    config_options,
+    output_file,
+    refuse_overwriting_inputs,
+    write_text,
+    writing,
+)
 from .source_options import open_options
 
 
@@ -104,7 +112,8 @@ def artificial_obstacle(
         writer.writerows(rows)
         write_text(csv_path, table.getvalue())
     if plot_path:
-        ao.plot(results, plot_path)
+        with writing(plot_path):
+            ao.plot(results, plot_path)
 
 
 def _print_table(results) -> None:

@@ -6,7 +6,7 @@ import itertools
 import math
 import os
 import signal
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -113,10 +113,26 @@ def refuse_overwriting_inputs(outputs: dict[str, Path | None], inputs: Iterable[
 
 
 def write_text(path: Path, text: str) -> None:
-    """Write an output file; a failure (disk full, permissions) is one line naming the file."""
+    """Write an output file whole or not at all (through a temporary file beside it); a failure
+    (disk full, permissions) is one line naming the file."""
+    path = Path(path)
+    partial = path.with_name(f".{path.name}.partial")
     try:
-        Path(path).write_text(text)
+        partial.write_text(text)
+        partial.replace(path)
     except OSError as exc:
+        partial.unlink(missing_ok=True)
+        raise Failed(f"cannot write {path}: {exc.strerror or exc}") from exc
+
+
+@contextmanager
+def writing(path) -> Iterator[None]:
+    """Around a library call that writes ``path`` (a plot): an OSError (disk full) becomes one
+    line naming the file, and the partial file is removed."""
+    try:
+        yield
+    except OSError as exc:
+        Path(path).unlink(missing_ok=True)
         raise Failed(f"cannot write {path}: {exc.strerror or exc}") from exc
 
 

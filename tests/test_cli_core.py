@@ -190,3 +190,36 @@ def test_a_bare_command_group_shows_its_help_not_an_error(argv, capsys):
     err = capsys.readouterr().err
     assert err.startswith(f"Usage: terrainmap {' '.join(argv)}".rstrip() + " [OPTIONS] COMMAND [ARGS]...")
     assert "Error" not in err
+
+
+def test_an_output_that_cannot_be_written_is_named_and_leaves_no_partial_file(tmp_path, monkeypatch, capsys):
+    """A full disk while writing a report, a plot or a simulated log: one line naming the file,
+    and no half-written report or plot left behind."""
+    import errno
+    from pathlib import Path
+
+    from terrainmap.cli.main import main
+    from terrainmap.sim import mcap_log
+
+    full = OSError(errno.ENOSPC, "No space left on device")
+
+    def no_space(*args, **kwargs):
+        raise full
+
+    for argv, path in (
+        (["eval", "artificial-obstacle", "--nets", "5", "--widths", "1", "--heights", "1", "--json"], "r.json"),
+        (["eval", "artificial-obstacle", "--nets", "5", "--widths", "1", "--heights", "1", "--plot"], "r.png"),
+    ):
+        with monkeypatch.context() as patch:
+            patch.setattr(Path, "replace", no_space)  # the report's last step
+            patch.setattr("matplotlib.figure.Figure.savefig", lambda self, p, **k: (Path(p).write_bytes(b"PNG"), no_space()))
+            with pytest.raises(SystemExit) as exc:
+                main([*argv, str(tmp_path / path)])
+        assert exc.value.code == 2
+        assert capsys.readouterr().err.splitlines()[-1] == f"Error: cannot write {tmp_path / path}: No space left on device"
+        assert list(tmp_path.iterdir()) == []
+    monkeypatch.setattr(mcap_log.McapLog, "write", no_space)
+    with pytest.raises(SystemExit):
+        main(["simulate", str(tmp_path / "s.mcap"), "--frames", "1", "--width", "32", "--height", "24", "--focal-px", "25"])
+    assert capsys.readouterr().err.splitlines()[-1] == (
+        f"Error: {tmp_path / 's.mcap'}: cannot write the simulated log (No space left on device)")

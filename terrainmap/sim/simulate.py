@@ -13,7 +13,7 @@ from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-from ..errors import ConfigError
+from ..errors import ConfigError, InputError
 from .folder_log import FolderLog
 from .mcap_log import McapLog
 from .render import Renderer
@@ -138,15 +138,18 @@ def simulate(out: str | Path, config: SimConfig, progress: Callable[[int], None]
     rig = renderer.rig
     description = describe(config, scene)
     out = Path(out)
-    if config.format == "mcap":
-        log = McapLog(out, scene, rig, description, compressed=config.compressed)
-    else:
-        log = FolderLog(out, scene, rig, description)
-    with log:
-        for index in range(config.frames):
-            log.write(renderer.frame(index))
-            if progress is not None:
-                progress(index)
+    try:
+        if config.format == "mcap":
+            log = McapLog(out, scene, rig, description, compressed=config.compressed)
+        else:
+            log = FolderLog(out, scene, rig, description)
+        with log:
+            for index in range(config.frames):
+                log.write(renderer.frame(index))
+                if progress is not None:
+                    progress(index)
+    except OSError as exc:  # disk full, device gone: the error says where
+        raise InputError(f"{out}: cannot write the simulated log ({exc.strerror or exc})") from exc
     seconds = time.perf_counter() - start
     size = out.stat().st_size if out.is_file() else sum(p.stat().st_size for p in log.written)
     logger.info("wrote %d frames of %s to %s in %.1f s", config.frames, config.scene, out, seconds)
