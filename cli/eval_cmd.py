@@ -10,6 +10,7 @@ import math
 import click
 
 from terrainmap.config import load_config
+from terrainmap.errors import ConfigError
 
 from .options import (
     PLOT_SUFFIXES,
@@ -42,6 +43,11 @@ def _numbers(*, positive: bool = True, whole: bool = False, count: int | None = 
         return values
 
     return parse
+
+
+_FIELD_OPTIONS = {"terrain.control_points": "--nets", "terrain.degree": "--degree", "grid.length_m": "--length/--cell",
+                  "grid.width_m": "--width/--cell", "grid.cell_size_m": "--cell"}
+"""The artificial-obstacle option behind each config field it sets (errors name both)."""
 
 
 @click.group("eval")
@@ -94,13 +100,18 @@ def artificial_obstacle(
         grid, base_points = config.grid, ao.points_from_log(base_log, config, frame_index, **source_opts.open_kwargs())
     else:
         grid, base_points = GridConfig(x_min_m=0.0, length_m=length_m, width_m=width_m, y_center_m=0.0, cell_size_m=cell_m), None
-    grid.validate()
     terrain = config.terrain
     terrain.degree = degree
     net_list = [int(n) for n in nets]
     terrain.start_control_points = min([terrain.start_control_points, *net_list])
     scenarios = ao.grid_of_scenarios(net_list, widths, heights)
-    results = ao.run(scenarios, grid=grid, terrain=terrain, position_xy=tuple(position), base_points=base_points)
+    try:
+        grid.validate()
+        results = ao.run(scenarios, grid=grid, terrain=terrain, position_xy=tuple(position), base_points=base_points)
+    except ConfigError as exc:  # name the option the user gave, not only the config field it set
+        field = str(exc).split(":", 1)[0]
+        option = _FIELD_OPTIONS.get(field.removesuffix("_x").removesuffix("_y"), "--set" if base_log else None)
+        raise ConfigError(f"{option} ({exc})" if option else str(exc)) from exc
     _print_table(results)
     rows = [r.to_dict() for r in results]
     if json_path:

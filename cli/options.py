@@ -160,6 +160,8 @@ def output_file(*suffixes: str) -> Callable:
     def check(ctx: click.Context, param: click.Parameter, value) -> Path | None:
         if value is None:
             return None
+        if not str(value).strip():
+            raise click.BadParameter("must name a file, got an empty path")
         path = Path(value)
         if not path.parent.is_dir():
             what = "is not a folder" if path.parent.exists() else "does not exist"

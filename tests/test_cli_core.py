@@ -223,3 +223,20 @@ def test_an_output_that_cannot_be_written_is_named_and_leaves_no_partial_file(tm
         main(["simulate", str(tmp_path / "s.mcap"), "--frames", "1", "--width", "32", "--height", "24", "--focal-px", "25"])
     assert capsys.readouterr().err.splitlines()[-1] == (
         f"Error: {tmp_path / 's.mcap'}: cannot write the simulated log (No space left on device)")
+
+
+@pytest.mark.parametrize(("argv", "line"), [
+    (["eval", "artificial-obstacle", "--nets", "3"],
+     "Error: --nets (terrain.control_points_x: must be at least degree + 1 = 4, got 3)"),
+    (["eval", "artificial-obstacle", "--cell", "100"],
+     "Error: --length/--cell (grid.length_m: must be a whole number of cells of 100.0 m, got 22.0)"),
+    (["process", "x.mcap", "-o", ""],
+     "Error: Invalid value for '-o' / '--output': must name a file, got an empty path (see 'terrainmap process --help')"),
+])
+def test_errors_name_the_option_the_user_gave(argv, line, capsys):
+    from terrainmap.cli.main import main
+
+    with pytest.raises(SystemExit) as exc:
+        main(argv)
+    assert exc.value.code == 2
+    assert capsys.readouterr().err.splitlines() == [line]
