@@ -392,3 +392,11 @@ def test_a_colour_image_paired_with_a_mono_one_makes_a_mono_pair():
     np.testing.assert_array_equal(left, cv2.cvtColor(colour, cv2.COLOR_RGB2GRAY))
     left16, right16 = stereo_pair(np.full((6, 8), 1000, np.uint16), np.full((6, 8), 2000, np.uint16), "l", "r")
     assert (left16.max(), right16.max()) == (128, 255)  # one scale for both: 255 / the pair's peak
+
+
+def test_a_folder_named_like_an_image_is_not_an_image(tmp_path):
+    root = generic_folder(tmp_path, n=2)
+    (root / "left" / "000002.png").mkdir()
+    (root / "right" / "000002.png").mkdir()
+    with open_source(root) as source:
+        assert len(list(source.frames())) == 2

@@ -350,6 +350,12 @@ def test_undistorted_raw_images_with_a_rectifying_rotation_are_still_rectified()
     narrow = {**right, "P": right["P"] * [[0.5], [0.5], [1]]}
     with pytest.raises(CalibrationError, match=r"different focal lengths \(400 and 200 px\)"):
         calibration_from_infos(left, narrow, rectified_images=True, source="test")
+    lower = {**right, "P": right["P"] + [[0, 0, 0, 0], [0, 0, 30, 0], [0, 0, 0, 0]]}  # cy 30 px further down
+    with pytest.raises(CalibrationError, match=r"principal points at different rows \(cy 3 and 33 px\)"):
+        calibration_from_infos(left, lower, rectified_images=True, source="test")
+    broken = {**right, "P": right["P"] * np.nan}
+    with pytest.raises(CalibrationError, match=r"test: the right camera info's projection P is not finite"):
+        calibration_from_infos(left, broken, rectified_images=True, source="test")
     assert calibration_from_infos(left, {**right, "width": 0, "height": 0}, rectified_images=True, source="test")
 
 
@@ -593,7 +599,7 @@ def test_rectified_images_whose_rows_do_not_agree_take_no_baseline_from_tf():
     beside[0, 3] = 0.3
     assert calibration_from_infos(left, right, rectified_images=True, source="t", right_in_left=beside).baseline_m == 0.3
     low = {**right, "P": right["P"] + [[0, 0, 0, 0], [0, 0, 2.0, 0], [0, 0, 0, 0]]}  # cy 2 px lower
-    with pytest.raises(CalibrationError, match="with cy 3 and 5 px: not a rectified pair"):
+    with pytest.raises(CalibrationError, match=r"principal points at different rows \(cy 3 and 5 px\)"):
         calibration_from_infos(left, low, rectified_images=True, source="t", right_in_left=beside)
     from scipy.spatial.transform import Rotation
 

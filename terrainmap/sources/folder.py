@@ -44,7 +44,7 @@ def image_names(folder: Path) -> list[str]:
     """Sorted image file names in ``folder`` (empty when it is not a directory)."""
     if not folder.is_dir():
         return []
-    return sorted(p.name for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+    return sorted(p.name for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and not p.is_dir())
 
 
 def matching_pairs(left_dir: Path, right_dir: Path, calibration_for) -> list[ImagePair]:

@@ -136,6 +136,9 @@ def calibration_from_infos(
     if all(any(size) for size in sizes) and sizes[0] != sizes[1]:  # (0, 0): a driver that leaves it unset
         raise CalibrationError(f"{source}: the left camera info is {left['width']}×{left['height']} px but the "
                                f"right one {right['width']}×{right['height']}: not one stereo pair")
+    for side, info in (("left", left), ("right", right)):
+        if not np.all(np.isfinite(info["P"])):
+            raise CalibrationError(f"{source}: the {side} camera info's projection P is not finite: {info['P'].tolist()}")
     from_tf = left["P"][0, 3] == right["P"][0, 3]  # a driver that leaves Tx at 0 (mono calibrations)
     # Undistorted cameras calibrated one by one are no rectified pair: rectify them with tf's pose.
     rectified = rectified_images or not from_tf and all(
@@ -144,6 +147,9 @@ def calibration_from_infos(
     if rectified and not np.allclose(np.diag(right["P"])[:2], np.diag(left["P"])[:2], rtol=0.01):
         raise CalibrationError(f"{source}: the left and right projections P have different focal lengths "
                                f"({left['P'][0, 0]:g} and {right['P'][0, 0]:g} px): not one rectified stereo pair")
+    if rectified and abs(right["P"][1, 2] - left["P"][1, 2]) > 0.5:  # a rectified pair's rows line up
+        raise CalibrationError(f"{source}: the left and right projections P have principal points at different rows "
+                               f"(cy {left['P'][1, 2]:g} and {right['P'][1, 2]:g} px): not one rectified stereo pair")
     if from_tf:
         right = {**right, "P": _right_projection(left, right, right_in_left, rectified, source)}
     for side, info in (("left", left), ("right", right)):
@@ -187,8 +193,7 @@ def _right_projection(left: dict, right: dict, right_in_left: np.ndarray | None,
     t = right_in_left[:3, 3]
     angle = np.arccos(np.clip((np.trace(right_in_left[:3, :3]) - 1) / 2, -1, 1))
     (fx, fy, cy), (fy_right, cy_right) = left["P"][[0, 1, 1], [0, 1, 2]], right["P"][1, 1:3]
-    aligned = (np.hypot(t[1], t[2]) <= 0.01 * t[0] and fx * angle <= 0.5
-               and abs(cy_right - cy) <= 0.5 and abs(fy_right - fy) <= 0.5)
+    aligned = np.hypot(t[1], t[2]) <= 0.01 * t[0] and fx * angle <= 0.5 and abs(fy_right - fy) <= 0.5  # cy: checked before
     if not (t[0] > 0 and (not rectified or aligned)):
         raise CalibrationError(
             f"{source}: tf places the right camera at ({t[0]:.3f}, {t[1]:.3f}, {t[2]:.3f}) m turned by "
