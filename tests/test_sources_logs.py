@@ -691,6 +691,27 @@ def test_a_rosbag2_whose_metadata_lists_no_files_is_read_from_its_mcap_files(tmp
     assert "relative_file_paths is no list" in caplog.text
 
 
+@pytest.mark.parametrize(("text", "reason"), [("", "no rosbag2_bagfile_information mapping"),
+                                              ("rosbag2_bagfile_information: [unclosed\n", "ParserError")])
+def test_an_unreadable_rosbag2_metadata_is_warned_about_once(tmp_path, caplog, text, reason):
+    bag = tmp_path / "bag"
+    bag.mkdir()
+    write_ros2_log(bag / "bag_0.mcap", n=2)
+    (bag / "metadata.yaml").write_text(text)
+    with open_source(bag) as source:
+        assert len(list(source.frames())) == 2
+    (warning,) = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert warning.startswith(f"{bag / 'metadata.yaml'}: unreadable (") and reason in warning
+
+
+def test_a_rosbag2_whose_files_are_gone_says_so(tmp_path):
+    bag = tmp_path / "bag"
+    bag.mkdir()
+    (bag / "metadata.yaml").write_text("rosbag2_bagfile_information:\n  relative_file_paths: [bag_0.mcap]\n")
+    with pytest.raises(InputError, match=r"bag: a rosbag2 folder whose metadata.yaml lists bag_0.mcap, none of them"):
+        open_source(bag)
+
+
 def test_a_rosbag2_source_that_fails_to_open_lets_go_of_its_bag(tmp_path, monkeypatch):
     from terrainmap.errors import NoStereoError
     from terrainmap.sources.readers import Rosbag2Bag

@@ -40,6 +40,7 @@ from .folder import GenericFolder
 from .kitti import KittiOdometryFolder, KittiRawFolder, KittiStereoFolder
 from .log import LogSource, McapSource, Ros1BagSource, Rosbag2Source
 from .middlebury import MiddleburyFolder
+from .readers import bag_metadata
 
 SOURCES: tuple[type[Source], ...] = (
     Rosbag2Source,
@@ -66,6 +67,10 @@ def source_class(path: str | Path) -> type[Source]:
             return cls
     if path.is_dir() and any(path.glob("*.mcap")):  # a rosbag2 without metadata.yaml (module docstring)
         return McapSource
+    listed = bag_metadata(path).get("relative_file_paths") if path.is_dir() else None
+    if listed and isinstance(listed, list):  # a rosbag2 whose files are gone (moved, not copied along)
+        raise InputError(f"{path}: a rosbag2 folder whose metadata.yaml lists {', '.join(map(str, listed))}, "
+                         "none of them in the folder")
     if path.is_dir() and any(path.glob("*.db3")):
         raise InputError(f"{path}: a rosbag2 folder of .db3 files needs its metadata.yaml (`ros2 bag reindex` "
                          "writes it)")

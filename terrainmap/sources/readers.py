@@ -228,13 +228,20 @@ def bag_metadata(path: Path) -> dict:
     if not metadata.is_file():
         return {}
     try:
-        info = yaml.safe_load(metadata.read_text())["rosbag2_bagfile_information"]
+        data = yaml.safe_load(metadata.read_text())
+        info = data.get("rosbag2_bagfile_information") if isinstance(data, dict) else None
         if isinstance(info, dict):
             return info
-        raise TypeError("rosbag2_bagfile_information is no mapping")
-    except (OSError, ValueError, yaml.YAMLError, KeyError, TypeError) as exc:
-        logger.warning("%s: unreadable (%s)", metadata, _reason(exc))
+        raise ValueError("no rosbag2_bagfile_information mapping in it")
+    except (OSError, ValueError, yaml.YAMLError) as exc:
+        if metadata not in _WARNED:  # once per file: several readers look at it
+            _WARNED.add(metadata)
+            logger.warning("%s: unreadable (%s)", metadata, _reason(exc))
         return {}
+
+
+_WARNED: set[Path] = set()
+"""The unreadable metadata.yaml files warned about so far (:func:`bag_metadata`)."""
 
 
 def bag_files(path: Path) -> list[Path]:
