@@ -126,7 +126,7 @@ def _report(summary, outputs, skipped: list[str]) -> None:
     from terrainmap.extrinsics import describe_extrinsics
 
     failed = f", {summary.frames_failed} failed ({_reasons(summary)})" if summary.frames_failed else ""
-    click.echo(f"processed {summary.frames_done} frames{failed} in {summary.wall_s:.1f} s ({summary.fps:.1f} frames/s)")
+    click.echo(f"processed {counted(summary.frames_done, 'frame')}{failed} in {summary.wall_s:.1f} s ({summary.fps:.1f} frames/s)")
     if skipped:
         click.echo(f"skipped {counted(len(skipped), 'damaged part')} of the log, whose frames are lost: " + "; ".join(skipped))
     medians = summary.median_ms()

@@ -554,6 +554,16 @@ def test_ros1_mcap_reads_like_the_ros1_bag_it_was_converted_from(tmp_path):
                                                               "tf2_msgs/msg/TFMessage"}
 
 
+def test_a_ros1_bag_cut_short_points_to_reindexing(tmp_path):
+    log = write_ros2_log(tmp_path / "run.mcap", n=2)
+    bag = ros1_bag(log, tmp_path / "run.bag")
+    cut = tmp_path / "cut.bag"
+    cut.write_bytes(bag.read_bytes()[: bag.stat().st_size // 2])
+    with pytest.raises(InputError, match=r"cut.bag: not a readable ROS 1 bag \(.*\); a bag cut short has no index: "
+                                         r"`rosbag reindex` rebuilds it$"):
+        open_source(cut)
+
+
 def test_ros1_mcap_of_the_real_bag(tmp_path):
     real = DATA / "kitti2015_000005_ros1_raw.bag"
     if not real.is_file():

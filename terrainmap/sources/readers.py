@@ -332,7 +332,8 @@ class Ros1Bag:
             reader = Reader(self.path)
             reader.open()
         except Exception as exc:  # rosbags raises ReaderError, but also struct/OS errors on garbage
-            raise InputError(f"{self.path}: not a readable ROS 1 bag ({_reason(exc)})") from exc
+            hint = "; a bag cut short has no index: `rosbag reindex` rebuilds it" if "index" in str(exc).lower() else ""
+            raise InputError(f"{self.path}: not a readable ROS 1 bag ({_reason(exc)}){hint}") from exc
         try:
             yield reader
         finally:
