@@ -190,6 +190,27 @@ def test_a_damaged_chunk_is_skipped_and_the_run_goes_on(tmp_path, capsys, caplog
     assert max(written) > victim.message_end_time  # the run went on past the damage
 
 
+def test_a_damaged_summary_is_not_trusted_and_the_log_is_read_from_start_to_end(tmp_path, caplog):
+    """The summary (index) of an MCAP names its channels; one whose CRC fails (here a topic name
+    changed in it) is ignored with a warning and the log is read linearly, chunk CRCs checked."""
+    import struct
+
+    from terrainmap.sim import SimConfig, simulate
+
+    log = tmp_path / "sim.mcap"
+    simulate(log, SimConfig(scene="flat", frames=2, seed=1, width=64, height=48, focal_px=50.0))
+    data = bytearray(log.read_bytes())
+    summary_start = struct.unpack_from("<Q", data, len(data) - 8 - 20)[0]
+    at = data.index(b"/stereo/left/image_rect", summary_start)
+    data[at + len("/stereo/le")] = ord("F")  # /stereo/leFt/image_rect, in the summary only
+    bad = tmp_path / "bad.mcap"
+    bad.write_bytes(bytes(data))
+    with open_source(bad) as source:
+        assert source.describe()["left_topic"] == "/stereo/left/image_rect"
+        assert len(list(source.frames())) == 2
+    assert f"{bad}: its summary (the index) is damaged (CRC mismatch)" in caplog.text
+
+
 def test_a_message_that_cannot_be_decoded_is_skipped_and_the_run_goes_on(tmp_path, capsys, caplog):
     """Bytes of one image message that its reader cannot decode (written so, the chunk's CRC
     holds): that frame is lost with a warning naming the topic and time, the others are processed."""

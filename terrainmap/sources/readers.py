@@ -15,6 +15,8 @@ from __future__ import annotations
 import heapq
 import io
 import logging
+import struct
+import zlib
 from collections.abc import Iterator
 from contextlib import contextmanager, redirect_stderr
 from functools import partial
@@ -32,6 +34,24 @@ logger = logging.getLogger(__name__)
 def _reason(exc: Exception) -> str:
     """``Type: message`` of an exception, first line only ("Type" when the message is empty)."""
     return f"{type(exc).__name__}: {exc}".rstrip(": ").splitlines()[0][:200]
+
+
+_FOOTER = struct.Struct("<BQQQI")
+"""An MCAP footer record: opcode 0x02, record length, summary start, summary offset start, summary CRC."""
+
+
+def _summary_crc_holds(stream) -> bool:
+    """Whether an MCAP file's summary section matches the CRC its footer gives (true when the
+    footer gives none): the CRC covers the summary start to the footer's CRC field."""
+    end = stream.seek(0, 2) - 8  # the closing magic
+    if end < _FOOTER.size:
+        return True
+    stream.seek(end - _FOOTER.size)
+    opcode, _, summary_start, _, crc = _FOOTER.unpack(stream.read(_FOOTER.size))
+    if opcode != 0x02 or crc == 0 or not 0 < summary_start < end:
+        return True
+    stream.seek(summary_start)
+    return zlib.crc32(stream.read(end - 4 - summary_start)) == crc
 
 
 def _decoder_factories() -> list:
@@ -94,7 +114,7 @@ class McapFile:
         try:
             with open(path, "rb") as stream:
                 reader = make_reader(stream)
-                summary = self._summary(reader)
+                summary = self._summary(reader, stream)
                 if summary is not None:
                     self._from_summary(summary)
                 else:
@@ -105,12 +125,17 @@ class McapFile:
         except Exception as exc:  # mcap raises many kinds on a file that is not MCAP
             raise InputError(f"{path}: not a readable MCAP file ({_reason(exc)})") from exc
 
-    def _summary(self, reader):
+    def _summary(self, reader, stream):
         try:
-            return reader.get_summary()
+            summary = reader.get_summary()
         except Exception as exc:  # no footer: a truncated or still-recording file
             logger.info("%s: no readable summary (%s); scanning the file", self.path, _reason(exc))
             return None
+        if summary is not None and not _summary_crc_holds(stream):  # mcap does not check it
+            logger.warning("%s: its summary (the index) is damaged (CRC mismatch); reading the file from start to end",
+                           self.path)
+            return None
+        return summary
 
     def _from_summary(self, summary) -> None:
         self.indexed = bool(summary.chunk_indexes)
