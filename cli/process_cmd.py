@@ -68,7 +68,10 @@ def process(log, output, flavor, compression, rrd, overwrite, source_opts, confi
         # calibration or an empty selection then fails without touching an earlier output.
         first = next(frames, None)
         if first is None:
-            raise Failed(f"no frame of {log} could be processed ({_NOTHING_SELECTED})")
+            skipped = source.skipped()
+            why = f"all {counted(len(skipped), 'damaged part')} skipped, the first: {skipped[0]}" if skipped \
+                else _NOTHING_SELECTED
+            raise Failed(f"no frame of {log} could be processed ({why})")
         frames = itertools.chain([first], frames)
         with stop.outputs_open():
             sinks = [open_mcap_sink(output, flavor, config=config, metadata={"source": str(log)}, compression=compression)]

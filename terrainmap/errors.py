@@ -29,6 +29,11 @@ class NoStereoError(InputError):
         self.contents = contents
 
 
+class DamagedImageError(InputError):
+    """One image's data cannot be decoded (a compressed image cut short or corrupt). A log skips
+    that stereo pair with a warning and goes on (:meth:`~terrainmap.sources.Source.skipped`)."""
+
+
 class CalibrationError(InputError):
     """Calibration missing or nonsensical (zero baseline, non-positive focal length...)."""
 

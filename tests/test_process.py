@@ -435,3 +435,23 @@ def test_a_stamp_outside_the_mcap_range_ends_the_run_with_the_output_readable(sm
     with pytest.raises(InputError, match="frame 1 has stamp -5 ns"):
         runner.run([first, dataclasses.replace(second, stamp_ns=-5)], Config(), [sink])
     assert len(_grids(out)) == 1  # the good frame, finalised
+
+
+def test_a_log_whose_every_pair_is_damaged_says_so(tmp_path, monkeypatch, capsys):
+    from test_sources_logs import write_ros2_log
+
+    from terrainmap.cli.main import main
+    from terrainmap.errors import DamagedImageError
+    from terrainmap.sources import messages
+
+    def damaged(msg, msg_type, topic):
+        raise DamagedImageError(f"{topic}: cannot decode the compressed image (9 bytes)")
+
+    log = write_ros2_log(tmp_path / "run.mcap", n=2)
+    monkeypatch.setattr(messages, "image_array", damaged)
+    with pytest.raises(SystemExit):
+        main(["process", str(log), "-o", str(tmp_path / "o.mcap")])
+    (line,) = capsys.readouterr().err.strip().splitlines()[-1:]
+    assert line.startswith(f"Error: no frame of {log} could be processed (all 2 damaged parts skipped, the first: "
+                           f"{log}: stereo pair at ")
+    assert not (tmp_path / "o.mcap").exists()

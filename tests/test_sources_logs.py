@@ -733,3 +733,28 @@ def test_a_rosbag2_source_that_fails_to_open_lets_go_of_its_bag(tmp_path, monkey
     with pytest.raises(NoStereoError):
         open_source(bag, left_topic="/cam/left/camera_info")  # no image topic: refused after the bag opened
     assert closed == [bag]
+
+
+def test_a_pair_whose_image_cannot_be_decoded_is_skipped_and_reading_goes_on(tmp_path, monkeypatch, caplog):
+    from terrainmap.errors import DamagedImageError
+    from terrainmap.sources import images, messages
+
+    log = write_ros2_log(tmp_path / "run.mcap", n=4)
+    decode, calls = messages.image_array, []
+
+    def third_image_damaged(msg, msg_type, topic):
+        calls.append(topic)
+        if len(calls) == 3:  # the second pair's left image
+            raise DamagedImageError(f"{topic}: cannot decode the compressed image (9 bytes)")
+        return decode(msg, msg_type, topic)
+
+    monkeypatch.setattr(messages, "image_array", third_image_damaged)
+    with open_source(log) as source:
+        frames = list(source.frames(max_frames=3))
+        (skipped,) = source.skipped()
+    assert [f.index for f in frames] == [0, 2, 3]  # max_frames counts the frames yielded
+    assert skipped.startswith(f"{log}: stereo pair at ") and "cannot decode the compressed image" in skipped
+    assert "damaged, skipped" in caplog.text
+    png = cv2.imencode(".png", np.zeros((4, 4), np.uint8))[1].tobytes()
+    with pytest.raises(DamagedImageError, match=r"/t: cannot decode the compressed image"):
+        images.decode_compressed(png[:-12], "/t")  # cut before its IEND chunk

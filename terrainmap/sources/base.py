@@ -25,7 +25,8 @@ class PairRef:
 
     index: int
     stamp_ns: int
-    load: Callable[[], StereoFrame]
+    load: Callable[[], StereoFrame | None]
+    """The frame; None for a pair the source skipped as damaged (:meth:`Source.skipped`)."""
 
 
 def extrinsics_entry(extrinsics: Extrinsics | None) -> dict | str:
@@ -110,14 +111,14 @@ class Source(ABC):
                 continue
             if end_s is not None and offset_s > end_s:
                 return
-            if in_window % every == 0:
+            if in_window % every == 0 and (frame := ref.load()) is not None:  # None: skipped as damaged
                 kept += 1
-                yield ref.load()
+                yield frame
             in_window += 1
 
     def skipped(self) -> list[str]:
-        """What reading has skipped so far, one line each (the damaged chunks of an indexed
-        MCAP, whose frames are lost); empty for folders."""
+        """What reading has skipped so far, one line each (the damaged chunks and messages of an
+        MCAP, the stereo pairs of a log whose images cannot be decoded); empty for folders."""
         return []
 
     def close(self) -> None:

@@ -12,7 +12,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ..errors import InputError
+from ..errors import DamagedImageError, InputError
 
 # ROS / Foxglove raw encodings (lower case) -> (dtype, channels on the wire, conversion to RGB or None).
 # Bayer names give the colours of the first two pixels of the first two rows (rggb: R G / G B);
@@ -87,16 +87,16 @@ def read_image(path: str, name: str | None = None) -> np.ndarray:
 def decode_compressed(data: bytes, name: str) -> np.ndarray:
     """Decode a compressed image (PNG, JPEG...) from bytes; ``name`` (topic) goes in errors."""
     data = bytes(data)
-    return _decode(data, name, f"cannot decode the compressed image ({len(data)} bytes)")
+    return _decode(data, name, f"cannot decode the compressed image ({len(data)} bytes)", DamagedImageError)
 
 
-def _decode(data: bytes, name: str, failure: str) -> np.ndarray:
+def _decode(data: bytes, name: str, failure: str, error: type[InputError] = InputError) -> np.ndarray:
     # A PNG or JPEG cut short is refused before libpng/libjpeg see it: they would print their own
     # lines to stderr (or decode a grey remainder) before OpenCV gives up.
     buffer = np.frombuffer(data, dtype=np.uint8)  # a view of the bytes, no copy
     image = cv2.imdecode(buffer, cv2.IMREAD_UNCHANGED) if data and _complete(data) else None
     if image is None:
-        raise InputError(f"{name}: {failure}")
+        raise error(f"{name}: {failure}")
     return _check_dtype(_to_rgb(image), name)
 
 

@@ -27,7 +27,7 @@ from dataclasses import replace
 from functools import partial
 from pathlib import Path
 
-from ..errors import CalibrationError, InputError, NoStereoError
+from ..errors import CalibrationError, DamagedImageError, InputError, NoStereoError
 from ..types import Extrinsics, StereoCalibration, StereoFrame
 from . import calibration as calib_io
 from . import messages as msgs
@@ -72,6 +72,7 @@ class LogSource(Source):
         pair_tolerance_ns: int = 10_000_000,
     ):
         super().__init__(path)
+        self._damaged: list[str] = []  # stereo pairs skipped for an image that cannot be decoded
         self.reader = self._open_reader()
         try:
             self._read_log(left_topic, right_topic, calibration, pair_tolerance_ns)
@@ -206,10 +207,15 @@ class LogSource(Source):
 
     def _load(
         self, index: int, stamp_ns: int, left_msg, right_msg, *, vehicle_pose=None, odometry_frame_id="odom"
-    ) -> StereoFrame:
+    ) -> StereoFrame | None:
         types = self.reader.types
-        left = msgs.image_array(left_msg, types[self.left_topic], self.left_topic)
-        right = msgs.image_array(right_msg, types[self.right_topic], self.right_topic)
+        try:
+            left = msgs.image_array(left_msg, types[self.left_topic], self.left_topic)
+            right = msgs.image_array(right_msg, types[self.right_topic], self.right_topic)
+        except DamagedImageError as exc:  # one bad image: that pair is lost, the run goes on
+            self._damaged.append(f"{self.path}: stereo pair at {stamp_ns / 1e9:.3f} s ({exc})")
+            logger.warning("%s: damaged, skipped", self._damaged[-1])
+            return None
         left, right = stereo_pair(left, right, self.left_topic, self.right_topic)
         return StereoFrame(
             index=index,
@@ -225,7 +231,7 @@ class LogSource(Source):
         )
 
     def skipped(self) -> list[str]:
-        return list(self.reader.skipped)
+        return [*self.reader.skipped, *self._damaged]
 
     def _contents(self) -> dict:
         """What the log holds, whatever its topics: format, files, damage, topics."""
