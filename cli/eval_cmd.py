@@ -95,6 +95,8 @@ def artificial_obstacle(
 
     refuse_overwriting_inputs({"--json": json_path, "--csv": csv_path, "--plot": plot_path},
                               [base_log, config_path, source_opts.calibration])
+    if frame_index and not base_log:
+        raise click.UsageError("--frame picks a stereo pair of the --base log; give --base too")
     config = load_config(config_path, overrides)
     if base_log:
         grid, base_points = config.grid, ao.points_from_log(base_log, config, frame_index, **source_opts.open_kwargs())

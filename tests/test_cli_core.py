@@ -230,6 +230,9 @@ def test_an_output_that_cannot_be_written_is_named_and_leaves_no_partial_file(tm
      "Error: --nets (terrain.control_points_x: must be at least degree + 1 = 4, got 3)"),
     (["eval", "artificial-obstacle", "--cell", "100"],
      "Error: --length/--cell (grid.length_m: must be a whole number of cells of 100.0 m, got 22.0)"),
+    (["eval", "artificial-obstacle", "--frame", "2"],
+     "Error: --frame picks a stereo pair of the --base log; give --base too "
+     "(see 'terrainmap eval artificial-obstacle --help')"),
     (["process", "x.mcap", "-o", ""],
      "Error: Invalid value for '-o' / '--output': must name a file, got an empty path (see 'terrainmap process --help')"),
 ])

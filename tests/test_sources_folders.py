@@ -400,3 +400,11 @@ def test_a_folder_named_like_an_image_is_not_an_image(tmp_path):
     (root / "right" / "000002.png").mkdir()
     with open_source(root) as source:
         assert len(list(source.frames())) == 2
+
+
+def test_stamps_that_repeat_or_go_back_are_warned_about(tmp_path, caplog):
+    root = generic_folder(tmp_path, n=3)
+    (root / "timestamps.txt").write_text("10\n10\n5\n")
+    with open_source(root) as source:
+        assert [f.stamp_ns for f in source.frames()] == [10, 10, 5]
+    assert "2 of 3 pair stamps are not later than the one before (repeated or out of order)" in caplog.text

@@ -95,6 +95,10 @@ class FolderSource(Source):
                 self.path, len(stamps), len(self.pairs), len(self.pairs),
             )
         self.stamps_ns = stamps or [i * DEFAULT_PERIOD_NS for i in range(len(self.pairs))]
+        backwards = sum(b <= a for a, b in zip(self.stamps_ns, self.stamps_ns[1 : len(self.pairs)], strict=False))
+        if backwards:  # outputs stamped so would overlay or reorder frames in a viewer
+            logger.warning("%s: %d of %d pair stamps are not later than the one before (repeated or out of order)",
+                           self.path, backwards, len(self.pairs))
         self._calibrations: dict[Path, tuple[StereoCalibration, Extrinsics | None]] = {}
 
     def _stamps_of_pairs(self, stamps: list[int]) -> list[int]:
