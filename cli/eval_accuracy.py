@@ -61,5 +61,5 @@ def accuracy(log, methods, max_frames, json_path, plot_path, obstacle_margin, co
     if json_path:
         write_text(json_path, json.dumps(report, indent=2) + "\n")
     if plot_path:
-        with writing(plot_path):
-            plot_rmse_vs_range(report, plot_path)
+        with writing(plot_path) as partial:
+            plot_rmse_vs_range(report, str(partial))

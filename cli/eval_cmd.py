@@ -125,8 +125,8 @@ def artificial_obstacle(
         writer.writerows(rows)
         write_text(csv_path, table.getvalue())
     if plot_path:
-        with writing(plot_path):
-            ao.plot(results, plot_path)
+        with writing(plot_path) as partial:
+            ao.plot(results, str(partial))
 
 
 def _print_table(results) -> None:

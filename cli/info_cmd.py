@@ -65,11 +65,13 @@ def info(log: str, source_opts: SourceOptions, as_json: bool, check: bool) -> No
                     for _frame in source.frames():
                         pairs += 1
                     description["check"] = f"{counted(pairs, 'stereo pair')} read and decoded, to the end"
-                    if pairs == 0:  # stereo topics, but no left and right images within the pairing tolerance
+                    skipped = source.skipped()
+                    if pairs == 0:  # stereo topics, but no left and right images that pair up
                         readable = False
-                        description["check"] += (" (no left and right images whose stamps agree within "
-                                                 "--pair-tolerance-ms)")
-                    if skipped := source.skipped():
+                        if not skipped:
+                            description["check"] += (" (no left and right images whose stamps agree within "
+                                                     "--pair-tolerance-ms)")
+                    if skipped:
                         readable = False
                         description["check"] += f", skipping {counted(len(skipped), 'damaged part')}: " + "; ".join(skipped)
                 except InputError as exc:

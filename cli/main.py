@@ -12,6 +12,7 @@ import logging
 import os
 import signal
 import sys
+import traceback
 
 import click
 
@@ -73,7 +74,7 @@ def main(argv: list[str] | None = None) -> None:
     except click.exceptions.Abort:
         click.echo("Aborted.", err=True)
         sys.exit(_signal_exit_code())
-    except click.exceptions.NoArgsIsHelpError as exc:  # a bare command (group): its help, as click shows it
+    except _NO_ARGS_IS_HELP as exc:  # a bare command (group): its help, as click shows it
         exc.show()
         sys.exit(exc.exit_code)
     except click.UsageError as exc:  # one line, with the help hint click would print above it
@@ -84,9 +85,12 @@ def main(argv: list[str] | None = None) -> None:
         exc.show()
         sys.exit(exc.exit_code)
     except TerrainmapError as exc:
-        if verbose:
+        if verbose and not _rerun_stuck():
             raise
-        click.echo(f"Error: {exc}", err=True)
+        if verbose:  # the traceback, without the normal exit that would wait for Rerun for ever
+            traceback.print_exc()
+        else:
+            click.echo(f"Error: {exc}", err=True)
         _exit(2)
     except KeyboardInterrupt:
         click.echo("Interrupted.", err=True)
@@ -99,11 +103,19 @@ def main(argv: list[str] | None = None) -> None:
         sys.exit(2)
 
 
-def _exit(code: int) -> None:
-    """``sys.exit(code)``, or ``os._exit`` where Rerun would keep the process from ending
-    (:func:`terrainmap.sinks.rerun_recording.exit_would_hang`)."""
+_NO_ARGS_IS_HELP = getattr(click.exceptions, "NoArgsIsHelpError", ())
+"""click ≥ 8.2's error for a group called without a command (older clicks print the help themselves)."""
+
+
+def _rerun_stuck() -> bool:
+    """Whether Rerun would keep the process from ending (:func:`terrainmap.sinks.rerun_recording.exit_would_hang`)."""
     rerun_sink = sys.modules.get("terrainmap.sinks.rerun_recording")
-    if rerun_sink is not None and rerun_sink.exit_would_hang():
+    return rerun_sink is not None and rerun_sink.exit_would_hang()
+
+
+def _exit(code: int) -> None:
+    """``sys.exit(code)``, or ``os._exit`` where Rerun would keep the process from ending."""
+    if _rerun_stuck():
         sys.stdout.flush()
         sys.stderr.flush()
         os._exit(code)

@@ -115,24 +115,22 @@ def refuse_overwriting_inputs(outputs: dict[str, Path | None], inputs: Iterable[
 def write_text(path: Path, text: str) -> None:
     """Write an output file whole or not at all (through a temporary file beside it); a failure
     (disk full, permissions) is one line naming the file."""
-    path = Path(path)
-    partial = path.with_name(f".{path.name}.partial")
-    try:
+    with writing(path) as partial:
         partial.write_text(text)
-        partial.replace(path)
-    except OSError as exc:
-        partial.unlink(missing_ok=True)
-        raise Failed(f"cannot write {path}: {exc.strerror or exc}") from exc
 
 
 @contextmanager
-def writing(path) -> Iterator[None]:
-    """Around a library call that writes ``path`` (a plot): an OSError (disk full) becomes one
-    line naming the file, and the partial file is removed."""
+def writing(path) -> Iterator[Path]:
+    """A temporary path beside ``path``, with its suffix, for a library call to write (a plot);
+    renamed to ``path`` once written whole. An OSError (disk full) becomes one line naming
+    ``path``, which is left as it was."""
+    path = Path(path)
+    partial = path.with_name(f".{path.stem}.partial{path.suffix}")
     try:
-        yield
+        yield partial
+        partial.replace(path)
     except OSError as exc:
-        Path(path).unlink(missing_ok=True)
+        partial.unlink(missing_ok=True)
         raise Failed(f"cannot write {path}: {exc.strerror or exc}") from exc
 
 

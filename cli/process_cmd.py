@@ -69,9 +69,9 @@ def process(log, output, flavor, compression, rrd, overwrite, source_opts, confi
         first = next(frames, None)
         if first is None:
             skipped = source.skipped()
-            why = f"all {counted(len(skipped), 'damaged part')} skipped, the first: {skipped[0]}" if skipped \
-                else _NOTHING_SELECTED
-            raise Failed(f"no frame of {log} could be processed ({why})")
+            damage = f"; {counted(len(skipped), 'damaged part')} of the log skipped, the first: {skipped[0]}" \
+                if skipped else ""
+            raise Failed(f"no frame of {log} could be processed ({_NOTHING_SELECTED}{damage})")
         frames = itertools.chain([first], frames)
         with stop.outputs_open():
             sinks = [open_mcap_sink(output, flavor, config=config, metadata={"source": str(log)}, compression=compression)]

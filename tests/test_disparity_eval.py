@@ -78,6 +78,9 @@ def test_truth_files_round_trip_with_unknown_pixels(tmp_path):
     (tmp_path / "huge.pfm").write_bytes(b"Pf\n100000 100000\n-1.0\n")  # nothing allocated for 37 GB
     with pytest.raises(InputError, match=r"huge\.pfm: .* \(100000×100000, the file holds 0 values\)"):
         ev.read_truth(tmp_path / "huge.pfm", (100000, 100000))
+    (tmp_path / "negative.pfm").write_bytes(b"Pf\n-2 -2\n-1.0\n" + bytes(16))
+    with pytest.raises(InputError, match=r"negative\.pfm: .* \(-2×-2, the file holds 4 values\)"):
+        ev.read_truth(tmp_path / "negative.pfm", (2, 2))
     cv2.imwrite(str(tmp_path / "rgb.png"), np.zeros((2, 2, 3), np.uint8))
     with pytest.raises(InputError, match=r"rgb\.png: not a 16-bit single-channel PNG"):
         ev.read_truth(tmp_path / "rgb.png", (2, 2))

@@ -202,20 +202,29 @@ def test_a_damaged_summary_is_not_trusted_and_the_log_is_read_from_start_to_end(
     data = bytearray(log.read_bytes())
     summary_start = struct.unpack_from("<Q", data, len(data) - 8 - 20)[0]
     at = data.index(b"/stereo/left/image_rect", summary_start)
-    data[at + len("/stereo/le")] = ord("F")  # /stereo/leFt/image_rect, in the summary only
-    bad = tmp_path / "bad.mcap"
-    bad.write_bytes(bytes(data))
-    with open_source(bad) as source:
-        assert source.describe()["left_topic"] == "/stereo/left/image_rect"
-        assert len(list(source.frames())) == 2
-    assert f"{bad}: its summary (the index) is damaged (CRC mismatch)" in caplog.text
+    renamed = data.copy()
+    renamed[at + len("/stereo/le")] = ord("F")  # /stereo/leFt/image_rect, in the summary only
+    channel = summary_start  # the summary's first Channel record (opcode 0x04; a record: opcode, length, content)
+    while data[channel] != 0x04:
+        channel += 1 + 8 + struct.unpack_from("<Q", data, channel + 1)[0]
+    unschemed = data.copy()
+    unschemed[channel + 1 + 8 + 2 + 1] ^= 0xFF  # its schema id names no schema: reading must stop before it
+    for damage in (renamed, unschemed):
+        bad = tmp_path / "bad.mcap"
+        bad.write_bytes(bytes(damage))
+        with open_source(bad) as source:
+            assert source.describe()["left_topic"] == "/stereo/left/image_rect" and source.describe()["damage"] is None
+            assert len(list(source.frames())) == 2
+        assert f"{bad}: its summary (the index) is damaged (CRC mismatch)" in caplog.text
 
 
-def test_a_message_that_cannot_be_decoded_is_skipped_and_the_run_goes_on(tmp_path, capsys, caplog):
+def test_a_message_that_cannot_be_decoded_is_skipped_and_the_run_goes_on(tmp_path, capsys, caplog, monkeypatch):
     """Bytes of one image message that its reader cannot decode (written so, the chunk's CRC
     holds): that frame is lost with a warning naming the topic and time, the others are processed."""
     from terrainmap.cli.main import main
+    from terrainmap.errors import InputError
     from terrainmap.sim import SimConfig, simulate
+    from terrainmap.sources import readers
 
     log = tmp_path / "sim.mcap"
     simulate(log, SimConfig(scene="flat", frames=3, seed=1, width=160, height=120, focal_px=125.0))
@@ -229,6 +238,13 @@ def test_a_message_that_cannot_be_decoded_is_skipped_and_the_run_goes_on(tmp_pat
         return data
 
     bad = rewrite_mcap(log, tmp_path / "bad.mcap", garble_second_left)
+    everyone = rewrite_mcap(log, tmp_path / "wrong_type.mcap",
+                            lambda topic, data: data[:4] + b"\xff" * 40 if topic == "/stereo/left/image_rect" else data)
+    monkeypatch.setattr(readers, "_MAX_UNDECODABLE", 3)  # a channel whose every message fails is no damage
+    with pytest.raises(InputError, match=r"topic /stereo/left/image_rect: 3 messages in a row are not a readable "
+                                         "sensor_msgs"), open_source(everyone) as source:
+        list(source.frames())
+    caplog.clear()
     out = tmp_path / "o.mcap"
     main(["process", str(bad), "-o", str(out)])
     captured = capsys.readouterr()
@@ -452,6 +468,7 @@ def test_a_log_whose_every_pair_is_damaged_says_so(tmp_path, monkeypatch, capsys
     with pytest.raises(SystemExit):
         main(["process", str(log), "-o", str(tmp_path / "o.mcap")])
     (line,) = capsys.readouterr().err.strip().splitlines()[-1:]
-    assert line.startswith(f"Error: no frame of {log} could be processed (all 2 damaged parts skipped, the first: "
-                           f"{log}: stereo pair at ")
+    assert line.startswith(f"Error: no frame of {log} could be processed (no stereo pair selected: check --start/"
+                           "--end, and that the left and right stamps agree within --pair-tolerance-ms; 2 damaged "
+                           f"parts of the log skipped, the first: {log}: stereo pair at ")
     assert not (tmp_path / "o.mcap").exists()

@@ -160,10 +160,13 @@ def test_nonsense_in_a_calibration_file_is_named(tmp_path, old, new, message):
 
 
 def test_an_unknown_calibration_key_is_warned_about(tmp_path, caplog):
-    root = generic_folder(tmp_path, n=1, calib=CALIB_YAML + "dofs: 2.5\n")  # doffs misspelt
+    root = generic_folder(tmp_path, n=1, calib=CALIB_YAML + "dofs: 2.5\n1: 2\n")  # doffs misspelt; a number as key
     frame = next(open_source(root).frames())
     assert frame.calibration.doffs == 0.0
-    assert "calibration.yaml: ignoring unknown calibration keys: dofs (known: width, height" in caplog.text
+    assert "calibration.yaml: ignoring unknown calibration keys: 1, dofs (known: width, height" in caplog.text
+    (root / "calibration.yaml").write_text(CALIB_YAML.replace("fx: 500.0", "fx:"))  # a key without a value
+    with pytest.raises(CalibrationError, match=r"calibration.yaml: missing calibration keys: fx$"):
+        next(open_source(root).frames())
 
 
 def kitti_stereo(root: Path, left="image_2", right="image_3", calib_dir="calib_cam_to_cam", names=("000000_10", "000000_11")):

@@ -106,7 +106,7 @@ def _read_pfm(path: Path) -> np.ndarray:
             width, height = (int(v) for v in f.readline().split())
             scale = float(f.readline())
             held = (os.fstat(f.fileno()).st_size - f.tell()) // 4
-            if kind != b"Pf" or not 0 < width * height <= held:  # before allocating what the header says
+            if kind != b"Pf" or width <= 0 or height <= 0 or width * height > held:  # before allocating what the header says
                 raise InputError(f"{path}: not a one-channel PFM image of the size its header gives "
                                  f"({width}×{height}, the file holds {held} values)")
             data = np.fromfile(f, "<f4" if scale < 0 else ">f4", width * height)

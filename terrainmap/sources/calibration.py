@@ -224,10 +224,10 @@ def _load_table(path: Path) -> dict:
 def terrainmap_calibration(path: Path) -> tuple[StereoCalibration, Extrinsics | None]:
     """Read terrainmap's YAML/TOML calibration format (see the module docstring)."""
     data = _load_table(path)
-    missing = [key for key in _REQUIRED if key not in data]
+    missing = [key for key in _REQUIRED if data.get(key) is None]  # `fx:` with no value is missing too
     if missing:
         raise CalibrationError(f"{path}: missing calibration keys: {', '.join(missing)}")
-    unknown = sorted(set(data) - set(_KNOWN))
+    unknown = sorted(set(data) - set(_KNOWN), key=str)
     if unknown:  # a misspelt optional key would otherwise pass unnoticed
         logger.warning("%s: ignoring unknown calibration keys: %s (known: %s)", path, ", ".join(map(str, unknown)),
                        ", ".join(_KNOWN))

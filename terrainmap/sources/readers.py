@@ -17,6 +17,7 @@ import io
 import logging
 import struct
 import zlib
+from collections import Counter
 from collections.abc import Iterator
 from contextlib import contextmanager, redirect_stderr
 from functools import partial
@@ -39,19 +40,42 @@ def _reason(exc: Exception) -> str:
 _FOOTER = struct.Struct("<BQQQI")
 """An MCAP footer record: opcode 0x02, record length, summary start, summary offset start, summary CRC."""
 
+_MAX_UNDECODABLE = 20
+"""Messages in a row of one channel that cannot be decoded before the log is refused (damage
+does not do that: the channel's schema does not describe its data)."""
 
-def _summary_crc_holds(stream) -> bool:
-    """Whether an MCAP file's summary section matches the CRC its footer gives (true when the
-    footer gives none): the CRC covers the summary start to the footer's CRC field."""
+
+def _summary_section(stream) -> tuple[int | None, bool]:
+    """Where an MCAP file's summary section begins, by its footer (None without a footer or a
+    summary), and whether it holds the CRC the footer gives (true when it gives none). The CRC
+    covers the summary start to the footer's CRC field."""
     end = stream.seek(0, 2) - 8  # the closing magic
     if end < _FOOTER.size:
-        return True
+        return None, True
     stream.seek(end - _FOOTER.size)
     opcode, _, summary_start, _, crc = _FOOTER.unpack(stream.read(_FOOTER.size))
-    if opcode != 0x02 or crc == 0 or not 0 < summary_start < end:
-        return True
+    if opcode != 0x02 or not 0 < summary_start < end:
+        return None, True
+    if crc == 0:
+        return summary_start, True
     stream.seek(summary_start)
-    return zlib.crc32(stream.read(end - 4 - summary_start)) == crc
+    return summary_start, zlib.crc32(stream.read(end - 4 - summary_start)) == crc
+
+
+class _Until:
+    """A binary stream read up to byte ``end`` only (a file's data section, before a damaged summary)."""
+
+    def __init__(self, stream, end: int):
+        self._stream, self._left = stream, end - stream.tell()
+
+    def read(self, size: int = -1) -> bytes:
+        data = self._stream.read(self._left if size is None or size < 0 else min(size, self._left))
+        self._left -= len(data)
+        return data
+
+    @property
+    def at_end(self) -> bool:
+        return self._left <= 0
 
 
 def _decoder_factories() -> list:
@@ -106,6 +130,7 @@ class McapFile:
         self.types: dict[str, str] = {}
         self.counts: dict[str, int | None] = {}
         self.indexed = False
+        self._data_end: int | None = None  # where a summary that cannot be used begins: reading stops there
         self.damage: str | None = None
         """Why a scan of a file without a summary stopped early (None: read to the end)."""
         self.skipped: dict[int | tuple, str] = {}
@@ -126,16 +151,27 @@ class McapFile:
             raise InputError(f"{path}: not a readable MCAP file ({_reason(exc)})") from exc
 
     def _summary(self, reader, stream):
+        start, holds = _summary_section(stream)  # mcap does not check the summary's CRC
         try:
             summary = reader.get_summary()
-        except Exception as exc:  # no footer: a truncated or still-recording file
+        except Exception as exc:  # no footer (a truncated or still-recording file), or a broken summary
+            self._data_end = start
             logger.info("%s: no readable summary (%s); scanning the file", self.path, _reason(exc))
             return None
-        if summary is not None and not _summary_crc_holds(stream):  # mcap does not check it
+        if summary is not None and not holds:
+            self._data_end = start
             logger.warning("%s: its summary (the index) is damaged (CRC mismatch); reading the file from start to end",
                            self.path)
             return None
         return summary
+
+    def _linear(self, stream) -> tuple[Any, _Until | None]:
+        """A NonSeekingReader over ``stream``, ending where a damaged summary begins (then also
+        that bounded stream, to tell its end from damage)."""
+        from mcap.reader import NonSeekingReader
+
+        bounded = None if self._data_end is None else _Until(stream, self._data_end)
+        return NonSeekingReader(bounded or stream, validate_crcs=True), bounded
 
     def _from_summary(self, summary) -> None:
         self.indexed = bool(summary.chunk_indexes)
@@ -146,13 +182,14 @@ class McapFile:
             self.counts[channel.topic] = self.counts.get(channel.topic, 0) + counts.get(channel.id, 0)
 
     def _scan(self, stream) -> None:
-        from mcap.reader import NonSeekingReader
-
+        reader, bounded = self._linear(stream)
         try:
-            for schema, channel, _ in NonSeekingReader(stream, validate_crcs=True).iter_messages(log_time_order=False):
+            for schema, channel, _ in reader.iter_messages(log_time_order=False):
                 self.types[channel.topic] = normalize_type(schema.name if schema else "")
                 self.counts[channel.topic] = self.counts.get(channel.topic, 0) + 1
         except Exception as exc:
+            if bounded is not None and bounded.at_end:  # the data section ends before the damaged summary
+                return
             # Not a warning: ``info`` shows it, and reading the messages raises it as the error.
             self.damage = f"{self.path}: truncated or corrupt after {sum(self.counts.values())} messages ({_reason(exc)})"
             logger.info("%s", self.damage)
@@ -165,33 +202,39 @@ class McapFile:
         (and noted in :attr:`skipped`): the messages of the other chunks are read all the same.
         A message that cannot be decoded is skipped likewise, in any file.
         Damage that a linear read meets (a file without a summary) ends the messages there."""
-        from mcap.reader import NonSeekingReader
-
         factories, decoders = _decoder_factories(), {}
-        count = 0
+        count, bounded, failing = 0, None, Counter()
         try:
             with open(self.path, "rb") as stream:
                 if self.indexed:
                     records = self._indexed_messages(stream, set(topics))
                 else:
-                    records = NonSeekingReader(stream, validate_crcs=True).iter_messages(topics=topics, log_time_order=False)
+                    reader, bounded = self._linear(stream)
+                    records = reader.iter_messages(topics=topics, log_time_order=False)
                 for schema, channel, message in records:
                     if channel.id not in decoders:
                         decoders[channel.id] = self._decoder(factories, channel, schema)
                     if decoders[channel.id] is None:
                         raise InputError(f"{self.path}: no decoder for topic {channel.topic} ({channel.message_encoding})")
+                    kind = schema.name if schema is not None else channel.message_encoding
                     try:
                         decoded = decoders[channel.id](message.data)
                     except Exception as exc:  # one bad message (its chunk's CRC held): skipped, reading goes on
-                        kind = schema.name if schema is not None else channel.message_encoding
+                        failing[channel.id] += 1
+                        if failing[channel.id] >= _MAX_UNDECODABLE:  # not damage: a channel whose type is wrong
+                            raise InputError(f"{self.path}: topic {channel.topic}: {_MAX_UNDECODABLE} messages in a "
+                                             f"row are not a readable {kind} ({_reason(exc)})") from exc
                         self._skip(("message", channel.id, message.log_time), f"{channel.topic} message at log time "
                                    f"{message.log_time / 1e9:.3f} s, not a readable {kind}", exc)
                         continue
+                    failing[channel.id] = 0
                     yield channel.topic, message.log_time, decoded
                     count += 1
         except InputError:
             raise
         except Exception as exc:
+            if bounded is not None and bounded.at_end:  # the data section ends before the damaged summary
+                return
             raise InputError(
                 f"{self.path}: log is truncated or corrupt after {count} messages of {', '.join(topics)} ({_reason(exc)})"
             ) from exc
