@@ -30,7 +30,7 @@ def _numbers(*, positive: bool = True, whole: bool = False, count: int | None = 
 
     def parse(ctx: click.Context, param: click.Parameter, text: str) -> list[float]:
         try:
-            values = [float(v) for v in text.split(",") if v.strip()]
+            values = [float(v) for v in text.split(",")]  # an empty entry ("1,,2") is no number either
         except ValueError:
             raise click.BadParameter(f"expected comma-separated numbers, got {text!r}") from None
         if not values or not all(

@@ -78,8 +78,9 @@ def test_eval_artificial_obstacle_writes_json_csv_and_plot(tmp_path):
     assert (tmp_path / "r.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
-def test_eval_rejects_bad_lists():
-    result = CliRunner().invoke(cli, ["eval", "artificial-obstacle", "--widths", "a,b"])
+@pytest.mark.parametrize("widths", ["a,b", "1,,2", "1,"])
+def test_eval_rejects_bad_lists(widths):
+    result = CliRunner().invoke(cli, ["eval", "artificial-obstacle", "--widths", widths])
     assert result.exit_code != 0 and "comma-separated numbers" in result.output
 
 
