@@ -272,6 +272,8 @@ def test_a_drive_too_long_to_hold_is_refused_before_anything_is_built(options):
     with pytest.raises(ConfigError, match=r"--frames: a drive of .* m .* more than the 5e\+06 the simulator holds"):
         SimConfig(**options).validate()
     SimConfig(frames=5000, speed_mps=4.0).validate()  # 2 km at 0.2 m: built
+    with pytest.raises(ConfigError, match=r"--terrain-resolution-m: 0.01 m gives a terrain of 9.2e\+07 cells"):
+        SimConfig(frames=1, terrain_resolution_m=0.01).validate()  # a short drive, too fine a terrain
 
 
 def test_a_folder_output_replaces_only_a_simulated_drive(tmp_path):

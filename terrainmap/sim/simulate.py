@@ -80,10 +80,12 @@ class SimConfig:
         check(0.25 <= self.texture_detail <= 8, "texture_detail", f"must be within [0.25, 8], got {self.texture_detail}")
         check(0 <= self.speed_mps <= 40, "speed_mps", f"must be within [0, 40] m/s, got {self.speed_mps}")
         cells = math.prod(grid_size(self.length_m, self.terrain_resolution_m))
-        check(cells <= MAX_SCENE_CELLS, "frames",
-              f"a drive of {self.length_m:.4g} m ((frames − 1) × speed / fps) needs a terrain of {cells:.3g} cells, "
-              f"more than the {MAX_SCENE_CELLS:.3g} the simulator holds: give fewer frames, a lower --speed-mps "
-              "or a higher --fps")
+        if math.prod(grid_size(self.length_m)) > MAX_SCENE_CELLS:  # too long at the default resolution
+            check(False, "frames", f"a drive of {self.length_m:.4g} m ((frames − 1) × speed / fps) needs a terrain of "
+                  f"{cells:.3g} cells, more than the {MAX_SCENE_CELLS:.3g} the simulator holds: give fewer frames, "
+                  "a lower --speed-mps or a higher --fps")
+        check(cells <= MAX_SCENE_CELLS, "terrain_resolution_m", f"{self.terrain_resolution_m:g} m gives a terrain of "
+              f"{cells:.3g} cells, more than the {MAX_SCENE_CELLS:.3g} the simulator holds: choose a coarser one")
 
     def rig(self) -> CameraRig:
         return CameraRig(
