@@ -233,7 +233,7 @@ def terrainmap_calibration(path: Path) -> tuple[StereoCalibration, Extrinsics | 
                        ", ".join(_KNOWN))
     numbers = {key: _number(data, key, path) for key in (*_REQUIRED, "doffs", "cx_right") if data.get(key) is not None}
     for key in ("width", "height"):
-        if not float(numbers[key]).is_integer():
+        if not numbers[key].is_integer():
             raise CalibrationError(f"{path}: {key} must be a whole number of pixels, got {data[key]!r}")
         numbers[key] = int(numbers[key])
     cx_right = numbers.pop("cx_right", None)

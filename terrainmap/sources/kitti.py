@@ -20,7 +20,7 @@ from pathlib import Path
 
 from ..errors import InputError
 from . import calibration as calib_io
-from .folder import FolderSource, ImagePair, image_names, matching_pairs, read_lines
+from .folder import FolderSource, ImagePair, matching_pairs, read_lines
 
 # (left dir, right dir, projection keys in a calib/ file)
 _STEREO_DIRS = (("image_2", "image_3", ("P2", "P3")), ("colored_0", "colored_1", ("P2", "P3")),
@@ -77,11 +77,8 @@ class KittiRawFolder(FolderSource):
         path = self.path / "image_02" / "timestamps.txt"
         if not path.is_file():
             return None
-        names = image_names(self.path / "image_02" / "data")
-        stamps = [_parse_kitti_time(line, path) for line in read_lines(path)]
-        # timestamps.txt has one line per left image; keep those of the images that have a pair
-        by_name = dict(zip(names, stamps, strict=False))
-        return [by_name[p.left.name] for p in self.pairs if p.left.name in by_name] or None
+        # one line per left image: FolderSource keeps those of the images that have a pair
+        return [_parse_kitti_time(line, path) for line in read_lines(path)] or None
 
     def _read_calibration(self, path: Path):
         return calib_io.kitti_calibration(path), None

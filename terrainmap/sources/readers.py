@@ -165,13 +165,18 @@ class McapFile:
             return None
         return summary
 
-    def _linear(self, stream) -> tuple[Any, _Until | None]:
-        """A NonSeekingReader over ``stream``, ending where a damaged summary begins (then also
-        that bounded stream, to tell its end from damage)."""
+    def _linear(self, stream, topics: list[str] | None = None) -> Iterator[tuple[Any, Any, Any]]:
+        """(schema, channel, message) read from start to end, chunk CRCs checked, ending quietly
+        where an unusable summary begins (the records there are not read)."""
         from mcap.reader import NonSeekingReader
 
         bounded = None if self._data_end is None else _Until(stream, self._data_end)
-        return NonSeekingReader(bounded or stream, validate_crcs=True), bounded
+        try:
+            yield from NonSeekingReader(bounded or stream, validate_crcs=True).iter_messages(
+                topics=topics, log_time_order=False)
+        except Exception:
+            if bounded is None or not bounded.at_end:  # damage, not the data section's end
+                raise
 
     def _from_summary(self, summary) -> None:
         self.indexed = bool(summary.chunk_indexes)
@@ -182,14 +187,11 @@ class McapFile:
             self.counts[channel.topic] = self.counts.get(channel.topic, 0) + counts.get(channel.id, 0)
 
     def _scan(self, stream) -> None:
-        reader, bounded = self._linear(stream)
         try:
-            for schema, channel, _ in reader.iter_messages(log_time_order=False):
+            for schema, channel, _ in self._linear(stream):
                 self.types[channel.topic] = normalize_type(schema.name if schema else "")
                 self.counts[channel.topic] = self.counts.get(channel.topic, 0) + 1
         except Exception as exc:
-            if bounded is not None and bounded.at_end:  # the data section ends before the damaged summary
-                return
             # Not a warning: ``info`` shows it, and reading the messages raises it as the error.
             self.damage = f"{self.path}: truncated or corrupt after {sum(self.counts.values())} messages ({_reason(exc)})"
             logger.info("%s", self.damage)
@@ -203,23 +205,22 @@ class McapFile:
         A message that cannot be decoded is skipped likewise, in any file.
         Damage that a linear read meets (a file without a summary) ends the messages there."""
         factories, decoders = _decoder_factories(), {}
-        count, bounded, failing = 0, None, Counter()
+        count, failing = 0, Counter()
         try:
             with open(self.path, "rb") as stream:
                 if self.indexed:
                     records = self._indexed_messages(stream, set(topics))
                 else:
-                    reader, bounded = self._linear(stream)
-                    records = reader.iter_messages(topics=topics, log_time_order=False)
+                    records = self._linear(stream, topics)
                 for schema, channel, message in records:
                     if channel.id not in decoders:
                         decoders[channel.id] = self._decoder(factories, channel, schema)
                     if decoders[channel.id] is None:
                         raise InputError(f"{self.path}: no decoder for topic {channel.topic} ({channel.message_encoding})")
-                    kind = schema.name if schema is not None else channel.message_encoding
                     try:
                         decoded = decoders[channel.id](message.data)
                     except Exception as exc:  # one bad message (its chunk's CRC held): skipped, reading goes on
+                        kind = schema.name if schema is not None else channel.message_encoding
                         failing[channel.id] += 1
                         if failing[channel.id] >= _MAX_UNDECODABLE:  # not damage: a channel whose type is wrong
                             raise InputError(f"{self.path}: topic {channel.topic}: {_MAX_UNDECODABLE} messages in a "
@@ -227,14 +228,13 @@ class McapFile:
                         self._skip(("message", channel.id, message.log_time), f"{channel.topic} message at log time "
                                    f"{message.log_time / 1e9:.3f} s, not a readable {kind}", exc)
                         continue
-                    failing[channel.id] = 0
+                    if failing:
+                        failing.pop(channel.id, None)
                     yield channel.topic, message.log_time, decoded
                     count += 1
         except InputError:
             raise
         except Exception as exc:
-            if bounded is not None and bounded.at_end:  # the data section ends before the damaged summary
-                return
             raise InputError(
                 f"{self.path}: log is truncated or corrupt after {count} messages of {', '.join(topics)} ({_reason(exc)})"
             ) from exc
