@@ -302,18 +302,36 @@ def test_boxes_found_on_the_real_terrain_estimate():
 def test_box_ignores_a_sparse_smeared_tail():
     """Stereo smears far obstacles along the viewing ray: a few stray points behind a compact
     object must not stretch its box or pull its centre off the object."""
-    from terrainmap.grid import PerBin
-    from terrainmap.obstacles import _robust_extent
+    from terrainmap.obstacles import Segments, _robust_extent
 
     rng = np.random.default_rng(0)
     compact = rng.uniform(-0.5, 0.5, 400)  # a 1 m object
     tail = np.linspace(0.5, 6.0, 12)  # sparse smear up to 6 m behind it
     cid = np.zeros(len(compact) + len(tail), int)
     npts = np.array([len(cid)], float)
-    centre, half = _robust_extent(np.concatenate([compact, tail]), PerBin(cid, 1), npts)
+    centre, half = _robust_extent(np.concatenate([compact, tail]), Segments(cid, 1), npts)
     assert abs(centre[0]) < 0.6 and half[0] < 1.1  # the plain extent would give centre 2.75, half 3.25
-    centre, half = _robust_extent(compact, PerBin(np.zeros(400, int), 1), np.array([400.0]))
+    centre, half = _robust_extent(compact, Segments(np.zeros(400, int), 1), np.array([400.0]))
     assert half[0] == pytest.approx(0.5, abs=0.01) and abs(centre[0]) < 0.05  # compact: full extent kept
+
+
+def test_segments_reduce_each_cluster_like_a_loop():
+    """Segments over points sorted by cluster gives each cluster's count, sum, minimum, maximum,
+    run and per-point spread as a loop over the clusters would, empty clusters included."""
+    from terrainmap.obstacles import Segments
+
+    rng = np.random.default_rng(3)
+    cid = np.sort(rng.choice([0, 2, 3, 6], 200))  # clusters 1, 4, 5 and 7 hold no point
+    values = rng.normal(size=cid.size)
+    per = Segments(cid, 8)
+    members = [values[cid == c] for c in range(8)]
+    np.testing.assert_array_equal(per.sum(), [m.size for m in members])
+    np.testing.assert_allclose(per.sum(values), [m.sum() for m in members], atol=1e-12)
+    np.testing.assert_array_equal(per.reduce(np.minimum, values), [m.min() if m.size else np.inf for m in members])
+    np.testing.assert_array_equal(per.reduce(np.maximum, values), [m.max() if m.size else -np.inf for m in members])
+    for c in range(8):
+        np.testing.assert_array_equal(values[per.run(c)], members[c])
+    np.testing.assert_array_equal(per.spread(np.arange(8) * 10), cid * 10)
 
 
 def _cell_counts(points: np.ndarray) -> np.ndarray:
