@@ -122,13 +122,15 @@ def write_text(path: Path, text: str) -> None:
 @contextmanager
 def writing(path) -> Iterator[Path]:
     """A temporary path beside ``path``, with its suffix, for a library call to write (a plot);
-    renamed to ``path`` once written whole. An OSError (disk full) becomes one line naming
-    ``path``, which is left as it was."""
+    renamed to ``path`` once written whole (to the file it links to, where ``path`` is a symbolic
+    link, which stays). An OSError (disk full) becomes one line naming ``path``, which is left as
+    it was."""
     path = Path(path)
-    partial = path.with_name(f".{path.stem}.partial{path.suffix}")
+    target = Path(os.path.realpath(path))
+    partial = target.with_name(f".{target.stem}.partial{target.suffix}")
     try:
         yield partial
-        partial.replace(path)
+        partial.replace(target)
     except OSError as exc:
         partial.unlink(missing_ok=True)
         raise Failed(f"cannot write {path}: {exc.strerror or exc}") from exc

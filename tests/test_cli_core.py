@@ -226,6 +226,24 @@ def test_an_output_that_cannot_be_written_is_named_and_leaves_no_partial_file(tm
         f"Error: {tmp_path / 's.mcap'}: cannot write the simulated log (No space left on device)")
 
 
+def test_a_report_written_through_a_symbolic_link_keeps_the_link(tmp_path):
+    """A report path that is a symbolic link: the file it links to gets the report, and the link
+    stays a link (the report is written beside the target, then renamed onto it)."""
+    import json
+
+    target = tmp_path / "reports" / "latest.json"
+    target.parent.mkdir()
+    target.write_text("old")
+    link = tmp_path / "r.json"
+    link.symlink_to(target)
+    result = CliRunner().invoke(
+        cli, ["eval", "artificial-obstacle", "--nets", "5", "--widths", "1", "--heights", "1", "--json", str(link)]
+    )
+    assert result.exit_code == 0, result.output
+    assert link.is_symlink() and json.loads(target.read_text())[0]["control_points"] == 5
+    assert sorted(p.name for p in target.parent.iterdir()) == ["latest.json"]
+
+
 @pytest.mark.parametrize(("argv", "line"), [
     (["eval", "artificial-obstacle", "--nets", "3"],
      "Error: --nets (terrain.control_points_x: must be at least degree + 1 = 4, got 3)"),
