@@ -47,7 +47,8 @@ def format_description(description: dict) -> str:
 @click.option(
     "--check", is_flag=True,
     help="Also read and decode every stereo pair process would read (no matching) and say whether the "
-    "log reads to its end (chunk CRCs, images, calibration); exit code 1 if it does not or holds no stereo pair.",
+    "log reads to its end (chunk CRCs, images, calibration); exit code 1 if it does not, is damaged anywhere or "
+    "holds no stereo pair.",
 )
 def info(log: str, source_opts: SourceOptions, as_json: bool, check: bool) -> None:
     """Describe LOG (an MCAP file, rosbag2 or ROS 1 bag, or an image folder): topics, the chosen
@@ -74,6 +75,9 @@ def info(log: str, source_opts: SourceOptions, as_json: bool, check: bool) -> No
                     if skipped:
                         readable = False
                         description["check"] += f", skipping {counted(len(skipped), 'damaged part')}: " + "; ".join(skipped)
+                    if description.get("damage"):  # read whole all the same: a summary that fails its CRC
+                        readable = False
+                        description["check"] += ", but the log is damaged (see damage)"
                 except InputError as exc:
                     readable = False
                     description["check"] = f"fails after {counted(pairs, 'stereo pair')}: {_reason(exc, log)}"

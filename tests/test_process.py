@@ -192,7 +192,9 @@ def test_a_damaged_chunk_is_skipped_and_the_run_goes_on(tmp_path, capsys, caplog
 
 def test_a_damaged_summary_is_not_trusted_and_the_log_is_read_from_start_to_end(tmp_path, caplog):
     """The summary (index) of an MCAP names its channels; one whose CRC fails (here a topic name
-    changed in it) is ignored with a warning and the log is read linearly, chunk CRCs checked."""
+    changed in it) is ignored with a warning and the log is read linearly, chunk CRCs checked;
+    ``info --check`` reads it whole and fails all the same, naming the damage."""
+    import json
     import struct
 
     from terrainmap.sim import SimConfig, simulate
@@ -213,9 +215,15 @@ def test_a_damaged_summary_is_not_trusted_and_the_log_is_read_from_start_to_end(
         bad = tmp_path / "bad.mcap"
         bad.write_bytes(bytes(damage))
         with open_source(bad) as source:
-            assert source.describe()["left_topic"] == "/stereo/left/image_rect" and source.describe()["damage"] is None
+            assert source.describe()["left_topic"] == "/stereo/left/image_rect"
             assert len(list(source.frames())) == 2
+            assert source.describe()["damage"] == (
+                f"{bad}: its summary (the index) is damaged (CRC mismatch); reading the file from start to end")
         assert f"{bad}: its summary (the index) is damaged (CRC mismatch)" in caplog.text
+        checked = CliRunner().invoke(cli, ["info", "--json", "--check", str(bad)])  # reads whole, yet is damaged
+        assert checked.exit_code == 1
+        assert json.loads(checked.output)["check"] == (
+            "2 stereo pairs read and decoded, to the end, but the log is damaged (see damage)")
 
 
 def test_a_message_that_cannot_be_decoded_is_skipped_and_the_run_goes_on(tmp_path, capsys, caplog, monkeypatch):

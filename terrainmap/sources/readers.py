@@ -3,7 +3,7 @@ a rosbag2 directory of them), and through ``rosbags`` the rosbag2 directories th
 cannot read (sqlite3 storage, zstd-compressed files or messages) and ROS 1 bags.
 
 A reader knows its files (``paths``), its topics (``types``: topic → message type, ``counts``:
-topic → number of messages), ``damage`` (why reading stopped early, or None) and ``skipped`` (the
+topic → number of messages), ``damage`` (what is damaged in the file as a whole, or None) and ``skipped`` (the
 damaged chunks of indexed MCAP files passed over so far, one line each), and streams decoded
 messages of chosen topics in log-time order, one file at a time. Other read errors (truncated or
 corrupt files) become :class:`InputError` naming the file, raised after the messages that could
@@ -132,7 +132,9 @@ class McapFile:
         self.indexed = False
         self._data_end: int | None = None  # where a summary that cannot be used begins: reading stops there
         self.damage: str | None = None
-        """Why a scan of a file without a summary stopped early (None: read to the end)."""
+        """What is damaged in the file as a whole (None: nothing found at open): where a scan of a
+        file without a summary stopped early, or a summary that fails its CRC (its messages are
+        then all read, from start to end)."""
         self.skipped: dict[int | tuple, str] = {}
         """Damaged chunks of an indexed file (byte offset → what) and messages that could not be
         decoded (("message", channel id, log time) → what), met while reading messages."""
@@ -160,8 +162,8 @@ class McapFile:
             return None
         if summary is not None and not holds:
             self._data_end = start
-            logger.warning("%s: its summary (the index) is damaged (CRC mismatch); reading the file from start to end",
-                           self.path)
+            self.damage = f"{self.path}: its summary (the index) is damaged (CRC mismatch); reading the file from start to end"
+            logger.warning("%s", self.damage)
             return None
         return summary
 
