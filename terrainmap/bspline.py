@@ -81,7 +81,8 @@ class RationalSurface:
 
     ``control_points`` is Q (n0×n1, metres), ``control_weights`` is R (n0×n1, > 0),
     ``knots_x``/``knots_y`` the clamped knot vectors, ``degree`` the degree on both axes.
-    Outside the knot range the surface is evaluated at the nearest point of the range.
+    Outside the knot range (the area of interest) the surface and its gradient are those at the
+    nearest point of the range: the map says nothing there, so it extends its edge.
     """
 
     knots_x: np.ndarray

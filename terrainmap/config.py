@@ -19,6 +19,8 @@ from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from .errors import ConfigError
 
 
@@ -720,9 +722,13 @@ _KINDS = {"bool": ((bool,), "true or false"), "int": ((int,), "an integer"), "fl
 def _check_kinds(name: str, section: Any) -> None:
     """Every field of ``section`` holds a value of its declared kind (an int where a float is
     declared is fine), and every number is finite: what TOML and ``--set`` ensure for a loaded
-    config, checked here for one built in code (so the sections' own checks are of ranges only)."""
+    config, checked here for one built in code (so the sections' own checks are of ranges only).
+    A numpy scalar (``np.float32(0.5)``) is replaced by the Python number it holds."""
     for f in fields(section):
         value, kind = getattr(section, f.name), str(f.type)
+        if isinstance(value, np.generic):
+            value = value.item()
+            setattr(section, f.name, value)
         types, what = _KINDS[kind]
         ok = isinstance(value, types) and (kind == "bool" or not isinstance(value, bool))
         _check(ok, f"{name}.{f.name}", f"must be {what}, got {value!r}")
@@ -758,9 +764,10 @@ def _coerce(section: str, name: str, current: Any, value: Any, text: bool) -> An
         if isinstance(value, bool):  # TOML true/false is no number (bool is an int in Python)
             raise ValueError
         if isinstance(current, int):
-            if isinstance(value, float) and not value.is_integer():
+            number = float(value) if isinstance(value, str) else value  # "3.0" as TOML's 3.0
+            if isinstance(number, float) and not number.is_integer():
                 raise ValueError
-            return int(value)
+            return int(number)
         if isinstance(current, float):
             result = float(value)
             if not math.isfinite(result):
@@ -805,8 +812,11 @@ def parse_override(text: str) -> dict[str, dict[str, str]]:
     return {section: {name: value.strip()}}
 
 
-def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str, ...] = ()) -> Config:
-    """Defaults, then the TOML file at ``path`` (if any), then ``overrides``; validated."""
+def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str, ...] | None = ()) -> Config:
+    """Defaults, then the TOML file at ``path`` (if any), then ``overrides`` (``--set`` strings
+    such as ``"terrain.degree=3"``); validated."""
+    if isinstance(overrides, str) or not all(isinstance(text, str) for text in overrides or ()):
+        raise ConfigError(f"overrides must be a list of 'section.field=value' strings, got {overrides!r}")
     config, data = Config(), {}
     if path is not None:
         path = Path(path)
@@ -820,7 +830,7 @@ def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str
             raise ConfigError(f"{path}: not valid TOML ({exc})") from None
         apply_values(config, data, source=str(path))
     set_keys = set()
-    for text in overrides:
+    for text in overrides or ():
         values = parse_override(text)
         apply_values(config, values, source=f"--set {text}", text=True)
         set_keys |= {f"{section}.{name}" for section, table in values.items() for name in table}

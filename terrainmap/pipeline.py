@@ -8,6 +8,7 @@ Neither does I/O or printing; per-stage wall times are returned as data
 
 from __future__ import annotations
 
+import copy
 import time
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
@@ -144,7 +145,8 @@ class PipelineState:
     tracker: ObstacleTracker | None = None
     tracked_matcher: StereoMatcher | None = None
     checked: tuple = (None, None)
-    """The (config, frame extrinsics) validated last: a run checks them once, not every frame."""
+    """A copy of the config and the frame extrinsics validated last: a run checks them once, not
+    every frame, and again when the config is changed (in place too)."""
 
     def __post_init__(self) -> None:
         self.check(self.config, None)  # a config built in code: ConfigError here, not a numpy error mid-run
@@ -154,12 +156,14 @@ class PipelineState:
     def check(self, config: Config, extrinsics: Extrinsics | None, frame_index: int = 0) -> None:
         """Validate ``config`` (ConfigError) and a frame's ``extrinsics`` (CalibrationError for a
         pose that is no rigid motion), each only when it is not the one checked last."""
-        if config is not self.checked[0]:
+        checked = self.checked[0]
+        if config != checked:
             config.validate()
+            checked = copy.deepcopy(config)
         if extrinsics is not None and extrinsics is not self.checked[1]:
             extrinsics_from_calibration(extrinsics.rotation, extrinsics.translation,
                                         name=f"frame {frame_index}: extrinsics")
-        self.checked = (config, extrinsics)
+        self.checked = (checked, extrinsics)
 
 
 @dataclass

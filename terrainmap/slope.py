@@ -18,7 +18,8 @@ def slope_angle(gx: np.ndarray, gy: np.ndarray) -> np.ndarray:
 
 
 def slope_at(surface: RationalSurface, x, y) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``(slope_rad, dz_dx, dz_dy)`` at broadcastable points (x, y) in metres, vehicle frame."""
+    """``(slope_rad, dz_dx, dz_dy)`` at broadcastable points (x, y) in metres, vehicle frame;
+    outside the area of interest, those at the nearest point of its edge (:class:`RationalSurface`)."""
     gx, gy = surface.gradient(x, y)
     return slope_angle(gx, gy), gx, gy
 

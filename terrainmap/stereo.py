@@ -237,7 +237,7 @@ class StereoMatcher:
     def __init__(self, calibration: StereoCalibration, config: StereoConfig | None = None):
         check_calibration(calibration)
         self.calibration = calibration
-        self.config = config or StereoConfig()
+        self.config = replace(config or StereoConfig())  # a copy: same_setup sees a config changed in place
         n = disparity_range(self.config, calibration.width)
         if not (0 < self.config.min_disparity + n < calibration.width and n < calibration.width):
             raise CalibrationError(  # OpenCV would crash or search nothing that gives depth

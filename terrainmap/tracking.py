@@ -55,6 +55,7 @@ from scipy.spatial import cKDTree
 
 from .config import GridConfig, TrackingConfig
 from .errors import InputError
+from .extrinsics import is_rotation
 from .types import Obstacle, StereoCamera
 
 logger = logging.getLogger(__name__)
@@ -409,6 +410,8 @@ def _pose(vehicle_pose: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
     if T.shape != (4, 4) or not np.isfinite(T).all():
         what = f"shape {T.shape}" if T.shape != (4, 4) else "non-finite values"
         raise InputError(f"tracking: vehicle_pose must be a finite 4×4 matrix, got {what}")
+    if not (is_rotation(T[:3, :3]) and np.allclose(T[3], [0.0, 0.0, 0.0, 1.0])):
+        raise InputError("tracking: vehicle_pose must be a rigid motion (a proper rotation, last row 0 0 0 1)")
     return T[:3, :3], T[:3, 3]
 
 

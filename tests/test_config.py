@@ -1,5 +1,6 @@
 import math
 import re
+import tomllib
 
 import numpy as np
 import pytest
@@ -73,6 +74,34 @@ def test_bad_values_name_the_field(override, message):
         load_config(overrides=[override])
 
 
+def test_a_whole_number_written_with_a_point_is_an_integer_in_set_as_in_toml(tmp_path):
+    """``--set terrain.degree=3.0`` is 3, as TOML's ``degree = 3.0`` is; 3.5 is refused by both."""
+    path = tmp_path / "c.toml"
+    path.write_text("[terrain]\ndegree = 3.0\n")
+    assert load_config(path).terrain.degree == 3 == load_config(overrides=["terrain.degree=3.0"]).terrain.degree
+    with pytest.raises(ConfigError, match="terrain.degree: cannot use '3.5', expected an integer"):
+        load_config(overrides=["terrain.degree=3.5"])
+
+
+@pytest.mark.parametrize("overrides", ["grid.length_m=22", [22], [None]])
+def test_overrides_must_be_a_list_of_strings(overrides):
+    """A single string (an easy slip for a list of one) is refused, not parsed letter by letter."""
+    with pytest.raises(ConfigError, match="overrides must be a list of 'section.field=value' strings"):
+        load_config(overrides=overrides)
+    assert load_config(overrides=None) == Config()
+
+
+def test_numpy_scalars_in_a_config_built_in_code_become_python_numbers():
+    """Values computed with numpy (np.float32, np.int64, np.bool_) are accepted and stored as the
+    Python numbers they hold, so that the config still writes as TOML that reads back."""
+    config = Config()
+    config.grid.length_m, config.terrain.degree, config.grid.fill_empty = np.float32(22.0), np.int64(2), np.bool_(False)
+    config.validate()
+    assert (type(config.grid.length_m), type(config.terrain.degree), type(config.grid.fill_empty)) == (float, int, bool)
+    written = tomllib.loads(config.to_toml())
+    assert written["grid"]["length_m"] == 22.0 and written["terrain"]["degree"] == 2
+
+
 @pytest.mark.parametrize(
     "toml, message",
     [
@@ -120,6 +149,29 @@ def test_the_pipeline_checks_a_config_built_in_code():
     config.terrain.degree = 0
     with pytest.raises(ConfigError, match="terrain.degree: must be 1..5"):
         PipelineState(config)
+
+
+def test_a_config_changed_in_place_between_frames_is_checked_and_used():
+    """A library user who edits the run's config between frames: the change is validated (a
+    ConfigError, not a numpy error) and takes effect (the matcher is rebuilt for new SGBM
+    settings), as with a new Config."""
+    from terrainmap.bench import sim_frame
+    from terrainmap.pipeline import PipelineState, process_frame
+
+    frame = sim_frame(width=160, height=120)
+    config = Config()
+    state = PipelineState(config)
+    first = process_frame(frame, config, state)
+    matcher = state.matcher
+    config.stereo.block_size = 9
+    second = process_frame(frame, config, state)
+    assert state.matcher is not matcher and state.matcher.config.block_size == 9
+    fresh = process_frame(frame, config, PipelineState(config))
+    np.testing.assert_array_equal(second.disparity, fresh.disparity)
+    assert not np.array_equal(first.disparity, second.disparity, equal_nan=True)
+    config.grid.cell_size_m = 0.0
+    with pytest.raises(ConfigError, match="grid.cell_size_m: must be > 0"):
+        process_frame(frame, config, state)
 
 
 def test_another_degree_needs_no_other_setting():

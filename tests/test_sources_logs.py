@@ -758,3 +758,13 @@ def test_a_pair_whose_image_cannot_be_decoded_is_skipped_and_reading_goes_on(tmp
     png = cv2.imencode(".png", np.zeros((4, 4), np.uint8))[1].tobytes()
     with pytest.raises(DamagedImageError, match=r"/t: cannot decode the compressed image"):
         images.decode_compressed(png[:-12], "/t")  # cut before its IEND chunk
+
+
+@pytest.mark.parametrize("tolerance", [-1, 1.5, "10", True, None])
+def test_a_pair_tolerance_that_is_no_whole_number_of_nanoseconds_is_refused(tolerance):
+    """The library's pairing tolerance is checked as the CLI's is: a negative one would pair
+    nothing and say nothing."""
+    from terrainmap.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="pair tolerance must be a whole number of nanoseconds"):
+        open_source("examples/offroad_demo.mcap", pair_tolerance_ns=tolerance)

@@ -281,9 +281,13 @@ def test_switching_between_pose_and_no_pose_resets_the_tracks():
     assert b.track_id != a.track_id and not b.confirmed
 
 
-def test_bad_pose_raises_input_error():
+@pytest.mark.parametrize("bad", [np.eye(3), np.diag([2.0, 2.0, 2.0, 1.0]), np.diag([1.0, 1.0, -1.0, 1.0]),
+                                 np.vstack([np.eye(4)[:3], [0.0, 0.0, 1.0, 1.0]])])
+def test_a_pose_that_is_no_rigid_motion_raises_input_error(bad):
+    """A scaled, mirrored or projective pose would move every track (a box 10 m ahead reported 40 m
+    ahead under a scale of 2): refused, as the frame's extrinsics are."""
     with pytest.raises(InputError, match="vehicle_pose"):
-        ObstacleTracker(TrackingConfig()).update([], 0, np.eye(3))
+        ObstacleTracker(TrackingConfig()).update([], 0, bad)
 
 
 @pytest.mark.parametrize("x", [np.nan, np.inf, 1e300])

@@ -32,6 +32,7 @@ message naming the path or topic.
 
 from __future__ import annotations
 
+import numbers
 from pathlib import Path
 
 from ..errors import ConfigError, InputError
@@ -99,8 +100,10 @@ def open_source(
     calibration : str or Path, optional
         Calibration file (YAML/TOML, KITTI or Middlebury text) overriding the source's own.
     pair_tolerance_ns : int
-        Largest stamp difference of a left/right pair in a log, nanoseconds.
+        Largest stamp difference of a left/right pair in a log, nanoseconds (≥ 0).
     """
+    if isinstance(pair_tolerance_ns, bool) or not isinstance(pair_tolerance_ns, numbers.Integral) or pair_tolerance_ns < 0:
+        raise ConfigError(f"pair tolerance must be a whole number of nanoseconds ≥ 0, got {pair_tolerance_ns!r}")
     cls = source_class(path)
     if issubclass(cls, LogSource):
         return cls(path, left_topic=left_topic, right_topic=right_topic, calibration=calibration,
