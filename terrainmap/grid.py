@@ -135,7 +135,8 @@ def quantize(
     config : GridConfig
         Area of interest and cell size.
     index : (N,) int array, optional
-        Precomputed :func:`cell_index` of the points (the pipeline reuses it for labelling); taken as given, not checked.
+        Precomputed :func:`cell_index` of the points (the pipeline reuses it for labelling);
+        taken as given, not checked.
     camera : StereoCamera, optional
         The stereo rig the points came from: σ then discounts its noise (module docstring).
 

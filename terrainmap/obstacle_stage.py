@@ -57,7 +57,8 @@ def run_obstacle_stage(
     camera : StereoCamera, optional
         The stereo rig of the points: the tracker then knows how a detection's depth jitters.
     index : (N,) int array, optional
-        The points' :func:`~terrainmap.grid.cell_index`, reused from the grid stage (taken as given, not checked).
+        The points' :func:`~terrainmap.grid.cell_index`, reused from the grid stage (taken as
+        given, not checked).
 
     Returns
     -------

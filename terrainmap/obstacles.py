@@ -75,7 +75,8 @@ def extract_obstacles(
         clusters lower than ``config.tall_height_m`` with more than half their points in such
         cells are dropped (``ObstacleConfig.drop_on_steep_ground``).
     index : (N,) int array, optional
-        :func:`~terrainmap.grid.cell_index` of the points, reused from the grid stage (taken as given, not checked).
+        :func:`~terrainmap.grid.cell_index` of the points, reused from the grid stage (taken as
+        given, not checked).
 
     Returns
     -------

@@ -111,7 +111,8 @@ def label_points(
         Surface height (m) and analytic gradient at the cell centres
         (:class:`~terrainmap.terrain.TerrainEstimate` has them).
     index : (N,) int array, optional
-        :func:`~terrainmap.grid.cell_index` of the points, reused from the grid stage (taken as given, not checked).
+        :func:`~terrainmap.grid.cell_index` of the points, reused from the grid stage (taken as
+        given, not checked).
     limits : (above, below) of (m0, m1) arrays, optional
         Per-cell thresholds from :func:`thresholds` (the fixed ones of ``config`` if omitted).
     """
