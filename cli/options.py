@@ -141,14 +141,15 @@ def writable(path: Path) -> None:
     existing file is opened for appending; a file created by the probe is removed again)."""
     if path.is_dir():
         return
-    existed = path.exists()
+    target = Path(os.path.realpath(path))  # a symbolic link stays, even one to a file not yet there
+    existed = target.exists()
     try:
-        with open(path, "ab"):
+        with open(target, "ab"):
             pass
     except OSError as exc:
         raise Failed(f"cannot write {path}: {exc.strerror or exc}") from None
     if not existed:
-        path.unlink(missing_ok=True)
+        target.unlink(missing_ok=True)
 
 
 def output_file(*suffixes: str) -> Callable:

@@ -737,6 +737,8 @@ def _check_kinds(name: str, section: Any) -> None:
 
 
 def _toml_value(value: Any) -> str:
+    if isinstance(value, np.generic):  # a numpy scalar set in code: the Python value it holds
+        value = value.item()
     if isinstance(value, bool):
         return "true" if value else "false"
     if isinstance(value, str):
@@ -764,7 +766,8 @@ def _coerce(section: str, name: str, current: Any, value: Any, text: bool) -> An
         if isinstance(value, bool):  # TOML true/false is no number (bool is an int in Python)
             raise ValueError
         if isinstance(current, int):
-            number = float(value) if isinstance(value, str) else value  # "3.0" as TOML's 3.0
+            whole = isinstance(value, str) and value.strip().lstrip("+-").isdigit()  # exact, however long
+            number = float(value) if isinstance(value, str) and not whole else value  # "3.0" as TOML's 3.0
             if isinstance(number, float) and not number.is_integer():
                 raise ValueError
             return int(number)
@@ -815,7 +818,8 @@ def parse_override(text: str) -> dict[str, dict[str, str]]:
 def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str, ...] | None = ()) -> Config:
     """Defaults, then the TOML file at ``path`` (if any), then ``overrides`` (``--set`` strings
     such as ``"terrain.degree=3"``); validated."""
-    if isinstance(overrides, str) or not all(isinstance(text, str) for text in overrides or ()):
+    texts = () if isinstance(overrides, str) else tuple(overrides or ())  # a generator can be read once only
+    if isinstance(overrides, str) or not all(isinstance(text, str) for text in texts):
         raise ConfigError(f"overrides must be a list of 'section.field=value' strings, got {overrides!r}")
     config, data = Config(), {}
     if path is not None:
@@ -830,7 +834,7 @@ def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str
             raise ConfigError(f"{path}: not valid TOML ({exc})") from None
         apply_values(config, data, source=str(path))
     set_keys = set()
-    for text in overrides or ():
+    for text in texts:
         values = parse_override(text)
         apply_values(config, values, source=f"--set {text}", text=True)
         set_keys |= {f"{section}.{name}" for section, table in values.items() for name in table}

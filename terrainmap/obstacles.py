@@ -280,7 +280,7 @@ class Segments:
         return self._scatter(np.add.reduceat(np.asarray(weights, np.float64), self.starts), 0.0)
 
     def reduce(self, ufunc: np.ufunc, values: np.ndarray) -> np.ndarray:
-        """``np.minimum`` or ``np.maximum`` of ``values`` per cluster (±inf where empty)."""
+        """``np.minimum`` or ``np.maximum`` of float ``values`` per cluster (±inf where empty)."""
         return self._scatter(ufunc.reduceat(values, self.starts), np.inf if ufunc is np.minimum else -np.inf)
 
     def spread(self, per_cluster: np.ndarray) -> np.ndarray:
@@ -358,6 +358,8 @@ def _principal_axes(x: np.ndarray, y: np.ndarray, per: Segments, npts: np.ndarra
     sxx = per.sum(x * x) - npts * mx * mx  # float64 sums of coordinates within ~50 m: cancellation
     syy = per.sum(y * y) - npts * my * my  # costs < 1e-10 m² against variances of 1e-4 m² and more
     sxy = per.sum(x * y) - npts * mx * my
-    yaw = 0.5 * np.arctan2(2 * sxy, sxx - syy)  # in (−π/2, π/2]; 0 for a single point
+    yaw = 0.5 * np.arctan2(2 * sxy, sxx - syy)  # in (−π/2, π/2]
+    # No major axis (a single point, a square or round cluster): axis-aligned, not set by rounding.
+    yaw[np.abs(2 * sxy) + np.abs(sxx - syy) <= 1e-9 * (sxx + syy)] = 0.0
     cos, sin = per.spread(np.cos(yaw)), per.spread(np.sin(yaw))
     return yaw, x * cos + y * sin, (y * cos - x * sin) if minor else None

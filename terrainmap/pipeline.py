@@ -8,10 +8,9 @@ Neither does I/O or printing; per-stage wall times are returned as data
 
 from __future__ import annotations
 
-import copy
 import time
 from contextlib import contextmanager
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
 
@@ -136,7 +135,8 @@ class PipelineState:
     succeeds, then kept (the camera is rigidly mounted); unused when frames carry extrinsics.
     ``tracker``: obstacle tracks, of the frames ``tracked_matcher`` matched. A new calibration
     (another camera, or the next scene of a folder of unrelated scenes, each with its calibration
-    file) starts the estimated pose and the tracks afresh.
+    file) starts the estimated pose and the tracks afresh, and so do new stereo settings (a new
+    matcher), whether in a new config or changed in place.
     """
 
     config: Config
@@ -145,8 +145,8 @@ class PipelineState:
     tracker: ObstacleTracker | None = None
     tracked_matcher: StereoMatcher | None = None
     checked: tuple = (None, None)
-    """A copy of the config and the frame extrinsics validated last: a run checks them once, not
-    every frame, and again when the config is changed (in place too)."""
+    """A copy of the config's fields and the frame extrinsics validated last: a run checks them
+    once, not every frame, and again when the config is changed (in place too)."""
 
     def __post_init__(self) -> None:
         self.check(self.config, None)  # a config built in code: ConfigError here, not a numpy error mid-run
@@ -159,7 +159,7 @@ class PipelineState:
         checked = self.checked[0]
         if config != checked:
             config.validate()
-            checked = copy.deepcopy(config)
+            checked = replace(config, **{f.name: replace(getattr(config, f.name)) for f in fields(config)})
         if extrinsics is not None and extrinsics is not self.checked[1]:
             extrinsics_from_calibration(extrinsics.rotation, extrinsics.translation,
                                         name=f"frame {frame_index}: extrinsics")

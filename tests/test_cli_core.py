@@ -242,6 +242,12 @@ def test_a_report_written_through_a_symbolic_link_keeps_the_link(tmp_path):
     assert result.exit_code == 0, result.output
     assert link.is_symlink() and json.loads(target.read_text())[0]["control_points"] == 5
     assert sorted(p.name for p in target.parent.iterdir()) == ["latest.json"]
+    target.unlink()  # a link to a file not there yet: the file is made, the link stays
+    result = CliRunner().invoke(
+        cli, ["eval", "artificial-obstacle", "--nets", "5", "--widths", "1", "--heights", "1", "--json", str(link)]
+    )
+    assert result.exit_code == 0, result.output
+    assert link.is_symlink() and json.loads(target.read_text())[0]["control_points"] == 5
 
 
 @pytest.mark.parametrize(("argv", "line"), [

@@ -79,6 +79,8 @@ def test_a_whole_number_written_with_a_point_is_an_integer_in_set_as_in_toml(tmp
     path = tmp_path / "c.toml"
     path.write_text("[terrain]\ndegree = 3.0\n")
     assert load_config(path).terrain.degree == 3 == load_config(overrides=["terrain.degree=3.0"]).terrain.degree
+    big = load_config(overrides=["terrain.min_valid_cells=9007199254740993"]).terrain.min_valid_cells
+    assert big == 9007199254740993  # an integer written as one is read exactly, not through a float
     with pytest.raises(ConfigError, match="terrain.degree: cannot use '3.5', expected an integer"):
         load_config(overrides=["terrain.degree=3.5"])
 
@@ -89,6 +91,7 @@ def test_overrides_must_be_a_list_of_strings(overrides):
     with pytest.raises(ConfigError, match="overrides must be a list of 'section.field=value' strings"):
         load_config(overrides=overrides)
     assert load_config(overrides=None) == Config()
+    assert load_config(overrides=(t for t in ["obstacles.min_points=5"])).obstacles.min_points == 5  # read once
 
 
 def test_numpy_scalars_in_a_config_built_in_code_become_python_numbers():
@@ -100,6 +103,8 @@ def test_numpy_scalars_in_a_config_built_in_code_become_python_numbers():
     assert (type(config.grid.length_m), type(config.terrain.degree), type(config.grid.fill_empty)) == (float, int, bool)
     written = tomllib.loads(config.to_toml())
     assert written["grid"]["length_m"] == 22.0 and written["terrain"]["degree"] == 2
+    config.grid.cell_size_m = np.float64(0.5)  # equal to the value checked last: not validated again
+    assert tomllib.loads(config.to_toml())["grid"]["cell_size_m"] == 0.5  # written as TOML all the same
 
 
 @pytest.mark.parametrize(

@@ -334,6 +334,18 @@ def test_segments_reduce_each_cluster_like_a_loop():
     np.testing.assert_array_equal(per.spread(np.arange(8) * 10), cid * 10)
 
 
+def test_a_square_cluster_gets_an_axis_aligned_box_whatever_the_rounding():
+    """A cluster without a major axis (points on a square lattice: equal spreads in x and y, no
+    covariance) gets yaw 0, not an angle set by rounding noise, wherever it lies."""
+    from terrainmap.obstacles import Segments, _principal_axes
+
+    lattice = np.stack(np.meshgrid(np.arange(9) * 0.1, np.arange(9) * 0.1), -1).reshape(-1, 2)
+    for offset in (0.0, 7.3, 13.37):
+        x, y = (lattice + offset).T
+        yaw, _, _ = _principal_axes(x, y, Segments(np.zeros(x.size, int), 1), np.array([x.size]))
+        assert yaw[0] == 0.0
+
+
 def _cell_counts(points: np.ndarray) -> np.ndarray:
     """All points per grid cell, as ``HeightGrid.count`` holds them."""
     from terrainmap.grid import cell_index
