@@ -225,6 +225,7 @@ def test_a_recording_that_cannot_be_finished_fails_with_one_line(log, tmp_path, 
 
     monkeypatch.setattr(rerun_recording, "_STUCK", [])
     monkeypatch.setattr(rerun_recording, "_FLUSH_WAIT_S", 0.01)
+    monkeypatch.setattr(rerun_recording, "_STALL_S", 0.05)  # the disk has room: a dead writer is waited for
     monkeypatch.setattr(rerun_recording.rr.RecordingStream, "flush", dead_writer)
     exits = []
 
@@ -242,3 +243,36 @@ def test_a_recording_that_cannot_be_finished_fails_with_one_line(log, tmp_path, 
                                                     "stopped (File-writer thread shut down prematurely)"
     assert f"wrote 2 frames to {out} before stopping" in captured.out  # the MCAP only: it reads back
     assert rerun_recording.exit_would_hang()
+
+
+def test_a_recording_on_a_slow_disk_is_waited_for_while_the_disk_has_room(tmp_path, monkeypatch):
+    """A file that stands still for a few flushes on a disk with room (a slow network disk) is
+    waited for, not taken for a dead writer; on a full disk one standing flush is enough."""
+    import shutil
+    from collections import namedtuple
+
+    from terrainmap.errors import InputError
+    from terrainmap.sinks import rerun_recording
+
+    calls = []
+
+    def slow(self, *, timeout_sec):
+        calls.append(timeout_sec)
+        if len(calls) < 4:  # three timeouts without the file growing, then done
+            raise RuntimeError("flush timed out")
+
+    monkeypatch.setattr(rerun_recording, "_FLUSH_WAIT_S", 0.01)
+    monkeypatch.setattr(rerun_recording.rr.RecordingStream, "flush", slow)
+    from terrainmap.config import Config
+
+    sink = rerun_recording.RerunSink(tmp_path / "slow.rrd", config=Config())
+    sink.close()
+    assert len(calls) == 4 and sink.finished
+    calls.clear()
+    usage = namedtuple("usage", "total used free")
+    monkeypatch.setattr(shutil, "disk_usage", lambda path: usage(1 << 30, 1 << 30, 4096))
+    monkeypatch.setattr(rerun_recording, "_STUCK", [])
+    full = rerun_recording.RerunSink(tmp_path / "full.rrd", config=Config())
+    with pytest.raises(InputError, match="No space left on device"):
+        full.close()
+    assert len(calls) == 2  # the size seen, then one flush with no growth

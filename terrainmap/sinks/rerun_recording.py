@@ -97,7 +97,13 @@ def _triangles(m0: int, m1: int) -> np.ndarray:
 
 
 _FLUSH_WAIT_S = 5.0
-"""How long :meth:`RerunSink.close` waits for the recording's file to grow before giving up, s."""
+"""How long one flush of :meth:`RerunSink.close` waits for the recording's file, s."""
+_STALL_S = 60.0
+"""How long the file may stand still, on a disk with room, before its writer is taken for dead, s
+(a slow network disk); on a full disk (less than :data:`_FULL_BYTES` free) one wait is enough."""
+_FULL_BYTES = 64 << 20
+"""Free space under which a recording that stands still counts as stopped by a full disk, bytes
+(a frame of the recording is about 1 MB)."""
 
 
 _STUCK: list = []
@@ -242,25 +248,31 @@ class RerunSink:
             self._rec.disconnect()
         except (RuntimeError, OSError) as exc:  # Rerun's file writer stopped on an error it logged itself
             _STUCK.append(self._rec)  # kept: its destructor would wait for the dead writer (exit_would_hang)
-            full = shutil.disk_usage(self.path.parent).free == 0
-            raise InputError(f"cannot finish Rerun output {self.path}: "
-                             + ("No space left on device" if full else f"its file writer stopped ({exc})")) from exc
+            raise InputError(f"cannot finish Rerun output {self.path}: " + (
+                "No space left on device" if self._disk_full() else f"its file writer stopped ({exc})")) from exc
         self.finished = True
 
     def _flush(self) -> None:
         """Wait until the recording is on disk. Rerun's flush waits for ever once its file writer
         has died (a full disk), so it is given :data:`_FLUSH_WAIT_S` at a time, for as long as the
-        file still grows; RuntimeError once it does not."""
-        size = None
+        file still grows, or stands still for less than :data:`_STALL_S` on a disk with room;
+        RuntimeError then."""
+        size, still = None, 0.0
         while True:
             try:
                 self._rec.flush(timeout_sec=_FLUSH_WAIT_S)
                 return
             except RuntimeError:
                 now = self.path.stat().st_size
-                if now == size:
+                if now != size:
+                    size, still = now, 0.0
+                    continue
+                still += _FLUSH_WAIT_S
+                if still >= _STALL_S or self._disk_full():
                     raise
-                size = now
+
+    def _disk_full(self) -> bool:
+        return shutil.disk_usage(self.path.parent).free < _FULL_BYTES
 
     def __enter__(self):
         return self
