@@ -710,7 +710,7 @@ def test_an_unreadable_rosbag2_metadata_is_warned_about_once(tmp_path, caplog, t
     (bag / "metadata.yaml").write_text(text)
     with open_source(bag) as source:
         assert len(list(source.frames())) == 2
-    (warning,) = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    (warning,) = [r.getMessage() for r in caplog.records if r.levelname == "WARNING" and "metadata.yaml" in r.getMessage()]
     assert warning.startswith(f"{bag / 'metadata.yaml'}: unreadable (") and reason in warning
 
 
@@ -768,3 +768,58 @@ def test_a_pair_tolerance_that_is_no_whole_number_of_nanoseconds_is_refused(tole
 
     with pytest.raises(ConfigError, match="pair tolerance must be a whole number of nanoseconds"):
         open_source("examples/offroad_demo.mcap", pair_tolerance_ns=tolerance)
+
+
+def _write_pairs(path: Path, stamps: list[tuple[int | None, int | None]], right_late_ns: int = 2_000_000) -> Path:
+    """A ROS 2 MCAP with camera infos and, per entry (left header stamp, right header stamp; None:
+    no message), pair i's images logged at T0 + i·100 ms (the right one ``right_late_ns`` later)."""
+    with open(path, "wb") as f, Ros2Writer(f) as writer:
+        image_schema = writer.register_msgdef("sensor_msgs/msg/Image", IMAGE_DEF + HEADER)
+        info_schema = writer.register_msgdef("sensor_msgs/msg/CameraInfo", INFO_DEF + HEADER)
+        for side, tx in (("left", 0.0), ("right", -400.0 * 0.25)):
+            writer.write_message(f"/cam/{side}/camera_info", info_schema, ros_info(T0, f"{side}_optical", 8, 6, tx, (0.0,) * 5), T0)
+        for i, stamps_i in enumerate(stamps):
+            log_time = T0 + i * 100_000_000
+            for side, stamp, image, late in zip(("left", "right"), stamps_i, pair_images(i), (0, right_late_ns), strict=True):
+                if stamp is not None:
+                    message = ros_image(stamp, f"{side}_optical", image, "rgb8")
+                    writer.write_message(f"/cam/{side}/image_rect", image_schema, message, log_time + late)
+    return path
+
+
+def test_images_without_header_stamps_are_paired_by_log_time_with_a_warning(tmp_path, caplog):
+    """A driver that never sets header stamps (all 0): pairing by stamp would pair every left
+    image with any right one, and a lost image would shift every later pair. The log time stands
+    in, with one warning per topic."""
+    stamps = [(0, 0)] * 6
+    stamps[2] = (0, None)  # pair 2 lost its right image
+    with open_source(_write_pairs(tmp_path / "unstamped.mcap", stamps)) as source:
+        frames = list(source.frames())
+    assert [f.index for f in frames] == [0, 1, 2, 3, 4]
+    for frame, i in zip(frames, [0, 1, 3, 4, 5], strict=True):
+        np.testing.assert_array_equal(frame.left, pair_images(i)[0])
+        np.testing.assert_array_equal(frame.right, pair_images(i)[1])
+        assert frame.stamp_ns == T0 + i * 100_000_000
+    for side in ("left", "right"):
+        assert caplog.text.count(f"/cam/{side}/image_rect has images with no header stamp (0); they are paired "
+                                 "and placed by log time") == 1
+    assert "1 of 11 image messages had no partner" in caplog.text
+
+
+def test_images_left_without_a_partner_at_the_end_of_the_log_are_counted(tmp_path, caplog):
+    """The right camera stops two pairs before the left: those two left images are reported."""
+    stamps = [(T0 + i * 100_000_000, T0 + i * 100_000_000 + 1_000_000) for i in range(6)]
+    stamps[4:] = [(T0 + i * 100_000_000, None) for i in (4, 5)]
+    with open_source(_write_pairs(tmp_path / "right_stops.mcap", stamps)) as source:
+        assert len(list(source.frames())) == 4
+    assert "2 of 10 image messages had no partner within 10.0 ms" in caplog.text
+
+
+def test_images_logged_far_behind_their_partners_are_reported_as_such(tmp_path, caplog):
+    """Right images logged 5 s (50 pairs) after their left partners: the pairing buffer holds 32
+    messages a side, and the warning says that the buffer, not the tolerance, lost the rest."""
+    stamps = [(T0 + i * 100_000_000, T0 + i * 100_000_000) for i in range(40)]
+    with open_source(_write_pairs(tmp_path / "late.mcap", stamps, right_late_ns=5_000_000_000)) as source:
+        assert len(list(source.frames())) == 32
+    assert ("16 of 80 image messages had no partner within 10.0 ms (--pair-tolerance-ms); 8 of them left a "
+            "full pairing buffer: one camera's images are logged over 32 messages behind the other's") in caplog.text

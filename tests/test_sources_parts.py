@@ -141,6 +141,20 @@ def test_vehicle_poses_interpolate_and_keep_to_one_odometry_frame():
     assert len(bounded._stamps) == 11 and bounded.at(9850)[0, 3] == pytest.approx(98.5)
 
 
+def test_vehicle_poses_start_again_after_the_clock_goes_back(caplog):
+    """A clock reset (stamps back by more than the horizon): the poses after it are kept and
+    looked up, with one warning, instead of being ignored for the rest of the log."""
+    poses = VehiclePoses(tolerance_ns=50, horizon_ns=1000)
+    for k in range(5):
+        poses.add(10_000 + 100 * k, "odom", "base_link", [k, 0, 0], [0, 0, 0, 1])
+    poses.add(10_300, "odom", "base_link", [9, 9, 9], [0, 0, 0, 1])  # within the horizon: out of order, ignored
+    for k in range(3):
+        poses.add(500 + 100 * k, "odom", "base_link", [10 + k, 0, 0], [0, 0, 0, 1])
+    assert poses.newest_ns == 700 and poses.at(650)[0, 3] == pytest.approx(11.5)
+    assert poses.at(10_200) is None  # the poses before the reset are gone
+    assert caplog.text.count("odometry: the clock went back") == 1
+
+
 def test_decode_raw_handles_row_padding_and_big_endian():
     image = np.arange(12, dtype=np.uint16).reshape(3, 4) * 1000
     rows = np.zeros((3, 10), np.uint8)

@@ -178,13 +178,20 @@ class LogSource(Source):
         pairer = StereoPairer(self.pair_tolerance_ns)
         poses = VehiclePoses()
         pending: deque = deque()  # pairs waiting for the pose after their stamp
-        index = 0
-        for topic, _, msg in self.reader.messages([self.left_topic, self.right_topic, *self.odometry_topics]):
+        index, unstamped = 0, set()
+        for topic, log_time_ns, msg in self.reader.messages([self.left_topic, self.right_topic, *self.odometry_topics]):
             if topic in self.odometry_topics:
                 for transform in msgs.transforms(msg, self.reader.types[topic]):
                     poses.add(*transform)
             else:
-                pair = pairer.push(0 if topic == self.left_topic else 1, msgs.stamp_ns(msg), msg)
+                stamp_ns = msgs.stamp_ns(msg)
+                if stamp_ns == 0:  # a driver that never sets the header stamp: the log time stands in
+                    stamp_ns = log_time_ns
+                    if topic not in unstamped:
+                        unstamped.add(topic)
+                        logger.warning("%s: %s has images with no header stamp (0); they are paired and placed "
+                                       "by log time", self.path, topic)
+                pair = pairer.push(0 if topic == self.left_topic else 1, stamp_ns, msg)
                 if pair is not None:
                     pending.append((index, *pair))
                     index += 1
@@ -196,9 +203,12 @@ class LogSource(Source):
                 yield self._pair_ref(pending.popleft(), poses)
         while pending:
             yield self._pair_ref(pending.popleft(), poses)
+        pairer.finish()
         if pairer.dropped:
-            logger.warning("%s: %d of %d image messages had no partner within %.1f ms (--pair-tolerance-ms)",
-                           self.path, pairer.dropped, pairer.pushed, self.pair_tolerance_ns / 1e6)
+            full = (f"; {pairer.overflowed} of them left a full pairing buffer: one camera's images are logged "
+                    f"over {pairer.max_buffer} messages behind the other's") if pairer.overflowed else ""
+            logger.warning("%s: %d of %d image messages had no partner within %.1f ms (--pair-tolerance-ms)%s",
+                           self.path, pairer.dropped, pairer.pushed, self.pair_tolerance_ns / 1e6, full)
 
     def _pair_ref(self, pair: tuple, poses: VehiclePoses) -> PairRef:
         index, stamp_ns = pair[:2]

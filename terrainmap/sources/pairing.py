@@ -20,10 +20,12 @@ class StereoPairer:
     """
 
     def __init__(self, tolerance_ns: int, max_buffer: int = 32):
-        self.tolerance_ns = int(tolerance_ns)
+        self.tolerance_ns, self.max_buffer = int(tolerance_ns), max_buffer
         self._waiting: tuple[deque, deque] = (deque(maxlen=max_buffer), deque(maxlen=max_buffer))
         self.pushed = 0
         self.dropped = 0
+        self.overflowed = 0
+        """Of ``dropped``, the messages pushed out of a full buffer (one side logged far behind the other)."""
 
     def push(self, side: int, stamp_ns: int, item: Any) -> tuple[int, Any, Any] | None:
         """Add a message of ``side`` (0 left, 1 right); return ``(left_stamp_ns, left, right)``
@@ -35,6 +37,7 @@ class StereoPairer:
             own = self._waiting[side]
             if len(own) == own.maxlen:
                 self.dropped += 1
+                self.overflowed += 1
                 logger.debug("pairing buffer full: dropping an unpaired message stamped %d", own[0][0])
             own.append((stamp_ns, item))
             return None
@@ -44,3 +47,9 @@ class StereoPairer:
             other.popleft()
         self._waiting[side].clear()
         return (stamp_ns, item, match) if side == 0 else (match_stamp, match, item)
+
+    def finish(self) -> None:
+        """The log has ended: the messages still waiting have no partner (counted in ``dropped``)."""
+        self.dropped += sum(len(waiting) for waiting in self._waiting)
+        for waiting in self._waiting:
+            waiting.clear()

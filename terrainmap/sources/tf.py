@@ -125,7 +125,8 @@ class VehiclePoses:
     poses); a stamp outside the known poses gets the nearest one if it lies within
     ``tolerance_ns``, else None. The first odometry frame seen is kept (later parents are
     ignored), and poses older than ``horizon_ns`` before the newest are forgotten, so memory
-    stays bounded.
+    stays bounded. A pose stamped more than ``horizon_ns`` before the newest is a clock that went
+    back (a reset): the poses before it are dropped, with a warning.
     """
 
     def __init__(self, tolerance_ns: int = 100_000_000, horizon_ns: int = 2_000_000_000):
@@ -143,8 +144,15 @@ class VehiclePoses:
         parent, child = parent.lstrip("/"), child.lstrip("/")
         if child not in VEHICLE_FRAMES or parent in VEHICLE_FRAMES or parent != (self.parent or parent):
             return
-        if self._stamps and stamp_ns <= self._stamps[-1] or not usable(translation, quaternion_xyzw):
-            return  # out of order or repeated (poses are kept in time order), or broken
+        if not usable(translation, quaternion_xyzw):
+            return
+        if self._stamps and stamp_ns <= self._stamps[-1]:
+            if self._stamps[-1] - stamp_ns <= self.horizon_ns:
+                return  # out of order or repeated (poses are kept in time order)
+            logger.warning("odometry: the clock went back %.1f s (a reset?); the poses before are dropped",
+                           (self._stamps[-1] - stamp_ns) / 1e9)
+            self._stamps.clear()
+            self._poses.clear()
         self.parent = parent
         self._stamps.append(int(stamp_ns))
         self._poses.append(homogeneous(quaternion_to_matrix(quaternion_xyzw), translation))
