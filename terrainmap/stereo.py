@@ -268,7 +268,7 @@ class StereoMatcher:
         """Whether this matcher serves ``calibration`` and ``config`` (so a pipeline can keep it)."""
         return config == self.config and (
             calibration is self.calibration
-            or _calibration_key(calibration) == _calibration_key(self.calibration)
+            or calibration.key() == self.calibration.key()
         )
 
     def rectify(self, left: np.ndarray, right: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -546,8 +546,3 @@ def _size(image: np.ndarray) -> str:
     return f"{image.shape[1]}×{image.shape[0]}"
 
 
-def _calibration_key(calibration: StereoCalibration) -> tuple:
-    return tuple(
-        np.asarray(value).tobytes() if isinstance(value, np.ndarray) else value
-        for value in vars(calibration).values()
-    )

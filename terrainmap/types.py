@@ -56,6 +56,10 @@ class StereoCalibration:
     source: str = ""
     """Where it came from (file path or topic), for messages and output metadata."""
 
+    def key(self) -> tuple:
+        """Its values as a hashable tuple (arrays as bytes): equal keys, the same calibration."""
+        return tuple(np.asarray(v).tobytes() if isinstance(v, np.ndarray) else v for v in vars(self).values())
+
 
 @dataclass(frozen=True)
 class Extrinsics:

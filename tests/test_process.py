@@ -146,8 +146,9 @@ def test_log_cut_after_a_frame_gives_one_error_line_and_that_frame(tmp_path, cap
         main(["process", str(cut), "-o", str(out)])
     captured = capsys.readouterr()
     assert exc.value.code == 2
-    assert captured.err.splitlines() == [f"Error: {cut}: log is truncated or corrupt after 3 messages of "
-                                         "/stereo/left/image_rect, /stereo/right/image_rect, /tf (EndOfFile)"]
+    assert captured.err.splitlines() == [f"Error: {cut}: log is truncated or corrupt after 5 messages of "
+                                         "/stereo/left/image_rect, /stereo/right/image_rect, /tf, "
+                                         "/stereo/left/camera_info, /stereo/right/camera_info (EndOfFile)"]
     assert f"wrote 1 frame to {out} before stopping" in captured.out
     assert len(_grids(out)) == 1
     main(["info", str(cut)])

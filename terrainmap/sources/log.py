@@ -135,17 +135,38 @@ class LogSource(Source):
             infos = [self._first(t) for t in (left, right)]
             if any(info is None for info in infos):
                 raise CalibrationError(f"{self.path}: {left} or {right} holds no message; pass --calibration")
-            left_info, right_info = msgs.camera_info(infos[0], left), msgs.camera_info(infos[1], right)
-            return msgs.calibration_from_infos(
-                left_info,
-                right_info,
-                rectified_images="rect" in self.left_topic.lower(),
-                source=f"{left} + {right}",
-                right_in_left=tree.relative(left_info["frame_id"], right_info["frame_id"]),
-            )
+            self._tree = tree
+            return self._calibration_of(*infos)
         except CalibrationError as exc:
             self.calibration_error = exc
             return None
+
+    def _calibration_of(self, left_msg, right_msg) -> StereoCalibration:
+        """The stereo calibration of a left and a right camera info message (``calibration_topics``)."""
+        left, right = self.calibration_topics
+        left_info, right_info = msgs.camera_info(left_msg, left), msgs.camera_info(right_msg, right)
+        return msgs.calibration_from_infos(
+            left_info,
+            right_info,
+            rectified_images="rect" in self.left_topic.lower(),
+            source=f"{left} + {right}",
+            right_in_left=self._tree.relative(left_info["frame_id"], right_info["frame_id"]),
+        )
+
+    def _calibration_after(self, current: StereoCalibration, infos: dict, stamp_ns: int) -> StereoCalibration:
+        """The calibration of the newest camera infos (``infos``: calibration topic → message), with
+        a warning where it differs from ``current``; ``current`` where it does not or is unusable."""
+        try:
+            new = self._calibration_of(*(infos[t] for t in self.calibration_topics))
+        except CalibrationError as exc:
+            logger.warning("%s: a camera info at %.3f s is unusable, the calibration before is kept (%s)",
+                           self.path, stamp_ns / 1e9, exc)
+            return current
+        if new.key() == current.key():
+            return current
+        logger.warning("%s: the camera calibration changes at %.3f s (%s, was %s); the frames after use it",
+                       self.path, stamp_ns / 1e9, _brief(new), _brief(current))
+        return new
 
     def _tf_topics(self) -> tuple[list[str], list[str]]:
         """The log's (static, dynamic) tf topics, told apart by name."""
@@ -179,10 +200,19 @@ class LogSource(Source):
         poses = VehiclePoses()
         pending: deque = deque()  # pairs waiting for the pose after their stamp
         index, unstamped = 0, set()
-        for topic, log_time_ns, msg in self.reader.messages([self.left_topic, self.right_topic, *self.odometry_topics]):
+        # The camera infos are followed too (unless a calibration file is given): a calibration that
+        # changes part way applies to the pairs made after it.
+        calibration, infos = self.calibration, {}
+        info_topics = [t for t in self.calibration_topics if t]
+        topics = [self.left_topic, self.right_topic, *self.odometry_topics, *info_topics]
+        for topic, log_time_ns, msg in self.reader.messages(topics):
             if topic in self.odometry_topics:
                 for transform in msgs.transforms(msg, self.reader.types[topic]):
                     poses.add(*transform)
+            elif topic in info_topics:
+                infos[topic] = msg
+                if len(infos) == 2:
+                    calibration = self._calibration_after(calibration, infos, msgs.stamp_ns(msg) or log_time_ns)
             else:
                 stamp_ns = msgs.stamp_ns(msg)
                 if stamp_ns == 0:  # a driver that never sets the header stamp: the log time stands in
@@ -193,7 +223,7 @@ class LogSource(Source):
                                        "by log time", self.path, topic)
                 pair = pairer.push(0 if topic == self.left_topic else 1, stamp_ns, msg)
                 if pair is not None:
-                    pending.append((index, *pair))
+                    pending.append((index, *pair, calibration))
                     index += 1
             if not pending:
                 continue
@@ -216,7 +246,8 @@ class LogSource(Source):
         return PairRef(index, stamp_ns, load)
 
     def _load(
-        self, index: int, stamp_ns: int, left_msg, right_msg, *, vehicle_pose=None, odometry_frame_id="odom"
+        self, index: int, stamp_ns: int, left_msg, right_msg, calibration: StereoCalibration, *,
+        vehicle_pose=None, odometry_frame_id="odom"
     ) -> StereoFrame | None:
         types = self.reader.types
         try:
@@ -232,7 +263,7 @@ class LogSource(Source):
             stamp_ns=stamp_ns,
             left=left,
             right=right,
-            calibration=calib_io.fit_to_image(self.calibration, left.shape, self.left_topic),
+            calibration=calib_io.fit_to_image(calibration, left.shape, self.left_topic),
             extrinsics=self.extrinsics,
             frame_id=msgs.frame_id(left_msg),
             source=f"{self.path} {self.left_topic} + {self.right_topic}",
@@ -321,3 +352,7 @@ class Ros1BagSource(LogSource):
 
     def _open_reader(self) -> Ros1Bag:
         return Ros1Bag(self.path)
+
+
+def _brief(calibration: StereoCalibration) -> str:
+    return f"fx {calibration.fx:g} px, baseline {calibration.baseline_m:g} m, {calibration.width}×{calibration.height}"
