@@ -68,10 +68,7 @@ def process(log, output, flavor, compression, rrd, overwrite, source_opts, confi
         # calibration or an empty selection then fails without touching an earlier output.
         first = next(frames, None)
         if first is None:
-            skipped = source.skipped()
-            damage = f"; {counted(len(skipped), 'damaged part')} of the log skipped, the first: {skipped[0]}" \
-                if skipped else ""
-            raise Failed(f"no frame of {log} could be processed ({_NOTHING_SELECTED}{damage})")
+            raise Failed(f"no frame of {log} could be processed ({_why_none(source)})")
         frames = itertools.chain([first], frames)
         with stop.outputs_open():
             sinks = [open_mcap_sink(output, flavor, config=config, metadata={"source": str(log)}, compression=compression)]
@@ -119,6 +116,21 @@ def _progress(summary, frame, result) -> None:
 _NOTHING_SELECTED = (
     "no stereo pair selected: check --start/--end, and that the left and right stamps agree within --pair-tolerance-ms"
 )
+
+
+def _why_none(source) -> str:
+    """Why ``source.frames()`` gave no frame: no pairs, none in the selection, or damage."""
+    tally, skipped = source.tally, source.skipped()
+    if tally.pairs == 0:
+        why = "no left and right images whose stamps agree within --pair-tolerance-ms"
+    elif tally.selected == 0:
+        why = (f"--start/--end select none of its {counted(tally.pairs, 'stereo pair')}, which span "
+               f"{tally.span_s:.3f} s from the first (--start and --end count from it)")
+    else:
+        why = f"every one of the {counted(tally.selected, 'stereo pair')} selected is damaged"
+    if skipped:
+        why += f"; {counted(len(skipped), 'damaged part')} of the log skipped, the first: {skipped[0]}"
+    return why
 
 
 def _reasons(summary) -> str:

@@ -384,7 +384,8 @@ def test_options_or_a_selection_that_fail_before_the_first_frame_leave_an_earlie
     out = tmp_path / "o.mcap"
     out.write_bytes(b"an earlier run's output")
     for extra, message in ((["--start", "5", "--end", "1"], "end: 1.0 s is before start 5.0 s"),
-                           (["--start", "500"], "no stereo pair selected"),
+                           (["--start", "500"], "--start/--end select none of its 2 stereo pairs, which span "
+                                                "0.100 s from the first (--start and --end count from it)"),
                            (["--start", "-1"], "-1.0 is not in the range x>=0")):
         result = CliRunner().invoke(cli, ["process", str(small_log), "-o", str(out), "--overwrite", *extra])
         assert result.exit_code != 0 and message in result.output + str(result.exception), extra
@@ -477,7 +478,21 @@ def test_a_log_whose_every_pair_is_damaged_says_so(tmp_path, monkeypatch, capsys
     with pytest.raises(SystemExit):
         main(["process", str(log), "-o", str(tmp_path / "o.mcap")])
     (line,) = capsys.readouterr().err.strip().splitlines()[-1:]
-    assert line.startswith(f"Error: no frame of {log} could be processed (no stereo pair selected: check --start/"
-                           "--end, and that the left and right stamps agree within --pair-tolerance-ms; 2 damaged "
-                           f"parts of the log skipped, the first: {log}: stereo pair at ")
+    assert line.startswith(f"Error: no frame of {log} could be processed (every one of the 2 stereo pairs selected "
+                           f"is damaged; 2 damaged parts of the log skipped, the first: {log}: stereo pair at ")
     assert not (tmp_path / "o.mcap").exists()
+
+
+def test_a_log_whose_images_never_pair_says_so(tmp_path, capsys):
+    """Right images stamped 15 ms after the left (beyond the 10 ms tolerance): the error names the
+    tolerance, not the selection."""
+    from test_sources_logs import write_ros2_log
+
+    from terrainmap.cli.main import main
+
+    log = write_ros2_log(tmp_path / "run.mcap", n=3, right_offset_ns=15_000_000)
+    with pytest.raises(SystemExit):
+        main(["process", str(log), "-o", str(tmp_path / "o.mcap")])
+    assert capsys.readouterr().err.strip().splitlines()[-1] == (
+        f"Error: no frame of {log} could be processed (no left and right images whose stamps agree within "
+        "--pair-tolerance-ms)")

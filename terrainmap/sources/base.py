@@ -51,6 +51,17 @@ def check_selection(start_s: float | None, end_s: float | None, every: int, max_
         raise ConfigError(f"end: {end_s} s is before start {start_s} s")
 
 
+@dataclass
+class Tally:
+    """What the last :meth:`Source.frames` read: stereo ``pairs`` (all, as far as it read),
+    ``selected`` (in the start/end window, every N-th), and ``span_s``, the last pair's seconds
+    after the first. Says why a selection came out empty."""
+
+    pairs: int = 0
+    selected: int = 0
+    span_s: float = 0.0
+
+
 class Source(ABC):
     """Stereo pairs from a folder or a log; a context manager (``close()`` is idempotent).
 
@@ -63,6 +74,7 @@ class Source(ABC):
     def __init__(self, path: str | Path):
         self.path = Path(path)
         self._closed = False
+        self.tally = Tally()
 
     @classmethod
     @abstractmethod
@@ -102,18 +114,22 @@ class Source(ABC):
         check_selection(start_s, end_s, every, max_frames)
         first_ns: int | None = None
         in_window = kept = 0
+        tally = self.tally = Tally()
         for ref in self._pairs():
             if max_frames is not None and kept >= max_frames:
                 return
             first_ns = ref.stamp_ns if first_ns is None else first_ns
             offset_s = (ref.stamp_ns - first_ns) / 1e9
+            tally.pairs, tally.span_s = tally.pairs + 1, offset_s
             if start_s is not None and offset_s < start_s:
                 continue
             if end_s is not None and offset_s > end_s:
                 return
-            if in_window % every == 0 and (frame := ref.load()) is not None:  # None: skipped as damaged
-                kept += 1
-                yield frame
+            if in_window % every == 0:
+                tally.selected += 1
+                if (frame := ref.load()) is not None:  # None: skipped as damaged
+                    kept += 1
+                    yield frame
             in_window += 1
 
     def skipped(self) -> list[str]:
