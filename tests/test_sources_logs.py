@@ -825,22 +825,27 @@ def test_images_logged_far_behind_their_partners_are_reported_as_such(tmp_path, 
             "full pairing buffer: one camera's images are logged over 32 messages behind the other's") in caplog.text
 
 
+def _write_with_infos(path: Path, focal_px: list[float]) -> Path:
+    """A ROS 2 MCAP of len(focal_px) pairs, each with its camera infos (focal length focal_px[i],
+    0: a left info without its projection matrix; baseline 0.25 m) logged just before the images."""
+    with open(path, "wb") as f, Ros2Writer(f) as writer:
+        image_schema = writer.register_msgdef("sensor_msgs/msg/Image", IMAGE_DEF + HEADER)
+        info_schema = writer.register_msgdef("sensor_msgs/msg/CameraInfo", INFO_DEF + HEADER)
+        for i, fx in enumerate(focal_px):
+            stamp = T0 + i * 100_000_000
+            for side, tx, image in zip(("left", "right"), (0.0, -(fx or 400.0) * 0.25), pair_images(i), strict=True):
+                info = ros_info(stamp, f"{side}_optical", 8, 6, tx)
+                info["k"][0] = info["k"][4] = info["p"][0] = info["p"][5] = fx or (0.0 if side == "left" else 400.0)
+                writer.write_message(f"/cam/{side}/camera_info", info_schema, info, stamp)
+                writer.write_message(f"/cam/{side}/image_rect", image_schema, ros_image(stamp, f"{side}_optical", image, "rgb8"), stamp)
+    return path
+
+
 def test_a_calibration_that_changes_part_way_applies_to_the_pairs_after_it(tmp_path, caplog):
     """Camera infos published with the images, whose focal length changes at pair 3 (the driver
     reloaded another calibration): the pairs after it get the new calibration, with one warning;
     repeated identical infos change nothing."""
-    path = tmp_path / "recalibrated.mcap"
-    with open(path, "wb") as f, Ros2Writer(f) as writer:
-        image_schema = writer.register_msgdef("sensor_msgs/msg/Image", IMAGE_DEF + HEADER)
-        info_schema = writer.register_msgdef("sensor_msgs/msg/CameraInfo", INFO_DEF + HEADER)
-        for i in range(6):
-            stamp = T0 + i * 100_000_000
-            fx = 400.0 if i < 3 else 500.0
-            for side, tx, image in zip(("left", "right"), (0.0, -fx * 0.25), pair_images(i), strict=True):
-                info = ros_info(stamp, f"{side}_optical", 8, 6, tx)
-                info["k"][0] = info["k"][4] = info["p"][0] = info["p"][5] = fx
-                writer.write_message(f"/cam/{side}/camera_info", info_schema, info, stamp)
-                writer.write_message(f"/cam/{side}/image_rect", image_schema, ros_image(stamp, f"{side}_optical", image, "rgb8"), stamp)
+    path = _write_with_infos(tmp_path / "recalibrated.mcap", [400.0] * 3 + [500.0] * 3)
     with open_source(path) as source:
         frames = list(source.frames())
         assert source.describe()["calibration"]["fx"] == 400.0  # what info shows: the first
@@ -849,3 +854,11 @@ def test_a_calibration_that_changes_part_way_applies_to_the_pairs_after_it(tmp_p
     assert caplog.text.count("the camera calibration changes at") == 1
     assert f"{path}: the camera calibration changes at {(T0 + 300_000_000) / 1e9:.3f} s (fx 500 px, baseline 0.25 m, " \
            "8×6, was fx 400 px, baseline 0.25 m, 8×6); the frames after use it" in caplog.text
+
+
+def test_unusable_camera_infos_part_way_keep_the_calibration_before_with_one_warning(tmp_path, caplog):
+    path = _write_with_infos(tmp_path / "broken.mcap", [400.0] * 2 + [0.0] * 4)
+    with open_source(path) as source:
+        frames = list(source.frames())
+    assert [f.calibration.fx for f in frames] == [400.0] * 6
+    assert caplog.text.count("is unusable, the calibration before is kept") == 1

@@ -153,14 +153,19 @@ class LogSource(Source):
             right_in_left=self._tree.relative(left_info["frame_id"], right_info["frame_id"]),
         )
 
-    def _calibration_after(self, current: StereoCalibration, infos: dict, stamp_ns: int) -> StereoCalibration:
+    def _calibration_after(
+        self, current: StereoCalibration, infos: dict, stamp_ns: int, warned: set
+    ) -> StereoCalibration:
         """The calibration of the newest camera infos (``infos``: calibration topic → message), with
-        a warning where it differs from ``current``; ``current`` where it does not or is unusable."""
+        a warning where it differs from ``current``; ``current`` where it does not or is unusable
+        (warned about once: ``warned`` holds what was)."""
         try:
             new = self._calibration_of(*(infos[t] for t in self.calibration_topics))
         except CalibrationError as exc:
-            logger.warning("%s: a camera info at %.3f s is unusable, the calibration before is kept (%s)",
-                           self.path, stamp_ns / 1e9, exc)
+            if "camera info" not in warned:
+                warned.add("camera info")
+                logger.warning("%s: a camera info at %.3f s is unusable, the calibration before is kept (%s)",
+                               self.path, stamp_ns / 1e9, exc)
             return current
         if new.key() == current.key():
             return current
@@ -199,7 +204,7 @@ class LogSource(Source):
         pairer = StereoPairer(self.pair_tolerance_ns)
         poses = VehiclePoses()
         pending: deque = deque()  # pairs waiting for the pose after their stamp
-        index, unstamped = 0, set()
+        index, warned = 0, set()  # what was warned about once: topics without stamps, unusable infos
         # The camera infos are followed too (unless a calibration file is given): a calibration that
         # changes part way applies to the pairs made after it.
         calibration, infos = self.calibration, {}
@@ -212,13 +217,13 @@ class LogSource(Source):
             elif topic in info_topics:
                 infos[topic] = msg
                 if len(infos) == 2:
-                    calibration = self._calibration_after(calibration, infos, msgs.stamp_ns(msg) or log_time_ns)
+                    calibration = self._calibration_after(calibration, infos, msgs.stamp_ns(msg) or log_time_ns, warned)
             else:
                 stamp_ns = msgs.stamp_ns(msg)
                 if stamp_ns == 0:  # a driver that never sets the header stamp: the log time stands in
                     stamp_ns = log_time_ns
-                    if topic not in unstamped:
-                        unstamped.add(topic)
+                    if topic not in warned:
+                        warned.add(topic)
                         logger.warning("%s: %s has images with no header stamp (0); they are paired and placed "
                                        "by log time", self.path, topic)
                 pair = pairer.push(0 if topic == self.left_topic else 1, stamp_ns, msg)
