@@ -124,7 +124,7 @@ def _why_none(source) -> str:
     if tally.pairs == 0:
         why = "no left and right images whose stamps agree within --pair-tolerance-ms"
     elif tally.selected == 0:
-        why = (f"--start/--end select none of its {counted(tally.pairs, 'stereo pair')}, which span "
+        why = (f"--start/--end select none of the {counted(tally.pairs, 'stereo pair')} read, up to "
                f"{tally.span_s:.3f} s from the first (--start and --end count from it)")
     else:
         why = f"every one of the {counted(tally.selected, 'stereo pair')} selected is damaged"

@@ -384,8 +384,10 @@ def test_options_or_a_selection_that_fail_before_the_first_frame_leave_an_earlie
     out = tmp_path / "o.mcap"
     out.write_bytes(b"an earlier run's output")
     for extra, message in ((["--start", "5", "--end", "1"], "end: 1.0 s is before start 5.0 s"),
-                           (["--start", "500"], "--start/--end select none of its 2 stereo pairs, which span "
+                           (["--start", "500"], "--start/--end select none of the 2 stereo pairs read, up to "
                                                 "0.100 s from the first (--start and --end count from it)"),
+                           (["--start", "0.01", "--end", "0.02"], "--start/--end select none of the 2 stereo pairs "
+                                                                  "read, up to 0.100 s from the first"),
                            (["--start", "-1"], "-1.0 is not in the range x>=0")):
         result = CliRunner().invoke(cli, ["process", str(small_log), "-o", str(out), "--overwrite", *extra])
         assert result.exit_code != 0 and message in result.output + str(result.exception), extra

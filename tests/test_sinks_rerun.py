@@ -276,3 +276,28 @@ def test_a_recording_on_a_slow_disk_is_waited_for_while_the_disk_has_room(tmp_pa
     with pytest.raises(InputError, match="No space left on device"):
         full.close()
     assert len(calls) == 2  # the size seen, then one flush with no growth
+
+
+def test_a_disk_whose_free_space_cannot_be_read_is_not_taken_for_full(tmp_path, monkeypatch):
+    """``shutil.disk_usage`` failing (no permission on the folder): the writer is waited for as on
+    a disk with room, and a dead one is reported as stopped, in one line (InputError)."""
+    import shutil
+
+    from terrainmap.config import Config
+    from terrainmap.errors import InputError
+    from terrainmap.sinks import rerun_recording
+
+    def dead(self, *, timeout_sec):
+        raise RuntimeError("File-writer thread shut down prematurely")
+
+    def no_permission(path):
+        raise PermissionError(13, "Permission denied")
+
+    monkeypatch.setattr(rerun_recording, "_STUCK", [])
+    monkeypatch.setattr(rerun_recording, "_FLUSH_WAIT_S", 0.01)
+    monkeypatch.setattr(rerun_recording, "_STALL_S", 0.03)
+    monkeypatch.setattr(rerun_recording.rr.RecordingStream, "flush", dead)
+    monkeypatch.setattr(shutil, "disk_usage", no_permission)
+    sink = rerun_recording.RerunSink(tmp_path / "o.rrd", config=Config())
+    with pytest.raises(InputError, match="its file writer stopped"):
+        sink.close()

@@ -800,10 +800,19 @@ def test_images_without_header_stamps_are_paired_by_log_time_with_a_warning(tmp_
         np.testing.assert_array_equal(frame.left, pair_images(i)[0])
         np.testing.assert_array_equal(frame.right, pair_images(i)[1])
         assert frame.stamp_ns == T0 + i * 100_000_000
-    for side in ("left", "right"):
-        assert caplog.text.count(f"/cam/{side}/image_rect has images with no header stamp (0); they are paired "
-                                 "and placed by log time") == 1
+    assert caplog.text.count("/cam/left/image_rect and /cam/right/image_rect has images with no header stamp (0); "
+                             "both cameras' images are paired and placed by log time") == 1
     assert "1 of 11 image messages had no partner" in caplog.text
+
+
+def test_when_one_camera_has_no_header_stamps_both_are_paired_by_log_time(tmp_path, caplog):
+    """Left images stamped 40 ms before they are logged, right ones unstamped: one clock, the log
+    time, pairs them all."""
+    stamps = [(T0 + i * 100_000_000 - 40_000_000, 0) for i in range(4)]
+    with open_source(_write_pairs(tmp_path / "half.mcap", stamps)) as source:
+        frames = list(source.frames())
+    assert [f.stamp_ns for f in frames] == [T0 + i * 100_000_000 for i in range(4)]
+    assert "/cam/right/image_rect has images with no header stamp (0)" in caplog.text
 
 
 def test_images_left_without_a_partner_at_the_end_of_the_log_are_counted(tmp_path, caplog):
@@ -850,7 +859,7 @@ def test_a_calibration_that_changes_part_way_applies_to_the_pairs_after_it(tmp_p
         frames = list(source.frames())
         assert source.describe()["calibration"]["fx"] == 400.0  # what info shows: the first
     assert [f.calibration.fx for f in frames] == [400.0] * 3 + [500.0] * 3
-    assert all(f.calibration.baseline_m == pytest.approx(0.25) for f in frames)
+    assert all(f.calibration.baseline_m == pytest.approx(0.25) for f in frames)  # never a left-new, right-old mix
     assert caplog.text.count("the camera calibration changes at") == 1
     assert f"{path}: the camera calibration changes at {(T0 + 300_000_000) / 1e9:.3f} s (fx 500 px, baseline 0.25 m, " \
            "8×6, was fx 400 px, baseline 0.25 m, 8×6); the frames after use it" in caplog.text
@@ -862,3 +871,39 @@ def test_unusable_camera_infos_part_way_keep_the_calibration_before_with_one_war
         frames = list(source.frames())
     assert [f.calibration.fx for f in frames] == [400.0] * 6
     assert caplog.text.count("is unusable, the calibration before is kept") == 1
+
+
+def test_after_a_clock_reset_pairs_are_given_as_they_come_with_their_poses(tmp_path, caplog):
+    """Image and odometry stamps go back 100 s part way (a restarted clock), the odometry lagging
+    150 ms: the pairs before the reset no longer wait for a pose after them, so that pairs keep
+    coming as the log is read (memory stays bounded) and those after the reset get poses."""
+    path = tmp_path / "reset.mcap"
+    starts = [T0 + 100_000_000_000] * 10 + [T0] * 10
+    with open(path, "wb") as f, Ros2Writer(f) as writer:
+        image_schema = writer.register_msgdef("sensor_msgs/msg/Image", IMAGE_DEF + HEADER)
+        info_schema = writer.register_msgdef("sensor_msgs/msg/CameraInfo", INFO_DEF + HEADER)
+        tf_schema = writer.register_msgdef("tf2_msgs/msg/TFMessage", TF_DEF + HEADER)
+        for side, tx in (("left", 0.0), ("right", -100.0)):
+            writer.write_message(f"/cam/{side}/camera_info", info_schema, ros_info(T0, f"{side}_optical", 8, 6, tx), 0)
+        for i, start in enumerate(starts):
+            stamp, log_time = start + i % 10 * 100_000_000, T0 + 200_000_000_000 + i * 100_000_000
+            for side, image in zip(("left", "right"), pair_images(i), strict=True):
+                writer.write_message(f"/cam/{side}/image_rect", image_schema,
+                                     ros_image(stamp, f"{side}_optical", image, "rgb8"), log_time + 1000)
+            writer.write_message("/tf", tf_schema, tf_message(stamp - 150_000_000, "odom", "base_link", (i, 0, 0),
+                                                              (0, 0, 0, 1)), log_time)
+    with open_source(path) as source:
+        read, messages = [0], source.reader.messages
+
+        def counting(topics):
+            for message in messages(topics):
+                read[0] += 1
+                yield message
+
+        source.reader.messages = counting
+        given = [(ref.index, read[0], ref.load().vehicle_pose is not None) for ref in source._pairs()]
+    total = 2 + 3 * 20
+    assert [index for index, _, _ in given] == list(range(20))
+    assert all(at < total for index, at, _ in given if index < 15)  # not all held back to the end
+    assert sum(posed for index, _, posed in given if index >= 10) >= 8
+    assert caplog.text.count("odometry: the clock went back") == 1

@@ -148,7 +148,11 @@ def test_vehicle_poses_start_again_after_the_clock_goes_back(caplog):
     for k in range(5):
         poses.add(10_000 + 100 * k, "odom", "base_link", [k, 0, 0], [0, 0, 0, 1])
     poses.add(10_300, "odom", "base_link", [9, 9, 9], [0, 0, 0, 1])  # within the horizon: out of order, ignored
-    for k in range(3):
+    poses.add(3_000, "odom", "base_link", [9, 9, 9], [0, 0, 0, 1])  # one stale pose: ignored
+    poses.add(0, "odom", "base_link", [9, 9, 9], [0, 0, 0, 1])  # never stamped: ignored
+    poses.add(10_500, "odom", "base_link", [5, 0, 0], [0, 0, 0, 1])
+    assert poses.newest_ns == 10_500 and "clock went back" not in caplog.text
+    for k in range(3):  # the clock reset: poses in a row far back
         poses.add(500 + 100 * k, "odom", "base_link", [10 + k, 0, 0], [0, 0, 0, 1])
     assert poses.newest_ns == 700 and poses.at(650)[0, 3] == pytest.approx(11.5)
     assert poses.at(10_200) is None  # the poses before the reset are gone

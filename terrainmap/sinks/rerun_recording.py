@@ -101,9 +101,9 @@ _FLUSH_WAIT_S = 5.0
 _STALL_S = 60.0
 """How long the file may stand still, on a disk with room, before its writer is taken for dead, s
 (a slow network disk); on a full disk (less than :data:`_FULL_BYTES` free) one wait is enough."""
-_FULL_BYTES = 64 << 20
+_FULL_BYTES = 4 << 20
 """Free space under which a recording that stands still counts as stopped by a full disk, bytes
-(a frame of the recording is about 1 MB)."""
+(a write that fails for want of space leaves less than one frame of the recording, about 1 MB)."""
 
 
 _STUCK: list = []
@@ -272,7 +272,10 @@ class RerunSink:
                     raise
 
     def _disk_full(self) -> bool:
-        return shutil.disk_usage(self.path.parent).free < _FULL_BYTES
+        try:
+            return shutil.disk_usage(self.path.parent).free < _FULL_BYTES
+        except OSError:  # cannot tell: not taken for full
+            return False
 
     def __enter__(self):
         return self

@@ -92,6 +92,10 @@ class LogSource(Source):
         self.pair_tolerance_ns = int(pair_tolerance_ns)
         first_left = self._first(self.left_topic)
         self.frame_id = msgs.frame_id(first_left) if first_left is not None else "camera_optical"
+        # A driver that never sets the header stamp (0): both cameras' images are then paired and
+        # placed by log time, one clock for both.
+        firsts = ((self.left_topic, first_left), (self.right_topic, self._first(self.right_topic)))
+        self._unstamped = [t for t, m in firsts if m is not None and msgs.stamp_ns(m) == 0]
         override = calib_io.load_calibration_file(calibration) if calibration else None
         self._static_tf_topics, self.odometry_topics = self._tf_topics()
         tree = self._tf_tree()
@@ -154,24 +158,23 @@ class LogSource(Source):
         )
 
     def _calibration_after(
-        self, current: StereoCalibration, infos: dict, stamp_ns: int, warned: set
-    ) -> StereoCalibration:
-        """The calibration of the newest camera infos (``infos``: calibration topic → message), with
-        a warning where it differs from ``current``; ``current`` where it does not or is unusable
-        (warned about once: ``warned`` holds what was)."""
+        self, current: StereoCalibration, infos: dict, stamp_ns: int, warned: bool
+    ) -> tuple[StereoCalibration, bool]:
+        """The calibration of the newest left and right camera infos (``infos``: calibration topic →
+        (stamp, message)), with a warning where it differs from ``current``; ``current`` where it
+        does not or is unusable (warned about once: ``warned`` says whether it was; returned too)."""
         try:
-            new = self._calibration_of(*(infos[t] for t in self.calibration_topics))
+            new = self._calibration_of(*(infos[t][1] for t in self.calibration_topics))
         except CalibrationError as exc:
-            if "camera info" not in warned:
-                warned.add("camera info")
+            if not warned:
                 logger.warning("%s: a camera info at %.3f s is unusable, the calibration before is kept (%s)",
                                self.path, stamp_ns / 1e9, exc)
-            return current
-        if new.key() == current.key():
-            return current
-        logger.warning("%s: the camera calibration changes at %.3f s (%s, was %s); the frames after use it",
-                       self.path, stamp_ns / 1e9, _brief(new), _brief(current))
-        return new
+            return current, True
+        if new.key() != current.key():
+            logger.warning("%s: the camera calibration changes at %.3f s (%s, was %s); the frames after use it",
+                           self.path, stamp_ns / 1e9, _brief(new), _brief(current))
+            return new, warned
+        return current, warned
 
     def _tf_topics(self) -> tuple[list[str], list[str]]:
         """The log's (static, dynamic) tf topics, told apart by name."""
@@ -204,32 +207,38 @@ class LogSource(Source):
         pairer = StereoPairer(self.pair_tolerance_ns)
         poses = VehiclePoses()
         pending: deque = deque()  # pairs waiting for the pose after their stamp
-        index, warned = 0, set()  # what was warned about once: topics without stamps, unusable infos
+        index, warned = 0, False  # warned: of an unusable camera info, once
+        if self._unstamped:
+            logger.warning("%s: %s has images with no header stamp (0); both cameras' images are paired and "
+                           "placed by log time", self.path, " and ".join(self._unstamped))
         # The camera infos are followed too (unless a calibration file is given): a calibration that
-        # changes part way applies to the pairs made after it.
-        calibration, infos = self.calibration, {}
+        # changes part way applies to the pairs made after a left and a right info of it arrive
+        # (``fresh``: the infos new since, whose stamps must agree within the pair tolerance).
+        calibration, infos, fresh = self.calibration, {}, set()
         info_topics = [t for t in self.calibration_topics if t]
         topics = [self.left_topic, self.right_topic, *self.odometry_topics, *info_topics]
         for topic, log_time_ns, msg in self.reader.messages(topics):
             if topic in self.odometry_topics:
                 for transform in msgs.transforms(msg, self.reader.types[topic]):
                     poses.add(*transform)
-            elif topic in info_topics:
-                infos[topic] = msg
-                if len(infos) == 2:
-                    calibration = self._calibration_after(calibration, infos, msgs.stamp_ns(msg) or log_time_ns, warned)
+                continue
+            stamp_ns = log_time_ns if self._unstamped else msgs.stamp_ns(msg) or log_time_ns
+            if topic in info_topics:
+                infos[topic] = (stamp_ns, msg)
+                stamps = [infos[t][0] for t in fresh - {topic}]
+                fresh = {topic, *fresh} if all(abs(s - stamp_ns) <= self.pair_tolerance_ns for s in stamps) else {topic}
+                if len(fresh) == 2:
+                    fresh.clear()
+                    calibration, warned = self._calibration_after(calibration, infos, stamp_ns, warned)
             else:
-                stamp_ns = msgs.stamp_ns(msg)
-                if stamp_ns == 0:  # a driver that never sets the header stamp: the log time stands in
-                    stamp_ns = log_time_ns
-                    if topic not in warned:
-                        warned.add(topic)
-                        logger.warning("%s: %s has images with no header stamp (0); they are paired and placed "
-                                       "by log time", self.path, topic)
                 pair = pairer.push(0 if topic == self.left_topic else 1, stamp_ns, msg)
-                if pair is not None:
-                    pending.append((index, *pair, calibration))
-                    index += 1
+                if pair is None:
+                    continue
+                if pending and pair[0] < pending[-1][1] - POSE_WAIT_NS:  # the clock went back: the pairs
+                    while pending:  # before no longer wait for a pose after them
+                        yield self._pair_ref(pending.popleft(), poses)
+                pending.append((index, *pair, calibration))
+                index += 1
             if not pending:
                 continue
             # With odometry, a pair waits for a pose at or after its stamp, or until it is a second old.

@@ -125,8 +125,9 @@ class VehiclePoses:
     poses); a stamp outside the known poses gets the nearest one if it lies within
     ``tolerance_ns``, else None. The first odometry frame seen is kept (later parents are
     ignored), and poses older than ``horizon_ns`` before the newest are forgotten, so memory
-    stays bounded. A pose stamped more than ``horizon_ns`` before the newest is a clock that went
-    back (a reset): the poses before it are dropped, with a warning.
+    stays bounded. Two poses in a row stamped more than ``horizon_ns`` before the newest are a
+    clock that went back (a reset): the poses before them are dropped, with a warning (one such
+    pose alone is a stale message, ignored, as are poses stamped 0).
     """
 
     def __init__(self, tolerance_ns: int = 100_000_000, horizon_ns: int = 2_000_000_000):
@@ -134,6 +135,7 @@ class VehiclePoses:
         self.parent: str | None = None
         self._stamps: list[int] = []
         self._poses: list[np.ndarray] = []
+        self._back = 0  # poses in a row stamped more than horizon_ns before the newest
 
     @property
     def newest_ns(self) -> int | None:
@@ -144,15 +146,17 @@ class VehiclePoses:
         parent, child = parent.lstrip("/"), child.lstrip("/")
         if child not in VEHICLE_FRAMES or parent in VEHICLE_FRAMES or parent != (self.parent or parent):
             return
-        if not usable(translation, quaternion_xyzw):
-            return
+        if not usable(translation, quaternion_xyzw) or stamp_ns == 0:
+            return  # broken, or never stamped
         if self._stamps and stamp_ns <= self._stamps[-1]:
-            if self._stamps[-1] - stamp_ns <= self.horizon_ns:
-                return  # out of order or repeated (poses are kept in time order)
+            self._back = self._back + 1 if self._stamps[-1] - stamp_ns > self.horizon_ns else 0
+            if self._back < 2:
+                return  # out of order or repeated (poses are kept in time order), or one stale pose
             logger.warning("odometry: the clock went back %.1f s (a reset?); the poses before are dropped",
                            (self._stamps[-1] - stamp_ns) / 1e9)
             self._stamps.clear()
             self._poses.clear()
+        self._back = 0
         self.parent = parent
         self._stamps.append(int(stamp_ns))
         self._poses.append(homogeneous(quaternion_to_matrix(quaternion_xyzw), translation))
