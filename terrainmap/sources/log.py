@@ -98,10 +98,10 @@ class LogSource(Source):
         self._unstamped = [t for t, m in firsts if m is not None and msgs.stamp_ns(m) == 0]
         override = calib_io.load_calibration_file(calibration) if calibration else None
         self._static_tf_topics, self.odometry_topics = self._tf_topics()
-        tree = self._tf_tree()
+        tree = self._tree = self._tf_tree()
         self.calibration_topics: tuple[str | None, str | None] = (None, None)
         self.calibration_error: CalibrationError | None = None
-        self.calibration: StereoCalibration | None = override[0] if override else self._log_calibration(tree)
+        self.calibration: StereoCalibration | None = override[0] if override else self._log_calibration()
         given = override[1] if override else None
         if given is not None:  # a calibration file names no frames: the camera's is the images'
             given = replace(given, camera_frame_id=self.frame_id)
@@ -124,7 +124,7 @@ class LogSource(Source):
         finally:
             stream.close()
 
-    def _log_calibration(self, tree: TransformTree) -> StereoCalibration | None:
+    def _log_calibration(self) -> StereoCalibration | None:
         topics = [t for t, kind in self.reader.types.items() if kind in msgs.CALIBRATION_TYPES]
         sides = side_tokens(self.left_topic, self.right_topic)
         left = calibration_topic(self.left_topic, topics, side=sides)
@@ -139,7 +139,6 @@ class LogSource(Source):
             infos = [self._first(t) for t in (left, right)]
             if any(info is None for info in infos):
                 raise CalibrationError(f"{self.path}: {left} or {right} holds no message; pass --calibration")
-            self._tree = tree
             return self._calibration_of(*infos)
         except CalibrationError as exc:
             self.calibration_error = exc
