@@ -834,9 +834,10 @@ def test_images_logged_far_behind_their_partners_are_reported_as_such(tmp_path, 
             "full pairing buffer: one camera's images are logged over 32 messages behind the other's") in caplog.text
 
 
-def _write_with_infos(path: Path, focal_px: list[float]) -> Path:
+def _write_with_infos(path: Path, focal_px: list[float], right_late: int = 0) -> Path:
     """A ROS 2 MCAP of len(focal_px) pairs, each with its camera infos (focal length focal_px[i],
-    0: a left info without its projection matrix; baseline 0.25 m) logged just before the images."""
+    0: a left info without its projection matrix; baseline 0.25 m) logged just before the images;
+    the right camera's messages logged ``right_late`` pairs late."""
     with open(path, "wb") as f, Ros2Writer(f) as writer:
         image_schema = writer.register_msgdef("sensor_msgs/msg/Image", IMAGE_DEF + HEADER)
         info_schema = writer.register_msgdef("sensor_msgs/msg/CameraInfo", INFO_DEF + HEADER)
@@ -845,8 +846,10 @@ def _write_with_infos(path: Path, focal_px: list[float]) -> Path:
             for side, tx, image in zip(("left", "right"), (0.0, -(fx or 400.0) * 0.25), pair_images(i), strict=True):
                 info = ros_info(stamp, f"{side}_optical", 8, 6, tx)
                 info["k"][0] = info["k"][4] = info["p"][0] = info["p"][5] = fx or (0.0 if side == "left" else 400.0)
-                writer.write_message(f"/cam/{side}/camera_info", info_schema, info, stamp)
-                writer.write_message(f"/cam/{side}/image_rect", image_schema, ros_image(stamp, f"{side}_optical", image, "rgb8"), stamp)
+                log_time = stamp + (right_late * 100_000_000 + 1000 if side == "right" else 0)
+                writer.write_message(f"/cam/{side}/camera_info", info_schema, info, log_time)
+                writer.write_message(f"/cam/{side}/image_rect", image_schema,
+                                     ros_image(stamp, f"{side}_optical", image, "rgb8"), log_time)
     return path
 
 
@@ -907,3 +910,46 @@ def test_after_a_clock_reset_pairs_are_given_as_they_come_with_their_poses(tmp_p
     assert all(at < total for index, at, _ in given if index < 15)  # not all held back to the end
     assert sum(posed for index, _, posed in given if index >= 10) >= 8
     assert caplog.text.count("odometry: the clock went back") == 1
+
+
+@pytest.mark.parametrize("right_late", [1, 2])
+def test_a_calibration_change_is_found_when_one_camera_is_logged_late(tmp_path, caplog, right_late):
+    """The right camera's images and infos logged one or two pairs behind the left's: its infos
+    are paired with the left's by stamp, so the change is seen, without a mixed calibration."""
+    path = _write_with_infos(tmp_path / "late.mcap", [400.0] * 3 + [500.0] * 3, right_late=right_late)
+    with open_source(path) as source:
+        frames = list(source.frames())
+    assert [f.calibration.fx for f in frames] == [400.0] * 3 + [500.0] * 3
+    assert caplog.text.count("the camera calibration changes at") == 1 and "unusable" not in caplog.text
+
+
+def test_a_change_on_one_side_goes_with_the_other_sides_single_info(tmp_path, caplog):
+    """The left info is a single (latched) message; the right one, republished, changes its
+    baseline at pair 3: the change is taken with the left's one message."""
+    path = tmp_path / "latched.mcap"
+    with open(path, "wb") as f, Ros2Writer(f) as writer:
+        image_schema = writer.register_msgdef("sensor_msgs/msg/Image", IMAGE_DEF + HEADER)
+        info_schema = writer.register_msgdef("sensor_msgs/msg/CameraInfo", INFO_DEF + HEADER)
+        writer.write_message("/cam/left/camera_info", info_schema, ros_info(T0, "left_optical", 8, 6, 0.0), T0)
+        for i in range(6):
+            stamp = T0 + i * 100_000_000
+            baseline = 0.25 if i < 3 else 0.5
+            writer.write_message("/cam/right/camera_info", info_schema,
+                                 ros_info(stamp, "right_optical", 8, 6, -400.0 * baseline), stamp)
+            for side, image in zip(("left", "right"), pair_images(i), strict=True):
+                writer.write_message(f"/cam/{side}/image_rect", image_schema,
+                                     ros_image(stamp, f"{side}_optical", image, "rgb8"), stamp)
+    with open_source(path) as source:
+        assert [f.calibration.baseline_m for f in source.frames()] == [0.25] * 3 + [0.5] * 3
+    assert caplog.text.count("the camera calibration changes at") == 1
+
+
+def test_a_first_image_without_a_stamp_does_not_put_the_log_on_log_time(tmp_path, caplog):
+    """Only the first left image is unstamped (a driver whose clock was not set yet): the log is
+    still paired by header stamp, that one image by its log time."""
+    stamps = [(T0 + i * 100_000_000, T0 + i * 100_000_000 + 1_000_000) for i in range(6)]
+    stamps[0] = (0, stamps[0][1])
+    with open_source(_write_pairs(tmp_path / "first.mcap", stamps)) as source:
+        frames = list(source.frames())
+    assert [f.stamp_ns for f in frames] == [T0 + i * 100_000_000 for i in range(6)]
+    assert "no header stamp" not in caplog.text

@@ -149,6 +149,7 @@ def test_vehicle_poses_start_again_after_the_clock_goes_back(caplog):
         poses.add(10_000 + 100 * k, "odom", "base_link", [k, 0, 0], [0, 0, 0, 1])
     poses.add(10_300, "odom", "base_link", [9, 9, 9], [0, 0, 0, 1])  # within the horizon: out of order, ignored
     poses.add(3_000, "odom", "base_link", [9, 9, 9], [0, 0, 0, 1])  # one stale pose: ignored
+    poses.add(3_000, "odom", "base_link", [9, 9, 9], [0, 0, 0, 1])  # repeated: still stale, not a clock
     poses.add(0, "odom", "base_link", [9, 9, 9], [0, 0, 0, 1])  # never stamped: ignored
     poses.add(10_500, "odom", "base_link", [5, 0, 0], [0, 0, 0, 1])
     assert poses.newest_ns == 10_500 and "clock went back" not in caplog.text

@@ -44,6 +44,8 @@ MAX_DYNAMIC_TF_MESSAGES = 1000
 """How many non-static tf messages are read at most while looking for the camera's parent frames."""
 
 POSE_WAIT_NS = 1_000_000_000
+UNSTAMPED_PREFIX = 5
+"""Images whose topic's first this many messages are stamped 0 are taken as never stamped."""
 """How long (log stamps) a stereo pair waits for the vehicle pose after its stamp before it is
 yielded with the poses known by then."""
 
@@ -92,10 +94,9 @@ class LogSource(Source):
         self.pair_tolerance_ns = int(pair_tolerance_ns)
         first_left = self._first(self.left_topic)
         self.frame_id = msgs.frame_id(first_left) if first_left is not None else "camera_optical"
-        # A driver that never sets the header stamp (0): both cameras' images are then paired and
-        # placed by log time, one clock for both.
-        firsts = ((self.left_topic, first_left), (self.right_topic, self._first(self.right_topic)))
-        self._unstamped = [t for t, m in firsts if m is not None and msgs.stamp_ns(m) == 0]
+        # A driver that never sets the header stamp (0 on its first UNSTAMPED_PREFIX images): both
+        # cameras' images are then paired and placed by log time, one clock for both.
+        self._unstamped = [t for t in (self.left_topic, self.right_topic) if self._never_stamped(t)]
         override = calib_io.load_calibration_file(calibration) if calibration else None
         self._static_tf_topics, self.odometry_topics = self._tf_topics()
         tree = self._tree = self._tf_tree()
@@ -116,6 +117,18 @@ class LogSource(Source):
         if close is not None:
             close()
         super().close()
+
+    def _never_stamped(self, topic: str) -> bool:
+        """Whether the first :data:`UNSTAMPED_PREFIX` messages of ``topic`` (all, if fewer) are stamped 0."""
+        stream, stamps = self.reader.messages([topic]), []
+        try:
+            for _, _, message in itertools.islice(stream, UNSTAMPED_PREFIX):
+                stamps.append(msgs.stamp_ns(message))
+        except InputError:  # a damaged log: what was read before decides; frames() meets the damage
+            pass
+        finally:
+            stream.close()
+        return bool(stamps) and not any(stamps)
 
     def _first(self, topic: str):
         stream = self.reader.messages([topic])
@@ -160,10 +173,10 @@ class LogSource(Source):
         self, current: StereoCalibration, infos: dict, stamp_ns: int, warned: bool
     ) -> tuple[StereoCalibration, bool]:
         """The calibration of the newest left and right camera infos (``infos``: calibration topic →
-        (stamp, message)), with a warning where it differs from ``current``; ``current`` where it
-        does not or is unusable (warned about once: ``warned`` says whether it was; returned too)."""
+        message), with a warning where it differs from ``current``; ``current`` where it does not
+        or is unusable (warned about once: ``warned`` says whether it was; returned too)."""
         try:
-            new = self._calibration_of(*(infos[t][1] for t in self.calibration_topics))
+            new = self._calibration_of(*(infos[t] for t in self.calibration_topics))
         except CalibrationError as exc:
             if not warned:
                 logger.warning("%s: a camera info at %.3f s is unusable, the calibration before is kept (%s)",
@@ -205,16 +218,17 @@ class LogSource(Source):
             raise self.calibration_error
         pairer = StereoPairer(self.pair_tolerance_ns)
         poses = VehiclePoses()
-        pending: deque = deque()  # pairs waiting for the pose after their stamp
+        pending: deque = deque()  # (log time made, pair): pairs waiting for the pose after their stamp
         index, warned = 0, False  # warned: of an unusable camera info, once
         if self._unstamped:
             logger.warning("%s: %s has images with no header stamp (0); both cameras' images are paired and "
                            "placed by log time", self.path, " and ".join(self._unstamped))
         # The camera infos are followed too (unless a calibration file is given): a calibration that
-        # changes part way applies to the pairs made after a left and a right info of it arrive
-        # (``fresh``: the infos new since, whose stamps must agree within the pair tolerance).
-        calibration, infos, fresh = self.calibration, {}, set()
-        info_topics = [t for t in self.calibration_topics if t]
+        # changes part way applies to the pairs made after a left and a right info of it, paired by
+        # stamp as the images are; where one side is a single message (latched), with that one.
+        calibration, info_topics = self.calibration, [t for t in self.calibration_topics if t]
+        infos, info_pairer = {}, StereoPairer(self.pair_tolerance_ns)
+        latched = [t for t in info_topics if self.reader.counts.get(t) == 1]
         topics = [self.left_topic, self.right_topic, *self.odometry_topics, *info_topics]
         for topic, log_time_ns, msg in self.reader.messages(topics):
             if topic in self.odometry_topics:
@@ -223,29 +237,27 @@ class LogSource(Source):
                 continue
             stamp_ns = log_time_ns if self._unstamped else msgs.stamp_ns(msg) or log_time_ns
             if topic in info_topics:
-                infos[topic] = (stamp_ns, msg)
-                stamps = [infos[t][0] for t in fresh - {topic}]
-                fresh = {topic, *fresh} if all(abs(s - stamp_ns) <= self.pair_tolerance_ns for s in stamps) else {topic}
-                if len(fresh) == 2:
-                    fresh.clear()
+                if latched:  # one side is a single message: each new info goes with the other's newest
+                    infos[topic] = msg
+                    ready = len(infos) == 2
+                else:  # both republished: paired by stamp, as the images are
+                    made = info_pairer.push(info_topics.index(topic), stamp_ns, msg)
+                    ready = made is not None
+                    if ready:
+                        infos = dict(zip(info_topics, made[1:], strict=True))
+                if ready:
                     calibration, warned = self._calibration_after(calibration, infos, stamp_ns, warned)
             else:
                 pair = pairer.push(0 if topic == self.left_topic else 1, stamp_ns, msg)
-                if pair is None:
-                    continue
-                if pending and pair[0] < pending[-1][1] - POSE_WAIT_NS:  # the clock went back: the pairs
-                    while pending:  # before no longer wait for a pose after them
-                        yield self._pair_ref(pending.popleft(), poses)
-                pending.append((index, *pair, calibration))
-                index += 1
-            if not pending:
-                continue
-            # With odometry, a pair waits for a pose at or after its stamp, or until it is a second old.
-            newest = max(poses.newest_ns or 0, pending[-1][1] - POSE_WAIT_NS) if self.odometry_topics else pending[-1][1]
-            while pending and pending[0][1] <= newest:
-                yield self._pair_ref(pending.popleft(), poses)
+                if pair is not None:
+                    pending.append((log_time_ns, (index, *pair, calibration)))
+                    index += 1
+            # With odometry, a pair waits for a pose at or after its stamp, or for a second of log time.
+            while pending and (not self.odometry_topics or pending[0][1][1] <= (poses.newest_ns or 0)
+                               or log_time_ns - pending[0][0] >= POSE_WAIT_NS):
+                yield self._pair_ref(pending.popleft()[1], poses)
         while pending:
-            yield self._pair_ref(pending.popleft(), poses)
+            yield self._pair_ref(pending.popleft()[1], poses)
         pairer.finish()
         if pairer.dropped:
             full = (f"; {pairer.overflowed} of them left a full pairing buffer: one camera's images are logged "

@@ -125,9 +125,10 @@ class VehiclePoses:
     poses); a stamp outside the known poses gets the nearest one if it lies within
     ``tolerance_ns``, else None. The first odometry frame seen is kept (later parents are
     ignored), and poses older than ``horizon_ns`` before the newest are forgotten, so memory
-    stays bounded. Two poses in a row stamped more than ``horizon_ns`` before the newest are a
-    clock that went back (a reset): the poses before them are dropped, with a warning (one such
-    pose alone is a stale message, ignored, as are poses stamped 0).
+    stays bounded. Two poses in a row stamped more than ``horizon_ns`` before the newest, the
+    second later than the first, are a clock that went back and runs again (a reset): the poses
+    before them are dropped, with a warning. One such pose alone, or repeated, is a stale message
+    and ignored, as are poses stamped 0.
     """
 
     def __init__(self, tolerance_ns: int = 100_000_000, horizon_ns: int = 2_000_000_000):
@@ -135,7 +136,7 @@ class VehiclePoses:
         self.parent: str | None = None
         self._stamps: list[int] = []
         self._poses: list[np.ndarray] = []
-        self._back = 0  # poses in a row stamped more than horizon_ns before the newest
+        self._back: int | None = None  # the stamp of a pose just before, far before the newest
 
     @property
     def newest_ns(self) -> int | None:
@@ -149,14 +150,16 @@ class VehiclePoses:
         if not usable(translation, quaternion_xyzw) or stamp_ns == 0:
             return  # broken, or never stamped
         if self._stamps and stamp_ns <= self._stamps[-1]:
-            self._back = self._back + 1 if self._stamps[-1] - stamp_ns > self.horizon_ns else 0
-            if self._back < 2:
+            far_back = self._stamps[-1] - stamp_ns > self.horizon_ns
+            running = self._back is not None and stamp_ns > self._back  # later than the last far-back one
+            self._back = stamp_ns if far_back else None
+            if not (far_back and running):
                 return  # out of order or repeated (poses are kept in time order), or one stale pose
             logger.warning("odometry: the clock went back %.1f s (a reset?); the poses before are dropped",
                            (self._stamps[-1] - stamp_ns) / 1e9)
             self._stamps.clear()
             self._poses.clear()
-        self._back = 0
+        self._back = None
         self.parent = parent
         self._stamps.append(int(stamp_ns))
         self._poses.append(homogeneous(quaternion_to_matrix(quaternion_xyzw), translation))
