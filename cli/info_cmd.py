@@ -8,7 +8,7 @@ import sys
 
 import click
 
-from .options import counted
+from .options import NO_PAIRS, counted
 from .source_options import SourceOptions, open_options
 
 
@@ -70,8 +70,7 @@ def info(log: str, source_opts: SourceOptions, as_json: bool, check: bool) -> No
                     if pairs == 0:  # stereo topics, but no left and right images that pair up
                         readable = False
                         if not skipped:
-                            description["check"] += (" (no left and right images whose stamps agree within "
-                                                     "--pair-tolerance-ms)")
+                            description["check"] += f" ({NO_PAIRS})"
                     if skipped:
                         readable = False
                         description["check"] += f", skipping {counted(len(skipped), 'damaged part')}: " + "; ".join(skipped)

@@ -82,6 +82,10 @@ class GracefulStop:
             signal.signal(s, handler)
 
 
+NO_PAIRS = "no left and right images whose stamps agree within --pair-tolerance-ms"
+"""Why a log with stereo topics gives no stereo pair (``process`` and ``info --check`` say it)."""
+
+
 def counted(count: int, noun: str) -> str:
     """``1 frame``, ``2 frames``: a count with its noun in the right number."""
     return f"{count} {noun}{'s' * (count != 1)}"

@@ -11,6 +11,7 @@ import click
 from terrainmap.config import load_config
 
 from .options import (
+    NO_PAIRS,
     Failed,
     GracefulStop,
     config_options,
@@ -113,16 +114,11 @@ def _progress(summary, frame, result) -> None:
     )
 
 
-_NOTHING_SELECTED = (
-    "no stereo pair selected: check --start/--end, and that the left and right stamps agree within --pair-tolerance-ms"
-)
-
-
 def _why_none(source) -> str:
     """Why ``source.frames()`` gave no frame: no pairs, none in the selection, or damage."""
     tally, skipped = source.tally, source.skipped()
     if tally.pairs == 0:
-        why = "no left and right images whose stamps agree within --pair-tolerance-ms"
+        why = NO_PAIRS
     elif tally.selected == 0:
         why = (f"--start/--end select none of the {counted(tally.pairs, 'stereo pair')} read, up to "
                f"{tally.span_s:.3f} s from the first (--start and --end count from it)")
@@ -134,7 +130,8 @@ def _why_none(source) -> str:
 
 
 def _reasons(summary) -> str:
-    return ", ".join(f"{reason} ×{n}" for reason, n in summary.failures.most_common()) or _NOTHING_SELECTED
+    """The frames' failures, most frequent first (every frame that was read is done or failed)."""
+    return ", ".join(f"{reason} ×{n}" for reason, n in summary.failures.most_common())
 
 
 def _report(summary, outputs, skipped: list[str]) -> None:

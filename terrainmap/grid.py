@@ -203,9 +203,9 @@ def _samples(
 
 _LANES = 4
 """Copies of every bin's running sums (:class:`PerBin`). A camera delivers runs of points that
-fall in one cell, and ``np.bincount`` / ``ufunc.at`` adding to one bin again
-and again wait for each previous add; with consecutive points taking turns over four copies they
-do not. On a real 150k-point frame the grid's sums take 0.9 instead of 1.6 ms."""
+fall in one cell, and ``np.bincount`` / ``ufunc.at`` adding to one bin again and again wait for
+each previous add; with consecutive points taking turns over four copies they do not. On a real
+150k-point frame the grid's sums take 0.9 instead of 1.6 ms."""
 
 
 class PerBin:

@@ -338,7 +338,7 @@ class StereoMatcher:
         left_rect, right_rect = self.rectify(left, right)
         grey = to_grey(left_rect)
         posed = None if extrinsics is None else rectified_camera(extrinsics, self.pinhole)
-        sky = None if posed is None or not self.config.drop_sky else self.sky(grey, extrinsics)
+        sky = None if posed is None or not self.config.drop_sky else sky_mask(grey, self.pinhole, posed, self.config)
         first_row = 0
         if sky is not None:
             all_sky = sky.all(axis=1)
@@ -544,5 +544,3 @@ def to_grey(image: np.ndarray) -> np.ndarray:
 
 def _size(image: np.ndarray) -> str:
     return f"{image.shape[1]}×{image.shape[0]}"
-
-

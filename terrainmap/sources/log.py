@@ -44,10 +44,11 @@ MAX_DYNAMIC_TF_MESSAGES = 1000
 """How many non-static tf messages are read at most while looking for the camera's parent frames."""
 
 POSE_WAIT_NS = 1_000_000_000
+"""How long (log time) a stereo pair waits for the vehicle pose after its stamp before it is
+yielded with the poses known by then."""
+
 UNSTAMPED_PREFIX = 5
 """Images whose topic's first this many messages are stamped 0 are taken as never stamped."""
-"""How long (log stamps) a stereo pair waits for the vehicle pose after its stamp before it is
-yielded with the poses known by then."""
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 ROS1_MAGIC = b"#ROSBAG V2.0"
@@ -92,11 +93,13 @@ class LogSource(Source):
         if self.left_topic == self.right_topic:
             raise InputError(f"{self.path}: left and right topic are the same ({self.left_topic})")
         self.pair_tolerance_ns = int(pair_tolerance_ns)
-        first_left = self._first(self.left_topic)
-        self.frame_id = msgs.frame_id(first_left) if first_left is not None else "camera_optical"
+        # (damage before the right topic's first message is left for frames() to meet, as it was)
+        firsts = {t: self._first(t, UNSTAMPED_PREFIX, lenient=t == self.right_topic)
+                  for t in (self.left_topic, self.right_topic)}
+        self.frame_id = msgs.frame_id(firsts[self.left_topic][0]) if firsts[self.left_topic] else "camera_optical"
         # A driver that never sets the header stamp (0 on its first UNSTAMPED_PREFIX images): both
         # cameras' images are then paired and placed by log time, one clock for both.
-        self._unstamped = [t for t in (self.left_topic, self.right_topic) if self._never_stamped(t)]
+        self._unstamped = [t for t, first in firsts.items() if first and not any(map(msgs.stamp_ns, first))]
         override = calib_io.load_calibration_file(calibration) if calibration else None
         self._static_tf_topics, self.odometry_topics = self._tf_topics()
         tree = self._tree = self._tf_tree()
@@ -118,24 +121,19 @@ class LogSource(Source):
             close()
         super().close()
 
-    def _never_stamped(self, topic: str) -> bool:
-        """Whether the first :data:`UNSTAMPED_PREFIX` messages of ``topic`` (all, if fewer) are stamped 0."""
-        stream, stamps = self.reader.messages([topic]), []
+    def _first(self, topic: str, n: int = 1, *, lenient: bool = False) -> list:
+        """The first ``n`` messages of ``topic`` (fewer where it has fewer, or where damage ends the
+        read after the first, or, ``lenient``, before it: the damage is for ``frames()`` to meet)."""
+        stream, found = self.reader.messages([topic]), []
         try:
-            for _, _, message in itertools.islice(stream, UNSTAMPED_PREFIX):
-                stamps.append(msgs.stamp_ns(message))
-        except InputError:  # a damaged log: what was read before decides; frames() meets the damage
-            pass
+            for _, _, message in itertools.islice(stream, n):
+                found.append(message)
+        except InputError:
+            if not (found or lenient):
+                raise
         finally:
             stream.close()
-        return bool(stamps) and not any(stamps)
-
-    def _first(self, topic: str):
-        stream = self.reader.messages([topic])
-        try:
-            return next((m for _, _, m in stream), None)
-        finally:
-            stream.close()
+        return found
 
     def _log_calibration(self) -> StereoCalibration | None:
         topics = [t for t, kind in self.reader.types.items() if kind in msgs.CALIBRATION_TYPES]
@@ -150,9 +148,9 @@ class LogSource(Source):
                     f"(calibration topics: {', '.join(topics) or 'none'}); pass --calibration"
                 )
             infos = [self._first(t) for t in (left, right)]
-            if any(info is None for info in infos):
+            if not all(infos):
                 raise CalibrationError(f"{self.path}: {left} or {right} holds no message; pass --calibration")
-            return self._calibration_of(*infos)
+            return self._calibration_of(infos[0][0], infos[1][0])
         except CalibrationError as exc:
             self.calibration_error = exc
             return None

@@ -131,6 +131,7 @@ class McapFile:
         self.counts: dict[str, int | None] = {}
         self.indexed = False
         self._data_end: int | None = None  # where a summary that cannot be used begins: reading stops there
+        self._index = None  # the summary of an indexed file (its channels, schemas and chunk indexes)
         self.damage: str | None = None
         """What is damaged in the file as a whole (None: nothing found at open): where a scan of a
         file without a summary stopped early, or a summary that fails its CRC (its messages are
@@ -144,6 +145,7 @@ class McapFile:
                 summary = self._summary(reader, stream)
                 if summary is not None:
                     self._from_summary(summary)
+                    self._index = summary if self.indexed else None  # read once, for every messages() call
                 else:
                     stream.seek(0)
                     self._scan(stream)
@@ -251,10 +253,10 @@ class McapFile:
         """(schema, channel, message) of ``topics`` from the chunks of an indexed file, merged in
         log-time order as ``SeekingReader.iter_messages`` does, skipping chunks that fail to read."""
         from mcap.data_stream import ReadDataStream
-        from mcap.reader import SeekingReader, breakup_chunk
+        from mcap.reader import breakup_chunk
         from mcap.records import Chunk, Message
 
-        summary = SeekingReader(stream, validate_crcs=True).get_summary()
+        summary = self._index
         wanted = {cid for cid, channel in summary.channels.items() if channel.topic in topics}
         # A heap of chunks (keyed by their first message's time) and of the messages of the chunks
         # opened so far: a chunk opens before any message at or after its start time is yielded.
