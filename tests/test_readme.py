@@ -1,6 +1,7 @@
 """The README's promises: its two set-up commands exist and CI runs the test one, every command it
-shows is a command of the CLI, and every config field it names exists. (The commands themselves
-run in the CLI, process and evaluation tests.)"""
+shows is a command of the CLI, and every config field it names exists; the last two hold for the
+text moved from it to docs/*.md too. (The commands themselves run in the CLI, process and
+evaluation tests.)"""
 
 import re
 from pathlib import Path
@@ -12,6 +13,12 @@ from terrainmap.cli.main import cli
 
 ROOT = Path(__file__).resolve().parents[1]
 README = (ROOT / "README.md").read_text()
+DOCS = {path.relative_to(ROOT).as_posix(): path.read_text() for path in sorted((ROOT / "docs").glob("*.md"))}
+TEXTS = {"README.md": README, **DOCS}
+
+
+def test_the_docs_the_readme_links_to_are_there():
+    assert {"docs/design.md", "docs/accuracy.md", "docs/speed.md"} <= set(DOCS)
 
 
 def test_two_setup_commands_come_first_and_ci_runs_the_test_one():
@@ -23,7 +30,8 @@ def test_two_setup_commands_come_first_and_ci_runs_the_test_one():
 
 
 @pytest.mark.parametrize(
-    "command", sorted(set(re.findall(r"^terrainmap ((?:eval )?[a-z-]+)", README, re.M)))
+    "command",
+    sorted({c for text in TEXTS.values() for c in re.findall(r"^terrainmap ((?:eval )?[a-z-]+)", text, re.M)}),
 )
 def test_every_command_in_the_readme_exists(command):
     result = CliRunner().invoke(cli, [*command.split(), "--help"])
@@ -34,6 +42,7 @@ def test_every_config_field_the_readme_names_exists():
     from terrainmap.config import Config
 
     config = Config().to_dict()
-    for section, field in re.findall(r"`([a-z]+)\.([a-z_]+)(?:=[^`]*)?`", README):
-        if section in config:
-            assert field in config[section], f"README names {section}.{field}"
+    for name, text in TEXTS.items():
+        for section, field in re.findall(r"`([a-z]+)\.([a-z_]+)(?:=[^`]*)?`", text):
+            if section in config:
+                assert field in config[section], f"{name} names {section}.{field}"
