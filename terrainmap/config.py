@@ -61,7 +61,7 @@ class GridConfig:
     """k in eq. 1, ``Z = max(min z, mean z − k·σ)``; the paper uses 1. It keeps cars and walls
     sharing cells with the road out of the surface (KITTI 000005: with 0 the lane's slope rises
     from 4.4° to 5.7°); the low bias it gives where stereo noise makes σ large is what
-    ``stereo_noise_px`` takes out (README, Accuracy)."""
+    ``stereo_noise_px`` takes out (docs/accuracy.md)."""
     stereo_noise_px: float = 0.5
     """Disparity noise of the stereo matcher (1σ, pixels). Where the pipeline knows the stereo
     rig, eq. 1's σ of a cell is reduced in quadrature by the height spread this noise alone gives
@@ -219,11 +219,11 @@ class SegmentationConfig:
     only. The below threshold has its own floor, ``below_tolerance_px``.
     See :mod:`terrainmap.segmentation`. 1 (against 0) raises terrain F1 at 10–20 m and obstacle
     recall on the simulated drives and leaves KITTI unchanged, at the price of a higher bar for low
-    obstacles on slopes facing the camera and more false obstacles in the canyon (README, Accuracy)."""
+    obstacles on slopes facing the camera and more false obstacles in the canyon (docs/accuracy.md)."""
     below_tolerance_px: float = 2.0
     """The same floor under the below threshold, in pixels of disparity error: wider than
     ``disparity_tolerance_px`` because OpenCV's single-pass SGBM reads the disparity of ground
-    about 0.2 px low (README, Accuracy), which drops stereo noise below the surface more than above
+    about 0.2 px low (docs/accuracy.md), which drops stereo noise below the surface more than above
     it. 2 (against 1) removes most false negative obstacles on the simulated drives (slopes facing
     the camera, the ditch) and changes no obstacle recall; 0 leaves the below threshold growing
     with range only."""
@@ -233,8 +233,9 @@ class SegmentationConfig:
     gradient down the image below this fraction of the terrain's; :mod:`terrainmap.upright`) are
     obstacles from ``upright_above_m`` above the surface, below the height threshold too. 0 turns
     the cue off. On the twelve simulated drives 0.4 (against 0) confirms four 0.5 m rocks within 3
-    frames (two never and two 5–10 frames late without it) and raises obstacle recall from 0.839 and
-    0.875 to 0.860 and 0.932, for 0.05 and 0.25 more false obstacles per frame summed (README)."""
+    frames (two never and two 5–10 frames late without it, when the cue came) and raises obstacle
+    recall from 0.838 and 0.875 to 0.865 and 0.938, for 0.00 and 0.05 more false obstacles per frame
+    summed (docs/accuracy.md, settings table)."""
     upright_rows: int = 2
     """Half-window of the disparity gradient down the image, rows."""
     upright_min_height_m: float = 0.3
@@ -256,7 +257,7 @@ class SegmentationConfig:
     against 5.9 cm three or more cells in, and low false obstacles gathered there. 0.1 took the false
     obstacles on the twelve simulated drives from 2.65 to 1.75 per frame summed, for 0.003 and
     0.006 less recall and, on KITTI 000005, 68.4 % of the parked cars' points labelled obstacle
-    instead of 69.6 % (README, Design)."""
+    instead of 69.6 % (docs/design.md)."""
     side_band: float = 0.2
     """Where the image is known, ``disparity_tolerance_px`` and ``below_tolerance_px`` grow towards
     the image's left and right sides over this fraction of its width on each side, reaching
@@ -266,7 +267,7 @@ class SegmentationConfig:
     a fifth of the width from either side, 6–12 % over the next 80 px and 19–22 % in the outermost
     16 matched columns, and streaks of such errors stood up as low false obstacles there. 3 (against
     0) took the false obstacles on the twelve simulated drives from 1.75 to 0.75 per frame summed,
-    with recall unchanged and terrain F1 higher; KITTI 000005 is labelled as before (README, Design)."""
+    with recall unchanged and terrain F1 higher; KITTI 000005 is labelled as before (docs/design.md)."""
     side_gain: float = 3.0
     """See ``side_band``; 0 keeps the tolerances the same across the image."""
 
@@ -362,7 +363,7 @@ class StereoConfig:
     window only. The band of sky that SGBM smears beside silhouettes and above the horizon is
     ``drop_sky``'s; ``x_gradient`` with ``min_texture`` 2 and a margin of 5 (the former
     open-terrain preset) trades recall and KITTI coverage for fewer false obstacles on one of
-    the two sets of simulated drives (README, Measured accuracy)."""
+    the two sets of simulated drives (docs/accuracy.md)."""
     drop_sky: bool = True
     """Drop the disparities of pixels that see sky (:func:`terrainmap.stereo.sky_mask`): the flat
     region above the horizon that reaches the top of the image. SGBM carries a near object's
@@ -370,7 +371,7 @@ class StereoConfig:
     ``texture_window`` reaches across the skyline and passes the texture test; those points float
     1–4 m above the ground at the object's range. On the simulated drives, before
     ``obstacles.tall_min_share``, it took the false obstacles within 20 m from 6.75 to 4.65 per
-    frame summed over six scenes (README, Measured accuracy); on KITTI 2015 pair 000005 it
+    frame summed over six scenes (docs/accuracy.md); on KITTI 2015 pair 000005 it
     changes nothing. Needs ``min_texture`` > 0."""
     full_width: bool = True
     """Match the left image's left border too. OpenCV's SGBM gives no disparity in the leftmost
@@ -380,7 +381,7 @@ class StereoConfig:
     (edge pixels repeated) so that SGBM searches those columns, and a disparity is kept only where
     its match lies at least ``left_margin_px`` inside the right image. Costs 10–20 % more SGBM
     time at 640×480; on the simulated drives it lowered the 10–20 m elevation RMSE by a third and
-    raised obstacle recall (README, Measured accuracy)."""
+    raised obstacle recall (docs/accuracy.md)."""
     left_margin_px: int = 32
     """With ``full_width``: the nearest to the right image's left edge, pixels, that a match may
     lie. Nearer, SGBM's matches go wrong more often (on the simulated drives: 21 % gross errors
@@ -401,7 +402,7 @@ class StereoConfig:
     and those points float in the gap up to 1 m behind the car, where they became a false obstacle
     of their own in four frames. 2 (half SGBM's 5-pixel block) took the false obstacles on the
     twelve simulated drives from 0.25 and 0.50 to 0.20 and 0.20 per frame summed, every drive at
-    most 0.1 (README, Measured accuracy); on KITTI 000005 it changes the cars' and lane's labels by
+    most 0.1 (docs/accuracy.md); on KITTI 000005 it changes the cars' and lane's labels by
     less than 0.1 %. 0 keeps every disparity."""
     fattening_jump_px: float = 1.0
     """The disparity difference between neighbouring columns, pixels, that ``fattening_trim_px``
@@ -417,16 +418,15 @@ class StereoConfig:
     unbiased. Doubles the SGBM time (``process`` at 19 instead of 28 frames/s here) for a 10–20 m
     elevation RMSE lower by 8–48 % on the simulated drives; on KITTI 000005 it keeps 70 % of the
     ground-truth pixels instead of 75 % and reads the lane 0.2 px higher than the single pass,
-    further from the ground truth within 10 m (README, Measured accuracy)."""
+    further from the ground truth within 10 m (docs/accuracy.md)."""
     vertical_passes_min_range_m: float = 0.0
     """With ``vertical_passes`` = 2 and the camera pose known, a value above 0 has the upside-down pass
     match only the rows that see level ground at least this far (horizontally), down to 32 rows
     below them; nearer, the bias is small in metres (at 8 m, 0.25 px is 2.4 cm of height on level
     ground). 0: every row.
-    On the simulated drives 8 kept the RMSE within 20 m at 11.7 and 11.4 cm (every row: 11.6 and
-    11.3), the false obstacles at 0.15 and 1.25 per frame summed (0.30 and 1.40) and the recall at
-    0.856 and 0.894 (0.835 and 0.885), with no id switch (two on one set), for 1.8 instead of 2.1 ×
-    SGBM's time (README, Measured accuracy)."""
+    On the simulated drives 8 kept the RMSE within 20 m at 11.6 and 11.4 cm (every row: 11.5 and
+    11.2), the false obstacles at 0.20 and 0.10 per frame summed (0.25 and 0.15) and the recall at
+    0.853 and 0.888 (0.847 and 0.882), for 1.8 instead of 2.1 × SGBM's time (docs/accuracy.md)."""
     pass_tolerance_px: float = 2.0
     """With ``vertical_passes`` = 2: a pixel whose two disparities differ by more than this is
     dropped (one of them is a mismatch), as is a pixel only one pass matched."""
@@ -627,7 +627,7 @@ class TrackingConfig:
     the gate never compete for a detection): the track with fewer hits is merged into the other,
     which keeps its id. Two tracks on one obstacle take its detection in turn, and each change
     is an id switch. On the simulated drives, 3 took the id switches from 3 and 1 to 2 and 1
-    (README, Design). 0: the radius in every direction; ``fragment_radius_m`` 0 turns
+    (docs/design.md). 0: the radius in every direction; ``fragment_radius_m`` 0 turns
     merging off too."""
 
     def validate(self) -> None:

@@ -61,7 +61,7 @@ Decisions where the paper's text is garbled or silent, each with the property it
    slope of the terrain is settled long before its detail (on the simulated scenes, 3 refreshes
    do as well as one per iteration, and 1 nearly so). It took the 10–20 m elevation RMSE on the
    simulated 17° climb from 16 to 8 cm and the canyon's terrain F1 from 0.77 to 0.95
-   (README, Accuracy).
+   (docs/accuracy.md).
 8. **Well-posedness.** Each fit adds a small second-difference penalty on Q (see
    :class:`~terrainmap.bspline.TensorFit`), so knot spans without valid samples are bridged
    smoothly instead of making the normal equations singular.

@@ -21,7 +21,7 @@ rows share one disparity, are lower. Upright points standing at least ``upright_
 the surface are obstacles (:func:`label_upright`), however far under the height threshold of
 :mod:`terrainmap.segmentation`. Points nearer than ``upright_min_range_m`` are left to that
 threshold, which separates obstacles there alone. On the twelve simulated drives the cue
-confirmed the 0.5 m rocks that stereo flattens at 15–20 m sooner (README, Measured accuracy).
+confirmed the 0.5 m rocks that stereo flattens at 15–20 m sooner (docs/accuracy.md).
 """
 
 from __future__ import annotations

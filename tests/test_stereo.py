@@ -450,7 +450,7 @@ def test_rows_that_see_only_sky_are_not_matched():
 def test_single_pass_sgbm_reads_ground_low_and_two_pass_or_upside_down_averaging_does_not():
     """OpenCV's single-pass modes aggregate along paths from the rows above only, so on ground,
     whose disparity grows down the image, they read low; the two-pass modes, with paths from
-    below too, do not (README, Measured accuracy), and neither does ``stereo.vertical_passes = 2``,
+    below too, do not (docs/accuracy.md), and neither does ``stereo.vertical_passes = 2``,
     which averages with a match of the pair turned upside down (it reads high by as much).
     Measured on the first frame of the simulated flat drive, ground pixels 2–35 m away:
     sgbm_3way −0.23 px (upside down +0.3 px), averaged +0.03 px, sgbm −0.6 px, hh4 −0.03 to +0.07 px."""

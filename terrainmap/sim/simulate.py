@@ -50,7 +50,7 @@ class SimConfig:
     below 4 / ``texture_detail`` pixel footprints and is gone below half that
     (:mod:`~terrainmap.sim.shading`). 2 keeps about what a pixel's box filter keeps, with no
     other loss of sharpness (lens blur, motion, compression); 1, the default, blurs distant
-    ground more, as those do (README, Measured accuracy: what 2 changes)."""
+    ground more, as those do (docs/accuracy.md: what 2 changes)."""
     speed_mps: float = 4.0
     fps: float = 10.0
     color: bool = False
