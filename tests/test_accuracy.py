@@ -364,3 +364,33 @@ def test_truth_arrays_that_do_not_fit_are_named(tmp_path):
     with pytest.raises(InputError, match="000000.npz: damaged ground truth .*differ in size"):
         with open_truth(log) as truth:
             list(truth.frames())
+
+
+@pytest.mark.parametrize("where", ["chunk", "summary"])
+def test_damaged_truth_in_a_log_is_an_input_error_not_wrong_scores(tmp_path, where):
+    """A byte changed in a chunk that holds truth (its CRC fails) or in the summary: the truth is
+    refused with one message naming the log, never read as other values."""
+    import struct
+
+    from mcap.reader import make_reader
+
+    from terrainmap.errors import InputError
+    from terrainmap.sim import SimConfig, open_truth, simulate
+
+    log = tmp_path / "sim.mcap"
+    simulate(log, SimConfig(scene="flat", frames=3, seed=1, width=320, height=240, focal_px=250.0))
+    data = bytearray(log.read_bytes())
+    with open(log, "rb") as file:
+        summary = make_reader(file).get_summary()
+    if where == "chunk":  # the last chunk: a later frame's truth, not the terrain read at open
+        depth = next(i for i, c in summary.channels.items() if c.topic == "/truth/left/depth")
+        chunk = [c for c in summary.chunk_indexes if depth in c.message_index_offsets][-1]
+        assert chunk is not summary.chunk_indexes[0]
+        data[chunk.chunk_start_offset + chunk.chunk_length // 2] ^= 0xFF
+    else:
+        summary_start = struct.unpack_from("<Q", data, len(data) - 8 - 20)[0]
+        data[data.index(b"/truth/left/depth", summary_start) + 8] ^= 0x01  # /truth/left/depth -> .../lefu/...
+    log.write_bytes(bytes(data))
+    with pytest.raises(InputError, match=f"{log}: damaged"):
+        with open_truth(log) as truth:
+            list(truth.frames())

@@ -212,7 +212,9 @@ def test_a_damaged_summary_is_not_trusted_and_the_log_is_read_from_start_to_end(
         channel += 1 + 8 + struct.unpack_from("<Q", data, channel + 1)[0]
     unschemed = data.copy()
     unschemed[channel + 1 + 8 + 2 + 1] ^= 0xFF  # its schema id names no schema: reading must stop before it
-    for damage in (renamed, unschemed):
+    unparsable = data.copy()
+    unparsable[at] ^= 0xFF  # the topic is no longer UTF-8: mcap cannot parse the summary at all
+    for damage in (renamed, unschemed, unparsable):
         bad = tmp_path / "bad.mcap"
         bad.write_bytes(bytes(damage))
         with open_source(bad) as source:

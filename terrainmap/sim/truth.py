@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
+from ..sources.readers import summary_section
 from ..sources.tf import quaternion_to_matrix
 from ..types import Extrinsics, StereoCalibration
 from .heightfield import Heightfield
@@ -158,7 +159,7 @@ def _mcap_reader(file):
     from mcap.reader import make_reader
     from mcap_ros2.decoder import DecoderFactory
 
-    return make_reader(file, decoder_factories=[DecoderFactory()])
+    return make_reader(file, validate_crcs=True, decoder_factories=[DecoderFactory()])  # damage: an error, not wrong truth
 
 
 def _open_mcap(path: Path) -> Truth:
@@ -167,6 +168,8 @@ def _open_mcap(path: Path) -> Truth:
             if file.read(len(_MCAP_MAGIC)) != _MCAP_MAGIC:
                 raise InputError(f"{path}: not an MCAP file; the ground truth is read from logs that "
                                  "terrainmap simulate writes (MCAP or a folder)")
+            if not summary_section(file)[1]:
+                raise InputError(f"{path}: damaged log (its summary fails its CRC); scoring needs the whole simulated log")
             file.seek(0)
             reader = _mcap_reader(file)
             try:
@@ -216,7 +219,7 @@ def _mcap_frames(truth: Truth) -> Iterator[TruthFrame]:
     stamp, index = None, 0
     with _damaged(truth.path), open(truth.path, "rb") as file:
         messages = _mcap_reader(file).iter_decoded_messages(topics=list(FRAME_TOPICS), log_time_order=True)
-        for _, channel, message, decoded in messages:
+        for _, channel, message, decoded in _undamaged(messages, truth.path):
             if stamp is not None and message.log_time != stamp:
                 yield _mcap_frame(truth, index, stamp, parts)
                 parts, index = {}, index + 1
@@ -224,6 +227,15 @@ def _mcap_frames(truth: Truth) -> Iterator[TruthFrame]:
             parts[channel.topic] = decoded
         if parts:
             yield _mcap_frame(truth, index, stamp, parts)
+
+
+def _undamaged(messages: Iterator, path: Path) -> Iterator:
+    """``messages``, with any error in reading them (a chunk's CRC, its decompression, a message's
+    decoding: mcap and its codecs raise many kinds) one :class:`InputError` naming the log."""
+    try:
+        yield from messages
+    except Exception as exc:
+        raise InputError(f"{path}: damaged ground truth ({type(exc).__name__}: {exc})") from exc
 
 
 def _mcap_frame(truth: Truth, index: int, stamp_ns: int, parts: dict) -> TruthFrame:

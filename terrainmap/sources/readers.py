@@ -45,7 +45,7 @@ _MAX_UNDECODABLE = 20
 does not do that: the channel's schema does not describe its data)."""
 
 
-def _summary_section(stream) -> tuple[int | None, bool]:
+def summary_section(stream) -> tuple[int | None, bool]:
     """Where an MCAP file's summary section begins, by its footer (None without a footer or a
     summary), and whether it holds the CRC the footer gives (true when it gives none). The CRC
     covers the summary start to the footer's CRC field."""
@@ -155,18 +155,19 @@ class McapFile:
             raise InputError(f"{path}: not a readable MCAP file ({_reason(exc)})") from exc
 
     def _summary(self, reader, stream):
-        start, holds = _summary_section(stream)  # mcap does not check the summary's CRC
+        start, holds = summary_section(stream)  # mcap does not check the summary's CRC
         try:
-            summary = reader.get_summary()
+            summary, unreadable = reader.get_summary(), None
         except Exception as exc:  # no footer (a truncated or still-recording file), or a broken summary
-            self._data_end = start
-            logger.info("%s: no readable summary (%s); scanning the file", self.path, _reason(exc))
-            return None
-        if summary is not None and not holds:
+            summary, unreadable = None, _reason(exc)
+        if not holds:  # damaged, whether mcap could still parse it or not
             self._data_end = start
             self.damage = f"{self.path}: its summary (the index) is damaged (CRC mismatch); reading the file from start to end"
             logger.warning("%s", self.damage)
             return None
+        if unreadable is not None:
+            self._data_end = start
+            logger.info("%s: no readable summary (%s); scanning the file", self.path, unreadable)
         return summary
 
     def _linear(self, stream, topics: list[str] | None = None) -> Iterator[tuple[Any, Any, Any]]:
