@@ -131,8 +131,10 @@ def artificial_obstacle(
 
 def _print_table(results) -> None:
     heights = sorted({r.height_m for r in results})
-    for net in sorted({r.control_points for r in results}):
-        click.echo(f"\nmax deviation [% of obstacle height], {net}×{net} control points")
+    for i, net in enumerate(sorted({r.control_points for r in results})):
+        if i:
+            click.echo()
+        click.echo(f"max deviation [% of obstacle height], {net}×{net} control points")
         click.echo("width m | " + " ".join(f"h={h:<5g}" for h in heights))
         for w in sorted({r.width_m for r in results}):
             cells = {r.height_m: r.max_deviation_pct for r in results if r.control_points == net and r.width_m == w}

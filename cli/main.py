@@ -57,7 +57,9 @@ def cli(ctx: click.Context, verbose: bool) -> None:
     ctx.obj = {"verbose": verbose}
     if not verbose:  # OpenCV's own log lines (e.g. "[ERROR] ... IHDR" on a corrupt PNG) would add to
         os.environ.setdefault("OPENCV_LOG_LEVEL", "SILENT")  # the one-line error; read at its import
-    logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    # Warnings as one line each ("warning: <file>: ..."); with -v, the module that logged it too.
+    fmt = "%(levelname)s %(name)s: %(message)s" if verbose else "warning: %(message)s"
+    logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, format=fmt)
 
 
 def _signal_exit_code() -> int:
@@ -71,8 +73,8 @@ def main(argv: list[str] | None = None) -> None:
     GracefulStop.last_signal = None
     try:
         cli.main(args=argv, prog_name="terrainmap", standalone_mode=False)
-    except click.exceptions.Abort:
-        click.echo("Aborted.", err=True)
+    except click.exceptions.Abort:  # click's form of a KeyboardInterrupt outside a run's GracefulStop
+        click.echo("Interrupted.", err=True)
         sys.exit(_signal_exit_code())
     except _NO_ARGS_IS_HELP as exc:  # a bare command (group): its help, as click shows it
         exc.show()

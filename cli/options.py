@@ -127,14 +127,15 @@ def write_text(path: Path, text: str) -> None:
 def writing(path) -> Iterator[Path]:
     """A temporary path beside ``path``, with its suffix, for a library call to write (a plot);
     renamed to ``path`` once written whole (to the file it links to, where ``path`` is a symbolic
-    link, which stays). An OSError (disk full) becomes one line naming ``path``, which is left as
-    it was."""
+    link, which stays), and said so on stdout. An OSError (disk full) becomes one line naming
+    ``path``, which is left as it was."""
     path = Path(path)
     target = Path(os.path.realpath(path))
     partial = target.with_name(f".{target.stem}.partial{target.suffix}")
     try:
         yield partial
         partial.replace(target)
+        click.echo(f"wrote {path}")
     except OSError as exc:
         partial.unlink(missing_ok=True)
         raise Failed(f"cannot write {path}: {exc.strerror or exc}") from exc
@@ -169,8 +170,8 @@ def output_file(*suffixes: str) -> Callable:
             raise click.BadParameter("must name a file, got an empty path")
         path = Path(value)
         if not path.parent.is_dir():
-            what = "is not a folder" if path.parent.exists() else "does not exist"
-            raise click.BadParameter(f"folder {path.parent} {what}")
+            what = f"{path.parent} is not a folder" if path.parent.exists() else f"folder {path.parent} does not exist"
+            raise click.BadParameter(what)
         if suffixes and path.suffix.lower() not in suffixes:
             raise click.BadParameter(f"{path} must end in {', '.join(suffixes)}")
         if path.exists() and not (path.is_file() or path.is_dir()):  # a FIFO would block, a device...

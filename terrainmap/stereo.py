@@ -98,7 +98,7 @@ class StereoResult:
     grey: np.ndarray
 
 
-_PLAUSIBLE = {"fx": (1.0, 1e6, "pixels"), "fy": (1.0, 1e6, "pixels"), "baseline_m": (1e-3, 100.0, "m")}
+PLAUSIBLE = {"fx": (1.0, 1e6, "pixels"), "fy": (1.0, 1e6, "pixels"), "baseline_m": (1e-3, 100.0, "m")}
 """Ranges that a stereo camera's focal lengths and baseline fall in (:func:`check_calibration`)."""
 
 
@@ -113,8 +113,9 @@ def check_calibration(calibration: StereoCalibration, *, size_known: bool = True
         ("baseline_m", calibration.baseline_m),
     ):
         if not (math.isfinite(value) and value > 0):
-            raise CalibrationError(f"{name}: {field} must be > 0, got {value}")
-        low, high, unit = _PLAUSIBLE[field]
+            swapped = " (left and right swapped?)" if field == "baseline_m" and value < 0 else ""
+            raise CalibrationError(f"{name}: {field} must be > 0, got {value}{swapped}")
+        low, high, unit = PLAUSIBLE[field]
         if not low <= value <= high:  # a wrong unit or a typo, which would only end in "no ground" later
             raise CalibrationError(f"{name}: {field} must be within {low:g}..{high:g} {unit}, got {value:g}")
     for field in ("cx", "cy", "doffs", "cx_right"):

@@ -68,7 +68,10 @@ def test_eval_artificial_obstacle_writes_json_csv_and_plot(tmp_path):
     ]
     result = CliRunner().invoke(cli, args + out)
     assert result.exit_code == 0, result.output
+    lines = result.output.splitlines()
+    assert lines[0] == "max deviation [% of obstacle height], 5×5 control points" and "" in lines  # blank between
     assert "25×25 control points" in result.output
+    assert lines[-3:] == [f"wrote {tmp_path / name}" for name in ("r.json", "r.csv", "r.png")]
     rows = json.loads((tmp_path / "r.json").read_text())
     assert len(rows) == 8
     assert set(rows[0]) == {"control_points", "width_m", "height_m", "max_deviation_pct"}

@@ -197,8 +197,9 @@ def test_cli_prints_the_table_and_writes_json(kitti_folder, tmp_path):
     out = tmp_path / "r.json"
     result = CliRunner().invoke(eval_group, ["stereo", str(kitti_folder), "--json", str(out)])
     assert result.exit_code == 0, result.output
-    assert "1 pairs scored, 1 without ground truth" in result.output
-    assert result.output.splitlines()[-1].split()[0] == "all"
+    assert "1 pair scored, 1 without ground truth" in result.output
+    assert result.output.splitlines()[-2].split()[0] == "all"  # the table's last row, then what was written
+    assert result.output.splitlines()[-1] == f"wrote {out}"
     report = json.loads(out.read_text())
     assert set(report["bands"]) == set(ev.BANDS) and report["pairs"] == 1
     result = CliRunner().invoke(eval_group, ["stereo", str(kitti_folder), "--json", str(kitti_folder / "x" / "r.json")])

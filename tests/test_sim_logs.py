@@ -170,8 +170,11 @@ def test_log_without_truth_is_an_input_error_naming_the_topics(tmp_path):
         writer.write_message("/camera/image", schema, image, log_time=1)
     with pytest.raises(InputError, match="/truth/terrain.*/truth/left/depth"):
         open_truth(path)
+    with pytest.raises(InputError, match="/truth/terrain.*/truth/left/depth"):
+        open_truth(tmp_path)  # a folder of one MCAP (a rosbag2): its truth topics are named
+    (tmp_path / "folder").mkdir()
     with pytest.raises(InputError, match="missing truth/scene.json"):
-        open_truth(tmp_path)
+        open_truth(tmp_path / "folder")
     with pytest.raises(InputError, match="does not exist"):
         open_truth(tmp_path / "nothing.mcap")
     (tmp_path / "junk.mcap").write_bytes(b"not an mcap file at all")
@@ -188,6 +191,11 @@ def test_bad_options_raise_config_errors_naming_them():
         SimConfig(baseline_m=-1).validate()
     with pytest.raises(ConfigError, match="--texture-detail"):
         SimConfig(texture_detail=0).validate()
+    # What process would refuse in the log's camera infos is refused before rendering it
+    with pytest.raises(ConfigError, match=r"--baseline-m: must be within 0.001..100 m, got 0.0005"):
+        SimConfig(baseline_m=0.0005).validate()
+    with pytest.raises(ConfigError, match=r"--focal-px: must be within 1..1e\+06 pixels, got 0.5"):
+        SimConfig(focal_px=0.5).validate()
 
 
 def test_cli_simulate_writes_a_log_and_guards_existing_output(tmp_path):

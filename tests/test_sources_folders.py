@@ -411,3 +411,19 @@ def test_stamps_that_repeat_or_go_back_are_warned_about(tmp_path, caplog):
     with open_source(root) as source:
         assert [f.stamp_ns for f in source.frames()] == [10, 10, 5]
     assert "2 of 3 pair stamps are not later than the one before (repeated or out of order)" in caplog.text
+
+
+def test_warnings_reach_the_terminal_as_one_plain_line_each(tmp_path):
+    """The CLI shows a library warning as "warning: <what>", without the logger's module name
+    (which ``-v`` adds)."""
+    import subprocess
+    import sys
+
+    root = generic_folder(tmp_path, n=1, calib=CALIB_YAML + "dofs: 2.5\n")
+    code = "from terrainmap.cli.main import main; main()"
+    for flags, prefix in (([], "warning: "), (["-v"], "WARNING terrainmap.sources.calibration: ")):
+        done = subprocess.run([sys.executable, "-c", code, *flags, "info", str(root)], capture_output=True, text=True,
+                              timeout=120)
+        assert done.returncode == 0, done.stderr
+        (line,) = [line for line in done.stderr.splitlines() if "unknown calibration keys" in line]
+        assert line.startswith(f"{prefix}{root / 'calibration.yaml'}: ignoring unknown calibration keys: dofs")

@@ -249,7 +249,7 @@ UNRECTIFIED = {"rectified": False, "K_left": _K, "K_right": _K, "dist_left": np.
     ("changes", "message"),
     [
         ({"baseline_m": 0.0}, "baseline_m must be > 0"),
-        ({"baseline_m": -0.3}, "baseline_m must be > 0"),
+        ({"baseline_m": -0.3}, r"baseline_m must be > 0, got -0.3 \(left and right swapped\?\)"),
         ({"fx": 0.0}, "fx must be > 0"),
         ({"fy": float("nan")}, "fy must be > 0"),
         ({"rectified": False}, "rectified is false, so K_left"),

@@ -14,6 +14,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from ..errors import ConfigError, InputError
+from ..stereo import PLAUSIBLE
 from .folder_log import FolderLog
 from .mcap_log import McapLog
 from .render import Renderer
@@ -74,6 +75,10 @@ class SimConfig:
         for name in ("focal_px", "baseline_m", "camera_height_m", "fps", "terrain_resolution_m"):
             value = getattr(self, name)
             check(math.isfinite(value) and value > 0, name, f"must be > 0, got {value}")
+        for name, field in (("focal_px", "fx"), ("baseline_m", "baseline_m")):  # as process will check the log's
+            low, high, unit = PLAUSIBLE[field]
+            value = getattr(self, name)
+            check(low <= value <= high, name, f"must be within {low:g}..{high:g} {unit}, got {value:g}")
         check(-30 <= self.pitch_deg <= 45, "pitch_deg", f"must be within [-30, 45] degrees, got {self.pitch_deg}")
         check(0 <= self.noise <= 50, "noise", f"must be within [0, 50] grey levels, got {self.noise}")
         check(0 <= self.vignetting < 1, "vignetting", f"must be within [0, 1), got {self.vignetting}")

@@ -118,6 +118,9 @@ def open_truth(path: str | Path) -> Truth:
     if not path.exists():
         raise InputError(f"{path}: does not exist")
     if path.is_dir():
+        mcaps = sorted(path.glob("*.mcap"))
+        if len(mcaps) == 1 and not (path / "truth").exists():  # a rosbag2 folder: its one MCAP holds any truth
+            return _open_mcap(mcaps[0])
         return _open_folder(path)
     return _open_mcap(path)
 
