@@ -150,5 +150,6 @@ def _report(summary, outputs, skipped: list[str]) -> None:
             f"camera pose ({summary.extrinsics.source}): height {pose['height_m']:.2f} m, "
             f"pitch {pose['pitch_deg']:.1f}°, roll {pose['roll_deg']:.1f}°"
         )
+    empty = " (no frame in it)" if summary.frames_done == 0 else ""
     for path in outputs:
-        click.echo(f"wrote {path}")
+        click.echo(f"wrote {path}{empty}")

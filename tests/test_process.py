@@ -500,3 +500,14 @@ def test_a_log_whose_images_never_pair_says_so(tmp_path, capsys):
     assert capsys.readouterr().err.strip().splitlines()[-1] == (
         f"Error: no frame of {log} could be processed (no left and right images whose stamps agree within "
         "--pair-tolerance-ms)")
+
+
+def test_a_run_where_every_frame_fails_says_its_output_holds_no_frame(small_log, tmp_path):
+    """The output is finalised and readable all the same, and the error names the reasons."""
+    out = tmp_path / "o.mcap"
+    result = CliRunner().invoke(cli, ["process", str(small_log), "-o", str(out), "--set", "grid.x_min_m=-100"])
+    assert result.exit_code == 2
+    assert f"wrote {out} (no frame in it)" in result.output
+    assert f"no frame of {small_log} could be processed (no_points_in_area ×2)" in result.output
+    with open(out, "rb") as f:
+        assert make_reader(f).get_summary() is not None
