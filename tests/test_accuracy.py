@@ -147,8 +147,10 @@ def test_obstacle_pixels_count_only_what_both_cameras_see():
 
 # --- evaluate(): a perfect pipeline scores perfectly; schema; errors ---------------------------------------
 
-def _oracle(truth_path, config: Config):
-    """A process_frame that returns the truth itself (truth pixels as points, truth layers, truth obstacles)."""
+def _oracle(truth_path, config: Config, spoil_far_cells: bool = False):
+    """A process_frame that returns the truth itself (truth pixels as points, truth layers, truth
+    obstacles); with ``spoil_far_cells``, its elevation is 5 m off beyond 10 m, where its cells are
+    marked not valid (no data: what ``process`` writes as NaN)."""
     truth = open_truth(truth_path)
     frames = {f.stamp_ns: f for f in truth.frames()}
     cal, ext = truth.calibration, truth.extrinsics
@@ -163,7 +165,11 @@ def _oracle(truth_path, config: Config):
         labels = np.where(tf.label[v, u] == 1, Label.TERRAIN, Label.OBSTACLE).astype(np.uint8)
         obstacles = [Obstacle(b.center_m, b.size_m, b.yaw_rad, b.height_m, b.pixels, b.range_m, confirmed=True)
                      for b in gt.obstacles if b.pixels > 0]
-        layers = {"elevation": gt.height_m.astype(np.float32), "slope": gt.slope_rad}
+        layers = {"elevation": gt.height_m.astype(np.float32), "slope": gt.slope_rad, "valid": np.ones(gt.range_m.shape, bool)}
+        if spoil_far_cells:
+            far = gt.range_m > 10
+            layers["elevation"][far] += 5
+            layers["valid"][far] = False
         return FrameResult(frame.index, frame.stamp_ns, ext, points, np.column_stack([u, v]), labels, None, None,
                            layers=layers, obstacles=obstacles)
 
@@ -183,6 +189,16 @@ def test_a_pipeline_equal_to_the_truth_scores_perfectly(tiny_log, monkeypatch):
     assert all(v == 0 for v in report["obstacles"]["frames_to_confirmation"].values())
     assert all(v == 0 for v in report["obstacles"]["id_switches"].values())
     assert all(v == 0 for v in report["obstacles"]["duplicate_frames"].values())
+
+
+def test_cells_without_data_are_not_scored_but_lower_the_coverage(tiny_log, monkeypatch):
+    """terrainmap is scored on its elevation as written: the surface's extrapolation into cells
+    without data (NaN in the output) does not count against its RMSE, only against its coverage."""
+    monkeypatch.setattr(acc, "process_frame", _oracle(tiny_log, Config(), spoil_far_cells=True))
+    scores = acc.evaluate(tiny_log, Config(), methods=["terrainmap"])["methods"]["terrainmap"]
+    assert scores["0-10"]["elevation_rmse_m"] < 1e-5 and scores["0-10"]["coverage"] == 1
+    assert scores["10-20"]["elevation_rmse_m"] is None and scores["10-20"]["coverage"] == 0
+    assert 0 < scores["all"]["coverage"] < 1 and scores["all"]["elevation_rmse_m"] < 1e-5
 
 
 def test_late_confirmations_id_switches_and_false_obstacles_are_counted(tiny_log, monkeypatch):
@@ -245,11 +261,11 @@ def test_report_schema_on_a_simulated_log(tiny_log):
     assert tm["false_obstacles_per_frame"] is not None and 0 <= tm["coverage"] <= 1
     assert 0 < tm["terrain_f1"] <= 1 and tm["elevation_rmse_m"] < 2.0
     assert report["config"]["grid"]["cell_size_m"] == 0.5 and report["seconds"]["wall"] > 0
-    # both methods cover every observed cell, so the common-cell RMSE is the RMSE
-    for name in ("terrainmap", "ransac_plane"):
-        common = report["common_cells"][name]["all"]
-        assert common["cells"] > 0
-        assert common["elevation_rmse_m"] == pytest.approx(report["methods"][name]["all"]["elevation_rmse_m"])
+    # the plane covers every observed cell, terrainmap those with data: the common cells are terrainmap's
+    common = report["common_cells"]["terrainmap"]["all"]
+    assert common["cells"] > 0 and common["cells"] == report["common_cells"]["ransac_plane"]["all"]["cells"]
+    assert common["elevation_rmse_m"] == pytest.approx(tm["elevation_rmse_m"])
+    assert plane["coverage"] == 1 and tm["coverage"] < 1
 
 
 def _strip_truth(src, dst):

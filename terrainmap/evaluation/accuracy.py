@@ -13,7 +13,8 @@ layers, point labels and tracked obstacles) and every other method of
 (:data:`.scores.BANDS`, horizontal distance from the vehicle origin of the cell centre / point):
 
 - ``elevation_rmse_m``, ``_mae_m``, ``_bias_m`` (method − truth), ``_p95_m`` (of |error|): the
-  method's elevation at the cell centres against the true terrain under them along base z
+  method's elevation at the cell centres (terrainmap's as ``process`` writes it: none in the cells
+  without data) against the true terrain under them along base z
   (:mod:`.truth_grid`), over the cells where the method gives a finite value **and** the
   terrain is observed in this frame (the cell holds truth terrain pixels of the left camera).
 - ``slope_error_median_deg``: ``|slope − true slope|`` over the same cells, the true slope being
@@ -152,7 +153,8 @@ class _Evaluation:
     def _run(self, name: str, result: FrameResult) -> baselines.MethodOutput:
         if name == "terrainmap":
             layers = result.layers
-            return baselines.MethodOutput(layers["elevation"].astype(float), layers["slope"], result.point_labels)
+            elevation = baselines.as_written(layers["elevation"], layers["valid"])
+            return baselines.MethodOutput(elevation, layers["slope"], result.point_labels)
         start = time.perf_counter()
         try:
             camera = rig_camera(result.pinhole, result.extrinsics)

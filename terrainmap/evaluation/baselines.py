@@ -10,8 +10,10 @@ Given the stereo rig of the points (``camera``), the methods that label points a
 their stereo floors, and the single fit terrainmap's grid (eq. 1 with the rig's noise taken out
 of σ): what then differs from terrainmap is only how the surface is estimated.
 
-- ``terrainmap``: the full estimator (Algorithm V-B.1) with its point labels.
-- ``bspline_single``: one unweighted, non-rational fit of the same net (the paper's Fig. 5a).
+- ``terrainmap``: the full estimator (Algorithm V-B.1) with its point labels; its elevation as
+  ``terrainmap process`` writes it, NaN in the cells with no data (:func:`as_written`).
+- ``bspline_single``: one unweighted, non-rational fit of the same net (the paper's Fig. 5a), on
+  the same cells.
 - ``ransac_plane``: a RANSAC plane through the points (the flat-ground assumption).
 - ``lowest_point``: the lowest point of each cell, slope by finite differences.
 - ``patchworkpp``: Patchwork++ ground segmentation (``pip install pypatchworkpp``); elevation is
@@ -63,9 +65,16 @@ def _from_surface(points, elevation, gx, gy, config: Config, camera: StereoCamer
     return MethodOutput(elevation, slope_angle(gx, gy), _labels(points, elevation, gx, gy, config, camera))
 
 
+def as_written(elevation: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """A spline's elevation (m0, m1) as terrainmap writes it: NaN in the cells that are not
+    ``valid`` (no point in or beside them), where the surface only extrapolates."""
+    return np.where(valid, elevation, np.nan)
+
+
 def terrainmap_method(points, config: Config, extrinsics=None, camera=None) -> MethodOutput:
     result = map_points(points, config, camera=camera)
-    return MethodOutput(result.layers["elevation"].astype(float), result.layers["slope"], result.point_labels)
+    layers = result.layers
+    return MethodOutput(as_written(layers["elevation"], layers["valid"]), layers["slope"], result.point_labels)
 
 
 def bspline_single(points, config: Config, extrinsics=None, camera=None) -> MethodOutput:
@@ -74,7 +83,9 @@ def bspline_single(points, config: Config, extrinsics=None, camera=None) -> Meth
     fit = fitter_for(config.grid, t.control_points_x, t.control_points_y, t.degree)
     R = np.ones(fit.shape)
     Q = fit.fit(grid.z, np.where(grid.observed, 1.0, np.where(grid.valid, t.filled_weight, 0.0)), R, t.smoothness)
-    return _from_surface(points, *fit.evaluate_with_gradient(Q, R), config, camera)
+    elevation, gx, gy = fit.evaluate_with_gradient(Q, R)
+    labels = _labels(points, elevation, gx, gy, config, camera)
+    return MethodOutput(as_written(elevation, grid.valid), slope_angle(gx, gy), labels)  # terrainmap's cells
 
 
 def ransac_plane(points, config: Config, extrinsics=None, camera=None, *, iterations: int = 200,
