@@ -135,10 +135,10 @@ def writing(path) -> Iterator[Path]:
     try:
         yield partial
         partial.replace(target)
-        click.echo(f"wrote {path}")
     except OSError as exc:
         partial.unlink(missing_ok=True)
         raise Failed(f"cannot write {path}: {exc.strerror or exc}") from exc
+    click.echo(f"wrote {path}")
 
 
 def writable(path: Path) -> None:

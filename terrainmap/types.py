@@ -138,7 +138,10 @@ class FrameResult:
 
     Arrays of points are in the vehicle frame; ``pixels`` holds the (u, v) pixel of each point in
     the (rectified) left image, so labels can be drawn back on it. ``layers`` maps a layer name to
-    an m0×m1 array indexed ``[ix, iy]`` (ix along x, iy along y, see :mod:`terrainmap.grid`).
+    an m0×m1 array indexed ``[ix, iy]`` (ix along x, iy along y, see :mod:`terrainmap.grid`);
+    ``elevation`` and ``slope`` hold the surface at every cell centre, extrapolated where ``valid``
+    is false (no point in or beside the cell), where the writers give NaN instead
+    (:func:`terrainmap.sinks.base.grid_layers`).
     """
 
     index: int

@@ -182,6 +182,13 @@ def test_folders_and_logs_without_ground_truth_are_named(tmp_path, kitti_folder,
     _strip_truth(tiny_mcap, plain)
     with pytest.raises(InputError, match=r"plain\.mcap: no ground-truth disparity found .*missing topics"):
         ev.evaluate_disparity(plain, Config())
+    damaged = tmp_path / "damaged.mcap"  # a simulated log whose summary fails its CRC: damage, said as such
+    data = bytearray(tiny_mcap.read_bytes())
+    data[data.rindex(b"/truth/left/depth") + 8] ^= 0x01
+    damaged.write_bytes(bytes(data))
+    with pytest.raises(InputError, match=r"damaged\.mcap: damaged log \(its summary fails its CRC\)") as info:
+        ev.evaluate_disparity(damaged, Config())
+    assert "no ground-truth disparity found" not in str(info.value)
 
 
 @pytest.fixture(scope="module")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -159,6 +160,24 @@ def test_compressed_images_are_png_of_the_raw_ones(tmp_path, mcap_log):
             np.testing.assert_array_equal(c.right, r.right)
     topics = {t for t, *_ in _decoded(path)}
     assert "/stereo/left/image_rect/compressed" in topics and "/stereo/left/image_rect" not in topics
+
+
+def test_truth_is_read_from_a_rosbag2_folder_of_one_mcap(mcap_log, tmp_path):
+    """A simulated MCAP moved into a folder, as a rosbag2 lays it out: the same truth; a bag split
+    into several MCAP files is refused with a message that says so."""
+    from terrainmap.sim.truth import NoTruthError
+
+    bag = tmp_path / "bag"
+    bag.mkdir()
+    shutil.copy(mcap_log, bag / "bag_0.mcap")
+    with open_truth(mcap_log) as direct, open_truth(bag) as in_bag:
+        assert [f.stamp_ns for f in in_bag.frames()] == [f.stamp_ns for f in direct.frames()]
+        xy = np.array([[0.0, 5.0, 12.5], [0.0, -1.0, 2.0]])
+        np.testing.assert_array_equal(in_bag.height(*xy), direct.height(*xy))
+        assert in_bag.description == direct.description
+    shutil.copy(mcap_log, bag / "bag_1.mcap")
+    with pytest.raises(NoTruthError, match="a log in 2 MCAP files"):
+        open_truth(bag)
 
 
 def test_log_without_truth_is_an_input_error_naming_the_topics(tmp_path):

@@ -84,7 +84,7 @@ def test_grid_map_fields_and_values(ros_file):
                 assert dims == [("column_index", m1, m0 * m1), ("row_index", m0, m0)]
                 data = np.asarray(array.data, np.float32).reshape(m1, m0)  # [j][i]
                 layer = result.layers[name].astype(np.float32)
-                if name == "elevation":
+                if name in ("elevation", "slope"):  # none where the cell has no data
                     layer = np.where(result.layers["valid"], layer, np.nan)
                 np.testing.assert_array_equal(data[::-1, ::-1].T, layer)
 
@@ -92,11 +92,12 @@ def test_grid_map_fields_and_values(ros_file):
 def test_grid_map_cell_at_known_position(ros_file):
     _path, frames, mcap_topics, _ = ros_file
     msg = mcap_topics["/terrainmap/grid_map"][0][2]
-    slope = frames[0][1].layers["slope"]
+    layers = frames[0][1].layers
+    slope = np.where(layers["valid"], layers["slope"], np.nan)  # as written
     for x, y in [(2.1, -0.9), (5.9, 1.9), (3.3, 1.2), (4.2, 0.4)]:
-        assert grid_map_cell(msg, "slope", x, y) == slope[cell_of(GRID, x, y)]
+        np.testing.assert_equal(grid_map_cell(msg, "slope", x, y), slope[cell_of(GRID, x, y)])
     # the +x, +y corner cell is grid_map's first element
-    assert msg.data[1].data[0] == slope[-1, -1]
+    np.testing.assert_equal(msg.data[1].data[0], slope[-1, -1])
 
 
 def test_grid_map_layout_matches_a_real_grid_map_bag():

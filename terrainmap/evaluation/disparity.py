@@ -49,7 +49,7 @@ import numpy as np
 from ..config import Config
 from ..errors import FrameError, InputError
 from ..pipeline import PipelineState, match_frame
-from ..sim.truth import open_truth, truth_at
+from ..sim.truth import NoTruthError, open_truth, truth_at
 from ..sources import open_source
 from ..types import StereoFrame
 from .scores import BANDS, Histogram, ratio
@@ -220,7 +220,7 @@ def _truth_reader(path: Path, source, stack: ExitStack) -> Callable[[StereoFrame
         return lambda frame: None if files[frame.index] is None else read_truth(files[frame.index], frame.left.shape[:2])
     try:
         truth = stack.enter_context(open_truth(path))
-    except InputError as exc:
+    except NoTruthError as exc:  # damage in a simulated log is its own error
         raise InputError(f"{path}: no ground-truth disparity found (KITTI: disp_occ_0/ or disp_noc_0/ beside "
                          "image_2/, named like its images; Middlebury: disp0GT.pfm or disp0.pfm beside im0.png; "
                          f"or a log written by terrainmap simulate: {str(exc).removeprefix(f'{path}: ')})") from None

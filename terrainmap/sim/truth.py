@@ -106,21 +106,30 @@ def truth_at(frames: Iterator[TruthFrame], stamp_ns: int, log: Path) -> TruthFra
     raise InputError(f"{log}: no ground truth for the stereo frame at stamp {stamp_ns}")
 
 
+class NoTruthError(InputError):
+    """The log is readable but holds no ground truth: not written by ``terrainmap simulate``."""
+
+
 def open_truth(path: str | Path) -> Truth:
     """Open the truth of a log written by ``terrainmap simulate`` (an .mcap file or a folder).
 
     Raises
     ------
+    NoTruthError
+        The path is not a simulated log: it lacks truth topics/files (named).
     InputError
-        The path does not exist, is not a simulated log, or lacks truth topics/files (named).
+        The path does not exist, or its truth is damaged.
     """
     path = Path(path)
     if not path.exists():
         raise InputError(f"{path}: does not exist")
-    if path.is_dir():
+    if path.is_dir() and not (path / "truth").exists() and any(path.glob("*.mcap")):  # a rosbag2 folder
         mcaps = sorted(path.glob("*.mcap"))
-        if len(mcaps) == 1 and not (path / "truth").exists():  # a rosbag2 folder: its one MCAP holds any truth
-            return _open_mcap(mcaps[0])
+        if len(mcaps) > 1:
+            raise NoTruthError(f"{path}: a log in {len(mcaps)} MCAP files; the ground truth is read from the one "
+                               "MCAP file (or folder) that terrainmap simulate writes")
+        return _open_mcap(mcaps[0])
+    if path.is_dir():
         return _open_folder(path)
     return _open_mcap(path)
 
@@ -129,7 +138,7 @@ def _open_folder(path: Path) -> Truth:
     truth_dir = path / "truth"
     missing = [n for n in ("scene.json", "terrain.npz") if not (truth_dir / n).is_file()]
     if missing:
-        raise InputError(f"{path}: no ground truth (missing truth/{', truth/'.join(missing)})")
+        raise NoTruthError(f"{path}: no ground truth (missing truth/{', truth/'.join(missing)})")
 
     def frames(truth: Truth) -> Iterator[TruthFrame]:
         for index, file in enumerate(sorted(truth_dir.glob("[0-9]*.npz"))):
@@ -169,7 +178,7 @@ def _open_mcap(path: Path) -> Truth:
     try:
         with open(path, "rb") as file:
             if file.read(len(_MCAP_MAGIC)) != _MCAP_MAGIC:
-                raise InputError(f"{path}: not an MCAP file; the ground truth is read from logs that "
+                raise NoTruthError(f"{path}: not an MCAP file; the ground truth is read from logs that "
                                  "terrainmap simulate writes (MCAP or a folder)")
             if not summary_section(file)[1]:
                 raise InputError(f"{path}: damaged log (its summary fails its CRC); scoring needs the whole simulated log")
@@ -185,10 +194,10 @@ def _open_mcap(path: Path) -> Truth:
             topics = {c.topic for c in summary.channels.values()}
             missing = [t for t in TRUTH_TOPICS if t not in topics]
             if missing:
-                raise InputError(f"{path}: not a simulated log with ground truth (missing topics {', '.join(missing)})")
+                raise NoTruthError(f"{path}: not a simulated log with ground truth (missing topics {', '.join(missing)})")
             meta = next((m.metadata for m in reader.iter_metadata() if m.name == METADATA_NAME), None)
             if meta is None or "scene" not in meta:
-                raise InputError(f"{path}: no '{METADATA_NAME}' metadata record (not written by terrainmap simulate)")
+                raise NoTruthError(f"{path}: no '{METADATA_NAME}' metadata record (not written by terrainmap simulate)")
             _, _, _, grid = next(reader.iter_decoded_messages(topics=["/truth/terrain"]))
             terrain = heightfield_from_grid_map(grid, "/truth/terrain")
     except InputError:

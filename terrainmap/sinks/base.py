@@ -190,7 +190,8 @@ def vehicle_transform(frame: StereoFrame, extrinsics: Extrinsics) -> tuple[str, 
 def grid_layers(result: FrameResult) -> dict[str, np.ndarray]:
     """The grid layers to write, in :data:`GRID_LAYERS` order, as (m0, m1) float32 / uint8 arrays.
 
-    Elevation is NaN where the cell is not ``valid`` (no data), as grid_map expects.
+    Elevation and slope are NaN where the cell is not ``valid`` (no data: the surface only
+    extrapolates there), as grid_map expects.
 
     Raises
     ------
@@ -206,8 +207,10 @@ def grid_layers(result: FrameResult) -> dict[str, np.ndarray]:
         if array.shape != shape:
             raise TerrainmapError(f"frame {result.index}: layer '{name}' has shape {array.shape}, grid is {shape}")
         layers[name] = array.astype(np.float32 if name in FLOAT_LAYERS else np.uint8, copy=False)
-    if "elevation" in layers and "valid" in layers:
-        layers["elevation"] = np.where(layers["valid"] > 0, layers["elevation"], np.float32(np.nan))
+    if "valid" in layers:
+        for name in ("elevation", "slope"):
+            if name in layers:
+                layers[name] = np.where(layers["valid"] > 0, layers[name], np.float32(np.nan))
     return layers
 
 

@@ -5,7 +5,7 @@ Topics, all in the vehicle frame (``Extrinsics.vehicle_frame_id``: ``base_link``
 ``stamp_ns`` (log time, publish time and message timestamp):
 
 - ``/terrainmap/grid`` ``foxglove.Grid``: fields ``elevation`` (float32, m, NaN = no data),
-  ``slope`` (float32, rad), ``cost`` (float32, when computed), ``label`` (uint8 Label),
+  ``slope`` (float32, rad, NaN = no data), ``cost`` (float32, when computed), ``label`` (uint8 Label),
   ``valid`` (uint8 0/1). Layout: foxglove.Grid is row-major with rows along y and columns along
   x, so ``column_count = m0`` and the cell at byte offset ``(iy·m0 + ix)·cell_stride`` is the
   terrainmap cell ``[ix, iy]``, centred at ``(x_min + (ix+½)c, y_min + (iy+½)c)``; the pose is

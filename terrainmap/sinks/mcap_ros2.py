@@ -5,7 +5,7 @@ Topics, all in the vehicle frame (``Extrinsics.vehicle_frame_id``: ``base_link``
 ``stamp_ns``:
 
 - ``/terrainmap/grid_map`` ``grid_map_msgs/msg/GridMap``: layers ``elevation`` (m, NaN = no
-  data; the only basic layer), ``slope`` (rad), ``cost`` (when computed), ``label`` and
+  data; the only basic layer), ``slope`` (rad, NaN = no data), ``cost`` (when computed), ``label`` and
   ``valid`` (as floats). Layout: grid_map stores each layer column-major with index (0, 0) at
   the +x, +y corner: row i runs along −x, column j along −y, and the pose is the map centre.
   So the terrainmap cell ``[ix, iy]`` is grid_map cell ``(i, j) = (m0−1−ix, m1−1−iy)``, at flat

@@ -81,6 +81,12 @@ def blueprint() -> rrb.Blueprint:
     )
 
 
+def _span(values: np.ndarray) -> tuple[float, float]:
+    """(min, max) of the finite ``values`` (the cells drawn), (0, 1) when there are none."""
+    finite = values[np.isfinite(values)]
+    return (float(finite.min()), float(finite.max())) if finite.size else (0.0, 1.0)
+
+
 def _colormap(values: np.ndarray, lo: float, hi: float) -> np.ndarray:
     """Values → RGB uint8 on a green–yellow–red ramp (NaN grey), shape (..., 3)."""
     t = np.clip((np.nan_to_num(values, nan=lo) - lo) / max(hi - lo, 1e-9), 0.0, 1.0)
@@ -213,8 +219,7 @@ class RerunSink:
         triangles = self._triangles[valid.ravel()[self._triangles].all(axis=1)]  # cells with data only
         colorings = {
             "slope": _colormap(layers["slope"].ravel(), *SLOPE_RANGE_RAD),
-            "elevation": _colormap(layers["elevation"].ravel(), float(np.nanmin(layers["elevation"])),
-                                   float(np.nanmax(layers["elevation"]))),
+            "elevation": _colormap(layers["elevation"].ravel(), *_span(layers["elevation"][valid])),
         }
         if "cost" in layers:
             colorings["cost"] = _colormap(layers["cost"].ravel(), 0.0, 1.0)
