@@ -48,7 +48,7 @@ def check_selection(start_s: float | None, end_s: float | None, every: int, max_
     if max_frames is not None and max_frames < 0:
         raise ConfigError(f"max_frames: must be >= 0, got {max_frames}")
     if start_s is not None and end_s is not None and end_s < start_s:
-        raise ConfigError(f"end: {end_s} s is before start {start_s} s")
+        raise ConfigError(f"end (--end) {end_s} s is before start (--start) {start_s} s")
 
 
 @dataclass
