@@ -410,8 +410,8 @@ class StereoConfig:
     and those points float in the gap up to 1 m behind the car, where they became a false obstacle
     of their own in four frames. 2 (half SGBM's 5-pixel block) takes the false obstacles on the
     twelve simulated drives from 0.20 and 0.45 to 0.20 and 0.15 per frame summed, every drive at
-    most 0.1 (docs/accuracy.md, settings table); on KITTI 000005 it changes the cars' and lane's labels by
-    less than 0.1 %. 0 keeps every disparity."""
+    most 0.1 (docs/accuracy.md, settings table); on KITTI 000005 it changes the cars' and lane's
+    labels by less than 0.1 %. 0 keeps every disparity."""
     fattening_jump_px: float = 1.0
     """The disparity difference between neighbouring columns, pixels, that ``fattening_trim_px``
     treats as a depth edge: more than a surface's disparity steps between neighbouring columns
@@ -566,8 +566,8 @@ class ObstacleConfig:
     cells such a cluster would occupy (the rest are its clearance and its flatter cells); what
     goes is the relief of berms and walls standing just above a surface that lags their crests
     (on the 12 simulated drives 0.05 of 0.40 false obstacles per frame summed, and no true
-    obstacle; 1.10 of 4.45 when it came). Taller clusters always stay: where the surface climbs a car or a truck, its cells
-    are steep too (KITTI 000005)."""
+    obstacle; 1.10 of 4.45 when it came). Taller clusters always stay: where the surface climbs a
+    car or a truck, its cells are steep too (KITTI 000005)."""
 
     def validate(self) -> None:
         _check(self.min_height_m > 0, "obstacles.min_height_m", "must be > 0")

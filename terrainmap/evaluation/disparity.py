@@ -241,7 +241,8 @@ def format_table(report: dict) -> str:
                ("median_abs_error_px", "med|Δd|", "{:.2f}"), ("mean_abs_error_px", "mean|Δd|", "{:.2f}"),
                ("bias_px", "bias", "{:+.2f}"), ("over_1px", ">1px", "{:.3f}"), ("over_3px", ">3px", "{:.3f}"),
                ("d1", "D1", "{:.3f}"))
-    lines = [f"{report['path']}: {report['pairs']} pair{'s' * (report['pairs'] != 1)} scored, {report['pairs_without_truth']} without ground "
+    pairs = f"{report['pairs']} pair" + ("" if report["pairs"] == 1 else "s")
+    lines = [f"{report['path']}: {pairs} scored, {report['pairs_without_truth']} without ground "
              f"truth, failed {report['failed_frames'] or 0}",
              "disparity against the ground truth (px), by true depth (m)",
              f"{'depth':<6}" + "".join(f"{title:>10}" for _, title, _ in columns)]
