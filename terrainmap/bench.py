@@ -34,6 +34,7 @@ import platform
 import statistics
 import time
 from collections.abc import Callable
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -159,9 +160,10 @@ def frame_stages(config: Config, frame: StereoFrame | None = None) -> dict[str, 
     every_row.stereo.drop_sky = False
     every_row_state = PipelineState(every_row)
     grey = [to_grey(im) for im in (frame.left, frame.right)]
-    out = tempfile.NamedTemporaryFile(suffix=".mcap", delete=False)
-    out.close()
-    sink = open_mcap_sink(out.name, config=config)
+    # The file is removed with its folder at once: the open sink writes on into it, and nothing is
+    # left behind however the benchmark ends.
+    with tempfile.TemporaryDirectory(ignore_cleanup_errors=True) as folder:
+        sink = open_mcap_sink(Path(folder) / "bench.mcap", config=config)
     index = cell_index(result.points_vehicle, config.grid)
 
     def upright_stage():

@@ -96,9 +96,15 @@ def test_outputs_are_checked_before_any_work(tmp_path):
         assert result.exit_code == 2 and "cannot write /proc/terrainmap-bench.json" in result.output
 
 
-def test_bench_reports_every_stage(tmp_path):
+def test_bench_reports_every_stage(tmp_path, monkeypatch):
+    import tempfile
+
+    scratch = tmp_path / "tmp"
+    scratch.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(scratch))
     result = CliRunner().invoke(cli, ["bench", "--runs", "2", "--json", str(tmp_path / "b.json")])
     assert result.exit_code == 0, result.output
+    assert not any(scratch.iterdir())  # the MCAP that mcap_write times is gone with its folder
     assert "machine:" in result.output
     assert "frame_total / sgbm_alone:" in result.output and "grid + labels, ms:" in result.output
     assert "frame_every_row / sgbm_alone:" in result.output
