@@ -675,6 +675,20 @@ class CostConfig:
 
 
 @dataclass
+class McapConfig:
+    """What goes into the MCAP output besides the grid and obstacles (size only: every layer,
+    label and obstacle is computed from every point)."""
+
+    max_points: int = 0
+    """Points written per frame to ``/terrainmap/points`` at most, every k-th point kept beyond
+    that (k = ⌈points / max_points⌉); 0 writes every point. A 640×480 frame has about 150k points,
+    13 bytes each: capping them at 30k makes the file of a long drive about 4 times smaller."""
+
+    def validate(self) -> None:
+        _check(self.max_points >= 0, "mcap.max_points", "must be >= 0 (0: every point)")
+
+
+@dataclass
 class RerunConfig:
     """What goes into Rerun recordings (display only; does not change any result)."""
 
@@ -697,6 +711,7 @@ class Config:
     obstacles: ObstacleConfig = field(default_factory=ObstacleConfig)
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
     cost: CostConfig = field(default_factory=CostConfig)
+    mcap: McapConfig = field(default_factory=McapConfig)
     rerun: RerunConfig = field(default_factory=RerunConfig)
 
     def validate(self) -> Config:
@@ -706,7 +721,7 @@ class Config:
         self.grid.validate()
         self.terrain.validate(self.grid)
         self.segmentation.validate()
-        for section in (self.stereo, self.extrinsics, self.obstacles, self.tracking, self.cost, self.rerun):
+        for section in (self.stereo, self.extrinsics, self.obstacles, self.tracking, self.cost, self.mcap, self.rerun):
             section.validate()
         return self
 

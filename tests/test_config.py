@@ -48,6 +48,7 @@ def test_toml_round_trip_and_overrides(tmp_path):
         ("terrain.smoothness=1e300", r"terrain.smoothness: must be in \(0, 1000\]"),
         ("grid.cell_size_m=nan", "cannot use 'nan'"),
         ("grid.stereo_noise_px=-0.5", "grid.stereo_noise_px: must be >= 0"),
+        ("mcap.max_points=-1", r"mcap.max_points: must be >= 0 \(0: every point\)"),
         ("segmentation.below_tolerance_px=-1", "segmentation.below_tolerance_px: must be >= 0"),
         ("tracking.report_misses=11", "tracking.report_misses: must be in 0..tracking.max_misses"),
         ("tracking.reconfirm_misses=-1", "tracking.reconfirm_misses: must be >= 0"),

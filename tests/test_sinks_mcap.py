@@ -80,8 +80,9 @@ def make_frame(index: int, *, grid: GridConfig = GRID, points: int = 50, source:
     return StereoFrame(index, stamp_ns, image, image, calibration, frame_id="left_optical"), result
 
 
-def write_frames(path: Path, flavor: str, frames: list, **kwargs) -> None:
-    with open_mcap_sink(path, flavor, config=Config(), metadata={"source": "/logs/run.mcap"}, **kwargs) as sink:
+def write_frames(path: Path, flavor: str, frames: list, config: Config | None = None, **kwargs) -> None:
+    config = config or Config()
+    with open_mcap_sink(path, flavor, config=config, metadata={"source": "/logs/run.mcap"}, **kwargs) as sink:
         assert isinstance(sink, Sink)
         for frame, result in frames:
             sink.write(frame, result)
@@ -198,6 +199,26 @@ def test_foxglove_points(fox_file):
         points = unpack(cloud.fields, cloud.point_stride, cloud.data, len(cloud.data) // cloud.point_stride)
         np.testing.assert_array_equal(np.c_[points["x"], points["y"], points["z"]], result.points_vehicle)
         np.testing.assert_array_equal(points["label"], result.point_labels)
+
+
+@pytest.mark.parametrize("flavor", ["foxglove", "ros2"])
+def test_max_points_writes_every_kth_point(tmp_path, flavor):
+    """``mcap.max_points``: 50 points capped at 20 keep every 3rd (17), each with its own label;
+    the grid is unchanged. 0 (the default) writes them all (the tests above)."""
+    from terrainmap.sinks.base import point_stride
+
+    assert (point_stride(50, 20), point_stride(50, 0), point_stride(50, 50), point_stride(0, 20)) == (3, 1, 1, 1)
+    config = Config()
+    config.mcap.max_points = 20
+    frame, result = make_frame(0, points=50)
+    path = tmp_path / "o.mcap"
+    write_frames(path, flavor, [(frame, result)], config=config)
+    factory = ProtobufDecoderFactory() if flavor == "foxglove" else Ros2DecoderFactory()
+    ((_, _, cloud),) = read_messages(path, factory)["/terrainmap/points"]
+    raw = np.frombuffer(bytes(cloud.data), np.uint8).reshape(-1, 13)
+    assert len(raw) == 17 and (flavor == "foxglove" or cloud.width == 17)
+    np.testing.assert_array_equal(raw[:, :12].copy().view("<f4"), result.points_vehicle[::3])
+    np.testing.assert_array_equal(raw[:, 12], result.point_labels[::3])
 
 
 def test_foxglove_obstacles_replace_previous_entities(fox_file):

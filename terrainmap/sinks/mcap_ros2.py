@@ -110,9 +110,10 @@ def occupancy_grid_message(result: FrameResult) -> dict | None:
     }
 
 
-def encode_point_cloud2(result: FrameResult) -> bytearray:
-    """CDR bytes of a PointCloud2: one row of packed (x, y, z float32, label uint8) points."""
-    n, step = len(result.points_vehicle), POINT_DTYPE.itemsize
+def encode_point_cloud2(result: FrameResult, stride: int = 1) -> bytearray:
+    """CDR bytes of a PointCloud2: one row of packed (x, y, z float32, label uint8) points, every
+    ``stride``-th of the frame's."""
+    n, step = len(result.points_vehicle[::stride]), POINT_DTYPE.itemsize
     ros_type = {"f": POINTFIELD_FLOAT32, "u": POINTFIELD_UINT8}
     fields = [
         {"name": name, "offset": POINT_DTYPE.fields[name][1], "datatype": ros_type[POINT_DTYPE[name].kind], "count": 1}
@@ -127,10 +128,10 @@ def encode_point_cloud2(result: FrameResult) -> bytearray:
             "is_bigendian": False,
             "point_step": step,
             "row_step": step * n,
-            "is_dense": bool(np.isfinite(result.points_vehicle).all()),
+            "is_dense": bool(np.isfinite(result.points_vehicle[::stride]).all()),
         }
     )
-    return points_record(result, head, tail)
+    return points_record(result, head, tail, stride=stride)
 
 
 def _markers(obstacle: Obstacle, marker_id: int, stamp_ns: int, frame_id: str) -> list[dict]:
@@ -236,7 +237,7 @@ class Ros2McapSink(McapSink):
             schema = self._schema("nav_msgs/msg/OccupancyGrid")
             self._writer.write_encoded("/terrainmap/costmap", schema, encode_occupancy_grid(costmap), t)
         cloud_schema = self._schema("sensor_msgs/msg/PointCloud2")
-        self._writer.write_encoded("/terrainmap/points", cloud_schema, encode_point_cloud2(result), t)
+        self._writer.write_encoded("/terrainmap/points", cloud_schema, encode_point_cloud2(result, self._point_stride(result)), t)
         self._log("/terrainmap/obstacles", "visualization_msgs/msg/MarkerArray", marker_array_message(result), t)
 
     def _finish(self, metadata: dict[str, str]) -> None:

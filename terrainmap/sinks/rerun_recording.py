@@ -47,7 +47,7 @@ from ..grid import cell_centers
 from ..ros2defs import yaw_quaternion
 from ..stereo import rectified_camera
 from ..types import FrameResult, Label, StereoFrame
-from .base import confirmed_obstacles, obstacle_text
+from .base import confirmed_obstacles, obstacle_text, point_stride
 
 LABEL_COLORS = {
     Label.UNKNOWN: (140, 140, 140),
@@ -197,8 +197,7 @@ class RerunSink:
             rec.log("depth", rr.DepthImage(depth, meter=1.0, depth_range=[0.0, self._config.stereo.max_range_m]))
 
     def _log_points(self, result: FrameResult) -> None:
-        n = len(result.points_vehicle)
-        step = max(1, -(-n // self._config.rerun.max_points))
+        step = point_stride(len(result.points_vehicle), self._config.rerun.max_points)
         points = rr.Points3D(result.points_vehicle[::step], class_ids=result.point_labels[::step], radii=0.03)
         self._rec.log(f"{VEHICLE}/points", points)
 
