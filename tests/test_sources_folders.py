@@ -108,12 +108,20 @@ def test_a_left_image_without_its_right_one_keeps_the_later_pairs_stamps(tmp_pat
         assert [f.stamp_ns for f in source.frames()] == [10, 30, 40]
 
 
-def test_extra_timestamps_are_warned_about(tmp_path, caplog):
+@pytest.mark.parametrize(
+    ("lines", "stamps", "warning"),
+    [
+        ("10\n20\n30\n40\n", [10, 20, 30], "4 timestamps for 3 image pairs; the first 3 are used"),
+        ("10\n10\n5\n", [10, 10, 5], "2 of 3 pair stamps are not later than the one before (repeated or out of order)"),
+    ],
+)
+def test_odd_timestamps_are_warned_about(tmp_path, caplog, lines, stamps, warning):
+    """Extra lines, and stamps that repeat or go back."""
     root = generic_folder(tmp_path, n=3)
-    (root / "timestamps.txt").write_text("10\n20\n30\n40\n")
+    (root / "timestamps.txt").write_text(lines)
     with open_source(root) as source:
-        assert [f.stamp_ns for f in source.frames()] == [10, 20, 30]
-    assert "4 timestamps for 3 image pairs; the first 3 are used" in caplog.text
+        assert [f.stamp_ns for f in source.frames()] == stamps
+    assert warning in caplog.text
 
 
 def test_calibration_toml_extrinsics_and_unrectified(tmp_path):
@@ -403,14 +411,6 @@ def test_a_folder_named_like_an_image_is_not_an_image(tmp_path):
     (root / "right" / "000002.png").mkdir()
     with open_source(root) as source:
         assert len(list(source.frames())) == 2
-
-
-def test_stamps_that_repeat_or_go_back_are_warned_about(tmp_path, caplog):
-    root = generic_folder(tmp_path, n=3)
-    (root / "timestamps.txt").write_text("10\n10\n5\n")
-    with open_source(root) as source:
-        assert [f.stamp_ns for f in source.frames()] == [10, 10, 5]
-    assert "2 of 3 pair stamps are not later than the one before (repeated or out of order)" in caplog.text
 
 
 def test_warnings_reach_the_terminal_as_one_plain_line_each(tmp_path):

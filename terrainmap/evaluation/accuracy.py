@@ -152,9 +152,7 @@ class _Evaluation:
 
     def _run(self, name: str, result: FrameResult) -> baselines.MethodOutput:
         if name == "terrainmap":
-            layers = result.layers
-            elevation = baselines.as_written(layers["elevation"], layers["valid"])
-            return baselines.MethodOutput(elevation, layers["slope"], result.point_labels)
+            return baselines.terrainmap_output(result)
         start = time.perf_counter()
         try:
             camera = rig_camera(result.pinhole, result.extrinsics)

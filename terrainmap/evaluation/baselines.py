@@ -71,10 +71,14 @@ def as_written(elevation: np.ndarray, valid: np.ndarray) -> np.ndarray:
     return np.where(valid, elevation, np.nan)
 
 
-def terrainmap_method(points, config: Config, extrinsics=None, camera=None) -> MethodOutput:
-    result = map_points(points, config, camera=camera)
+def terrainmap_output(result) -> MethodOutput:
+    """terrainmap's :class:`MethodOutput` from its FrameResult: elevation :func:`as_written`."""
     layers = result.layers
     return MethodOutput(as_written(layers["elevation"], layers["valid"]), layers["slope"], result.point_labels)
+
+
+def terrainmap_method(points, config: Config, extrinsics=None, camera=None) -> MethodOutput:
+    return terrainmap_output(map_points(points, config, camera=camera))
 
 
 def bspline_single(points, config: Config, extrinsics=None, camera=None) -> MethodOutput:

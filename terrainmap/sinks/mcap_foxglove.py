@@ -228,7 +228,8 @@ class FoxgloveMcapSink(McapSink):
         for topic, transform in self._transforms(frame, result):
             self._log(topic, transforms_message(t, transform), t)
         self._log("/terrainmap/grid", grid_message(result), t)
-        self._writer.write_encoded("/terrainmap/points", PointCloud, encode_points(result, self._point_stride(result)), t)
+        points = encode_points(result, self._point_stride(result))
+        self._writer.write_encoded("/terrainmap/points", PointCloud, points, t)
         self._log("/terrainmap/obstacles", obstacles_message(result), t)
 
     def _finish(self, metadata: dict[str, str]) -> None:

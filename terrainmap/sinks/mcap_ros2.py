@@ -237,7 +237,8 @@ class Ros2McapSink(McapSink):
             schema = self._schema("nav_msgs/msg/OccupancyGrid")
             self._writer.write_encoded("/terrainmap/costmap", schema, encode_occupancy_grid(costmap), t)
         cloud_schema = self._schema("sensor_msgs/msg/PointCloud2")
-        self._writer.write_encoded("/terrainmap/points", cloud_schema, encode_point_cloud2(result, self._point_stride(result)), t)
+        points = encode_point_cloud2(result, self._point_stride(result))
+        self._writer.write_encoded("/terrainmap/points", cloud_schema, points, t)
         self._log("/terrainmap/obstacles", "visualization_msgs/msg/MarkerArray", marker_array_message(result), t)
 
     def _finish(self, metadata: dict[str, str]) -> None:
