@@ -125,7 +125,7 @@ def _why_none(source) -> str:
     else:
         why = f"every one of the {counted(tally.selected, 'stereo pair')} selected is damaged"
     if skipped:
-        why += f"; {counted(len(skipped), 'damaged part')} of the log skipped, the first: {skipped[0]}"
+        why += f"; {counted(len(skipped), 'damaged part')} skipped, the first: {skipped[0]}"
     return why
 
 
@@ -140,7 +140,7 @@ def _report(summary, outputs, skipped: list[str]) -> None:
     failed = f", {summary.frames_failed} failed ({_reasons(summary)})" if summary.frames_failed else ""
     click.echo(f"processed {counted(summary.frames_done, 'frame')}{failed} in {summary.wall_s:.1f} s ({summary.fps:.1f} frames/s)")
     if skipped:
-        click.echo(f"skipped {counted(len(skipped), 'damaged part')} of the log, whose frames are lost: " + "; ".join(skipped))
+        click.echo(f"skipped {counted(len(skipped), 'damaged part')}: " + "; ".join(skipped))
     medians = summary.median_ms()
     if medians:
         click.echo("median ms per frame: " + ", ".join(f"{k} {v:.1f}" for k, v in medians.items()))

@@ -72,7 +72,7 @@ def _collect(func: Callable, names: tuple[str, ...]) -> Callable:
 
 def _add_open_options(func: Callable) -> Callable:
     func = click.option(
-        "--pair-tolerance-ms", type=Finite(min=0), default=10.0, show_default=True,
+        "--pair-tolerance-ms", type=Finite(min=0, max=3_600_000), default=10.0, show_default=True,
         help="Largest stamp difference of a left/right image pair in a log, milliseconds.",
     )(func)
     func = click.option(

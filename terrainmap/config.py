@@ -804,7 +804,7 @@ def _coerce(section: str, name: str, current: Any, value: Any, text: bool) -> An
             items = value.split(",") if text else list(value)
             return type(current)(_coerce(section, name, current[0], v, text) for v in items)
         return str(value)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         kind = _KINDS[type(current).__name__][1]
         raise ConfigError(f"{key}: cannot use {value!r}, expected {kind}") from None
 

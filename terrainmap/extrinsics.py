@@ -45,23 +45,31 @@ LEVEL_CAMERA = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
 """Rotation camera optical → vehicle of a level camera looking forward (x_v = z_c, y_v = −x_c, z_v = −y_c)."""
 
 
+MAX_MOUNT_M = 1e3
+"""Farthest a camera may sit from the vehicle origin along any axis, metres."""
+
+
 def extrinsics_from_calibration(
     rotation: np.ndarray, translation: np.ndarray, *, source: str = "calibration", name: str = "extrinsics"
 ) -> Extrinsics:
     """Extrinsics from a camera-to-vehicle rotation (3×3) and translation (3, metres).
 
     Raises :class:`CalibrationError` (naming ``name``) unless ``rotation`` is a proper rotation
-    (orthonormal within 1e-3, determinant +1) and both are finite.
+    (orthonormal within 1e-3, determinant +1), both are finite and the camera lies within
+    :data:`MAX_MOUNT_M` of the vehicle origin.
     """
     try:
         R = np.asarray(rotation, np.float64).reshape(3, 3)
         t = np.asarray(translation, np.float64).reshape(3)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise CalibrationError(f"{name}: rotation must be 3×3 and translation 3 numbers") from None
     if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))):
         raise CalibrationError(f"{name}: rotation and translation must be finite")
     if not is_rotation(R):
         raise CalibrationError(f"{name}: rotation is not a proper rotation matrix (orthonormal, det +1)")
+    if np.abs(t).max() > MAX_MOUNT_M:  # metres taken for millimetres, or a pose in the wrong frame
+        raise CalibrationError(f"{name}: the camera must lie within {MAX_MOUNT_M:g} m of the vehicle origin, "
+                               f"got translation {t.tolist()}")
     return Extrinsics(rotation=R, translation=t, source=source)
 
 

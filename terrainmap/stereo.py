@@ -134,21 +134,36 @@ def check_calibration(calibration: StereoCalibration, *, size_known: bool = True
                 raise CalibrationError(
                     f"{name}: rectified is false, so {field} must be given with shape {shape}"
                 )
-        if not np.all(np.isfinite(np.asarray(calibration.T, float))) or np.linalg.norm(calibration.T) <= 0:
+        length = math.hypot(*np.asarray(calibration.T, float).ravel())  # no overflow for huge T
+        if not (math.isfinite(length) and length > 0):
             raise CalibrationError(f"{name}: T must be a non-zero finite translation (the baseline)")
+        low, high, unit = PLAUSIBLE["baseline_m"]
+        if not low <= length <= high:
+            raise CalibrationError(f"{name}: T (the baseline) must be {low:g}..{high:g} {unit} long, got {length:g}")
         if not is_rotation(calibration.R):
             raise CalibrationError(f"{name}: R must be a rotation matrix (orthonormal, determinant 1)")
         for side in ("left", "right"):
-            K = np.asarray(getattr(calibration, f"K_{side}"), float).reshape(3, 3)
-            if not (np.all(np.isfinite(K)) and K[0, 0] > 0 and K[1, 1] > 0 and np.allclose(K[2], [0, 0, 1])):
-                raise CalibrationError(f"{name}: K_{side} must be a camera matrix: fx, fy > 0 and last row 0 0 1")
+            _check_camera_matrix(np.asarray(getattr(calibration, f"K_{side}"), float).reshape(3, 3), f"{name}: K_{side}")
             dist = getattr(calibration, f"dist_{side}")
-            if dist is not None and (np.size(dist) not in (4, 5, 8, 12, 14) or not np.all(np.isfinite(dist))):
-                raise CalibrationError(
-                    f"{name}: dist_{side} must hold 4, 5, 8, 12 or 14 finite coefficients (OpenCV's models), "
-                    f"got {np.size(dist)}"
-                )
+            if dist is not None and np.size(dist) not in (4, 5, 8, 12, 14):
+                raise CalibrationError(f"{name}: dist_{side} must hold 4, 5, 8, 12 or 14 coefficients "
+                                       f"(OpenCV's models), got {np.size(dist)}")
+            if dist is not None and not np.all(np.abs(dist) < 1e6):  # False for NaN too
+                raise CalibrationError(f"{name}: dist_{side} must hold finite coefficients below 1e6, got "
+                                       f"{np.ravel(dist).tolist()}")
     return calibration
+
+
+def _check_camera_matrix(K: np.ndarray, name: str) -> None:
+    """:class:`CalibrationError` naming ``name`` unless ``K`` is a camera matrix ``[[fx, s, cx],
+    [0, fy, cy], [0, 0, 1]]`` with focal lengths in :data:`PLAUSIBLE` and the rest finite pixels."""
+    if not (np.all(np.abs(K) < 1e6) and np.allclose(K[2], [0, 0, 1]) and K[1, 0] == 0):  # < 1e6: False for NaN
+        raise CalibrationError(f"{name} must be a camera matrix [[fx, s, cx], [0, fy, cy], [0, 0, 1]] of finite "
+                               f"pixels, got {K.tolist()}")
+    for field, value in (("fx", K[0, 0]), ("fy", K[1, 1])):
+        low, high, unit = PLAUSIBLE[field]
+        if not low <= value <= high:
+            raise CalibrationError(f"{name}: {field} must be within {low:g}..{high:g} {unit}, got {value:g}")
 
 
 def _rectification(calibration: StereoCalibration) -> tuple[tuple, tuple, RectifiedPinhole]:
@@ -173,9 +188,15 @@ def _rectification(calibration: StereoCalibration) -> tuple[tuple, tuple, Rectif
         raise CalibrationError(
             f"{calibration.source or 'stereo calibration'}: cannot rectify ({exc.err})"
         ) from None
-    if abs(P2[1, 3]) > abs(P2[0, 3]):
+    T = np.ravel(calibration.T)
+    if abs(P2[1, 3]) > abs(P2[0, 3]) or abs(T[2]) > np.hypot(T[0], T[1]):
         raise CalibrationError(
-            f"{calibration.source or 'stereo calibration'}: vertical stereo is not supported"
+            f"{calibration.source or 'stereo calibration'}: the cameras are not side by side (T = {T.tolist()}); "
+            "vertical or forward-looking stereo is not supported"
+        )
+    if not (np.all(np.isfinite(P1)) and np.all(np.isfinite(P2))):
+        raise CalibrationError(
+            f"{calibration.source or 'stereo calibration'}: cannot rectify (the rectified cameras are not finite)"
         )
     baseline_m = -P2[0, 3] / P2[0, 0]
     if not baseline_m > 0:

@@ -110,6 +110,8 @@ def test_extrinsics_from_calibration_checks_the_rotation():
         extrinsics_from_calibration(2 * np.eye(3), np.zeros(3), name="tf base_link")
     with pytest.raises(CalibrationError, match="rotation must be 3×3"):
         extrinsics_from_calibration(np.eye(2), np.zeros(3))
+    with pytest.raises(CalibrationError, match="tf: the camera must lie within 1000 m of the vehicle origin"):
+        extrinsics_from_calibration(pose.rotation, [0, 0, 1e300], name="tf")  # a mount from a broken tf
 
 
 @pytest.fixture(scope="module")

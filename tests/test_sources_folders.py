@@ -1,15 +1,18 @@
 """Folder sources: generic, KITTI (stereo, object, raw, odometry), Middlebury; selection; errors."""
 
 import shutil
+import struct
+import zlib
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 
-from terrainmap.errors import CalibrationError, ConfigError, InputError
+from terrainmap.errors import CalibrationError, ConfigError, DamagedImageError, InputError
 from terrainmap.sources import open_source, source_class
 from terrainmap.sources.folder import GenericFolder
+from terrainmap.sources.images import decode_compressed
 from terrainmap.sources.kitti import KittiOdometryFolder, KittiRawFolder, KittiStereoFolder
 from terrainmap.sources.middlebury import MiddleburyFolder
 
@@ -165,6 +168,20 @@ def test_nonsense_in_a_calibration_file_is_named(tmp_path, old, new, message):
     path.write_text(path.read_text().replace(old, new))
     with pytest.raises(CalibrationError, match=message):
         next(open_source(path.parent).frames())
+
+
+@pytest.mark.parametrize(
+    "old, new, message",
+    [
+        ("fx: 500.0", "fx: 1" + "0" * 400, "fx must be a number, got 1000"),  # YAML reads an int too big for a float
+        ("baseline_m: 0.3", "baseline_m: 0.3\nextrinsics: {translation_m: [0, 0, 1" + "0" * 400 + "], rotation: "
+         "[[0, 0, 1], [-1, 0, 0], [0, -1, 0]]}", "'translation_m' must be a list of finite numbers"),
+    ],
+)
+def test_numbers_too_big_for_a_float_are_named(tmp_path, old, new, message):
+    root = generic_folder(tmp_path, n=1, calib=CALIB_YAML.replace(old, new))
+    with pytest.raises(CalibrationError, match=message):
+        next(open_source(root).frames())
 
 
 def test_an_unknown_calibration_key_is_warned_about(tmp_path, caplog):
@@ -324,9 +341,26 @@ def test_calibration_override_replaces_the_folder_calibration(tmp_path):
     assert next(open_source(root, calibration=other).frames()).calibration.baseline_m == 0.12
 
 
-def cut_short(root: Path) -> None:
-    path = root / "right" / "000000.png"
-    path.write_bytes(path.read_bytes()[:-30])  # a PNG without its end (IEND)
+def png_claiming(data: bytes, width: int, height: int) -> bytes:
+    """The PNG ``data`` with its header (IHDR, CRC made good) claiming another size."""
+    header = data[12:17] + struct.pack(">II", width, height) + data[25:29]
+    return data[:8] + data[8:12] + header[:4] + header[4:] + struct.pack(">I", zlib.crc32(header)) + data[33:]
+
+
+def broken_link(root: Path) -> None:
+    (root / "left" / "000000.png").unlink()
+    (root / "left" / "000000.png").symlink_to(root / "nowhere.png")
+
+
+PNG = cv2.imencode(".png", image(0, (48, 64, 3)))[1].tobytes()
+DAMAGED_PNGS = {
+    "not an image": b"not a png",
+    "empty": b"",
+    "without its end (IEND)": PNG[:-30],
+    "cut short, IEND kept": PNG[: len(PNG) // 2] + PNG[-12:],  # its data chunk runs past IEND
+    "header claiming 30000² pixels": png_claiming(PNG, 30000, 30000),  # libpng would try to inflate 2.7 GB
+    "header claiming 100000² pixels": png_claiming(PNG, 100000, 100000),  # beyond OpenCV's limit (cv2.error)
+}
 
 
 @pytest.mark.parametrize(
@@ -340,8 +374,7 @@ def cut_short(root: Path) -> None:
         (lambda r: (r / "calibration.yaml").write_text(CALIB_YAML.replace("width: 8", "width: 9")), CalibrationError, "9×6"),
         (lambda r: write(r / "right" / "000000.png", image(0, (7, 8, 3))), InputError, "differ in size.*8×6.*8×7"),
         (lambda r: write(r / "right" / "000000.png", image(0, (6, 8), np.uint16)), InputError, "differ in bit depth"),
-        (lambda r: (r / "left" / "000000.png").write_bytes(b"not a png"), InputError, "000000.png: cannot read the image"),
-        (cut_short, InputError, "000000.png: cannot read the image file \\(not an image, or cut short\\)"),
+        (broken_link, InputError, "000000.png: cannot read the image file \\(No such file"),  # ends the run
         (lambda r: (r / "timestamps.txt").write_text("12\nabc\n"), InputError, "timestamps.txt"),
     ],
 )
@@ -355,10 +388,21 @@ def test_bad_folders_raise_one_line_errors(tmp_path, capfd, break_it, error, mat
 
 
 
+@pytest.mark.parametrize("damage", DAMAGED_PNGS)
+def test_a_pair_with_an_image_file_that_cannot_be_decoded_is_skipped(tmp_path, capfd, damage):
+    root = generic_folder(tmp_path, n=3)
+    bad = root / "left" / "000001.png"
+    bad.write_bytes(DAMAGED_PNGS[damage])
+    source = open_source(root)
+    assert [frame.index for frame in source.frames()] == [0, 2]
+    assert source.skipped() == [f"{root}: stereo pair 1 ({bad}: cannot decode the image file (not an image, or cut short))"]
+    with pytest.raises(DamagedImageError):  # the same from the decoder of log messages
+        decode_compressed(DAMAGED_PNGS[damage], "/cam")
+    assert "libpng" not in capfd.readouterr().err  # nothing from libpng on stderr
+
+
 @pytest.mark.parametrize("ext", [".png", ".jpg"])
 def test_compressed_images_cut_short_are_refused_and_trailing_data_is_not(ext, capfd):
-    from terrainmap.sources.images import decode_compressed
-
     data = cv2.imencode(ext, image(0, (48, 64, 3)))[1].tobytes()
     assert decode_compressed(data + bytes(300), "/cam").shape == (48, 64, 3)  # some cameras pad
     with pytest.raises(InputError, match="/cam: cannot decode the compressed image"):

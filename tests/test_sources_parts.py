@@ -116,6 +116,13 @@ def test_broken_static_transforms_are_skipped_with_a_warning(caplog):
                                                                           "tf: the transform base_link → lidar"]
 
 
+def test_quaternions_of_any_scale_are_normalised_without_overflow():
+    half_turn = np.array([0, 0, np.sin(np.pi / 4), np.cos(np.pi / 4)])
+    with np.errstate(all="raise"):
+        for scale in (1e-5, 1.0, 1e200):
+            np.testing.assert_allclose(quaternion_to_matrix(scale * half_turn), quaternion_to_matrix(half_turn))
+
+
 def test_vehicle_poses_interpolate_and_keep_to_one_odometry_frame():
     yaw90 = [0, 0, np.sin(np.pi / 4), np.cos(np.pi / 4)]
     poses = VehiclePoses(tolerance_ns=50)

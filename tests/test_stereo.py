@@ -255,7 +255,15 @@ UNRECTIFIED = {"rectified": False, "K_left": _K, "K_right": _K, "dist_left": np.
         ({"rectified": False}, "rectified is false, so K_left"),
         ({**UNRECTIFIED, "R": np.arange(9.0).reshape(3, 3)}, "R must be a rotation matrix"),
         ({**UNRECTIFIED, "K_left": np.zeros((3, 3))}, "K_left must be a camera matrix"),
-        ({**UNRECTIFIED, "dist_right": np.zeros(3)}, "dist_right must hold 4, 5, 8, 12 or 14 finite coefficients"),
+        ({**UNRECTIFIED, "dist_right": np.zeros(3)}, "dist_right must hold 4, 5, 8, 12 or 14 coefficients"),
+        ({**UNRECTIFIED, "dist_left": np.array([1e300, 0, 0, 0, 0])}, "dist_left must hold finite coefficients below 1e6"),
+        ({**UNRECTIFIED, "dist_left": np.full(5, np.nan)}, "dist_left must hold finite coefficients"),
+        ({**UNRECTIFIED, "K_left": np.array([[100.0, 100, 32], [100, 100, 24], [0, 0, 1]])},  # singular
+         r"K_left must be a camera matrix \[\[fx, s, cx\], \[0, fy, cy\], \[0, 0, 1\]\]"),
+        ({**UNRECTIFIED, "K_right": np.diag([1e-300, 1e-300, 1.0])}, "K_right: fx must be within 1..1e"),
+        ({**UNRECTIFIED, "K_right": np.diag([1e300, 1e300, 1.0])}, "K_right must be a camera matrix"),
+        ({**UNRECTIFIED, "T": np.array([-1e300, 0, 0])}, r"T \(the baseline\) must be 0.001..100 m long, got 1e\+300"),
+        ({**UNRECTIFIED, "T": np.array([-1e-5, 0, 0])}, r"T \(the baseline\) must be 0.001..100 m long"),
     ],
 )
 def test_bad_calibration_is_rejected(changes, message):

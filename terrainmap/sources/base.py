@@ -10,7 +10,7 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
-from ..errors import ConfigError
+from ..errors import ConfigError, DamagedImageError
 from ..types import Extrinsics, StereoFrame
 
 logger = logging.getLogger(__name__)
@@ -75,6 +75,7 @@ class Source(ABC):
         self.path = Path(path)
         self._closed = False
         self.tally = Tally()
+        self._damaged: list[str] = []  # stereo pairs skipped for an image that cannot be decoded
 
     @classmethod
     @abstractmethod
@@ -134,8 +135,14 @@ class Source(ABC):
 
     def skipped(self) -> list[str]:
         """What reading has skipped so far, one line each (the damaged chunks and messages of an
-        MCAP, the stereo pairs of a log whose images cannot be decoded); empty for folders."""
-        return []
+        MCAP, the stereo pairs whose images cannot be decoded)."""
+        return list(self._damaged)
+
+    def _skip_damaged(self, pair: str, exc: DamagedImageError) -> None:
+        """Record a stereo pair lost to an image that cannot be decoded (the run goes on); a
+        :meth:`PairRef.load` then returns None."""
+        self._damaged.append(f"{pair} ({exc})")
+        logger.warning("%s: damaged, skipped", self._damaged[-1])
 
     def close(self) -> None:
         self._closed = True

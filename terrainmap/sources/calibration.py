@@ -34,7 +34,7 @@ import numpy as np
 import yaml
 
 from ..errors import CalibrationError
-from ..extrinsics import is_rotation
+from ..extrinsics import MAX_MOUNT_M, is_rotation
 from ..stereo import check_calibration as stereo_check
 from ..types import Extrinsics, StereoCalibration
 from .tf import quaternion_to_matrix, usable
@@ -162,7 +162,7 @@ def _number(data: dict, key: str, path: Path) -> float:
         if isinstance(value, bool):
             raise TypeError
         return float(value)  # a text too: PyYAML reads 1e3 (no dot) as one
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise CalibrationError(f"{path}: {key} must be a number, got {value!r}") from None
 
 
@@ -185,7 +185,7 @@ def _array(data: dict, key: str, shape: tuple[int, ...] | None, path: Path, need
         return value
     except KeyError:
         raise CalibrationError(f"{path}: {key!r} is required {needed_when}".rstrip()) from None
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise CalibrationError(f"{path}: {key!r} must be a list of finite numbers of shape {shape or '(n,)'}") from None
 
 
@@ -194,7 +194,7 @@ def extrinsics_from_dict(data: dict, path: Path) -> Extrinsics:
     if not isinstance(data, dict):
         raise CalibrationError(f"{path}: 'extrinsics' must be a table with translation_m and rotation")
     translation = _array({"translation_m": data.get("translation_m", [0, 0, 0])}, "translation_m", (3,), path)
-    if np.abs(translation).max() > 1e3:
+    if np.abs(translation).max() > MAX_MOUNT_M:
         raise CalibrationError(f"{path}: extrinsics translation_m must be within 1 km, got {translation.tolist()}")
     if "quaternion_xyzw" in data:
         quaternion = _array(data, "quaternion_xyzw", (4,), path)

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
 
-from ..errors import CalibrationError, InputError
+from ..errors import CalibrationError, DamagedImageError, InputError
 from ..types import Extrinsics, StereoCalibration, StereoFrame
 from . import calibration as calib_io
 from .base import DEFAULT_PERIOD_NS, PairRef, Source, extrinsics_entry
@@ -132,9 +132,14 @@ class FolderSource(Source):
             self._calibrations[pair.calibration] = self._read_calibration(pair.calibration)
         return self._calibrations[pair.calibration]
 
-    def _load(self, index: int) -> StereoFrame:
+    def _load(self, index: int) -> StereoFrame | None:
         pair = self.pairs[index]
-        left, right = stereo_pair(read_image(pair.left), read_image(pair.right), str(pair.left), str(pair.right))
+        try:
+            images = read_image(pair.left), read_image(pair.right)
+        except DamagedImageError as exc:  # one file cut short or corrupt: that pair is lost, the run goes on
+            self._skip_damaged(f"{self.path}: stereo pair {index}", exc)
+            return None
+        left, right = stereo_pair(*images, str(pair.left), str(pair.right))
         calib, extrinsics = self.calibration_for(pair)
         return StereoFrame(
             index=index,

@@ -7,6 +7,7 @@ until :func:`stereo_pair` scales the left and right image of a pair with one com
 
 from __future__ import annotations
 
+import struct
 from pathlib import Path
 
 import cv2
@@ -74,40 +75,70 @@ def _check_dtype(image: np.ndarray, name: str) -> np.ndarray:
 def read_image(path: str, name: str | None = None) -> np.ndarray:
     """Read an image file (png, jpg, pgm, ppm...) as mono or RGB, uint8 or uint16.
 
-    Raises :class:`InputError` naming the file when it cannot be read or decoded.
+    Raises :class:`InputError` naming the file when it cannot be read, and its
+    :class:`DamagedImageError` when its contents cannot be decoded (a folder skips that pair).
     """
     name = name or str(path)
     try:
         data = Path(path).read_bytes()
     except OSError as exc:
         raise InputError(f"{name}: cannot read the image file ({exc.strerror or exc})") from None
-    return _decode(data, name, "cannot read the image file (not an image, or cut short)")
+    return _decode(data, name, "cannot decode the image file (not an image, or cut short)")
 
 
 def decode_compressed(data: bytes, name: str) -> np.ndarray:
     """Decode a compressed image (PNG, JPEG...) from bytes; ``name`` (topic) goes in errors."""
     data = bytes(data)
-    return _decode(data, name, f"cannot decode the compressed image ({len(data)} bytes)", DamagedImageError)
+    return _decode(data, name, f"cannot decode the compressed image ({len(data)} bytes)")
 
 
-def _decode(data: bytes, name: str, failure: str, error: type[InputError] = InputError) -> np.ndarray:
+def _decode(data: bytes, name: str, failure: str) -> np.ndarray:
     # A PNG or JPEG cut short is refused before libpng/libjpeg see it: they would print their own
     # lines to stderr (or decode a grey remainder) before OpenCV gives up.
     buffer = np.frombuffer(data, dtype=np.uint8)  # a view of the bytes, no copy
-    image = cv2.imdecode(buffer, cv2.IMREAD_UNCHANGED) if data and _complete(data) else None
+    try:
+        image = cv2.imdecode(buffer, cv2.IMREAD_UNCHANGED) if data and _complete(data) else None
+    except cv2.error:  # e.g. a header claiming more pixels than OpenCV decodes (CV_IO_MAX_IMAGE_PIXELS)
+        image = None
     if image is None:
-        raise error(f"{name}: {failure}")
+        raise DamagedImageError(f"{name}: {failure}")
     return _check_dtype(_to_rgb(image), name)
 
 
+_PNG = b"\x89PNG\r\n\x1a\n"
+_DEFLATE_MAX_RATIO = 1032
+"""Deflate's largest expansion: one 258-byte match per bit pair, at best (zlib's technical notes)."""
+
+
 def _complete(data: bytes) -> bool:
-    """False for a PNG without its IEND chunk or a JPEG without an end-of-image marker (searched
-    in the whole file, so that data a camera appends after the end never fails a good image)."""
-    if data.startswith(b"\x89PNG\r\n\x1a\n"):
-        return b"IEND" in data
+    """False for a PNG whose chunks run past its end, that ends before IEND, or whose image data
+    is too short to inflate to the size its header claims, and for a JPEG without an end-of-image
+    marker (searched in the whole file, so that data a camera appends after the end never fails
+    a good image)."""
+    if data.startswith(_PNG):
+        return _png_complete(data)
     if data.startswith(b"\xff\xd8"):
         return b"\xff\xd9" in data
     return True
+
+
+def _png_complete(data: bytes) -> bool:
+    pos, idat, raw = len(_PNG), 0, None
+    while pos + 8 <= len(data):
+        length, kind = struct.unpack_from(">I4s", data, pos)
+        end = pos + 12 + length  # length, type, data, CRC
+        if end > len(data):
+            return False
+        if kind == b"IHDR" and length >= 13:
+            width, height, depth, colour = struct.unpack_from(">IIBB", data, pos + 8)
+            channels = {0: 1, 2: 3, 3: 1, 4: 2, 6: 4}.get(colour, 4)
+            raw = height * (1 + (width * channels * depth + 7) // 8)  # a filter byte per row
+        elif kind == b"IDAT":
+            idat += length
+        elif kind == b"IEND":
+            return raw is None or raw <= _DEFLATE_MAX_RATIO * idat + 1024
+        pos = end
+    return False
 
 
 def decode_raw(
@@ -127,6 +158,8 @@ def decode_raw(
         supported = ", ".join(sorted([*_RAW_ENCODINGS, *_YUV420_ENCODINGS]))
         raise InputError(f"{name}: unsupported image encoding {encoding!r} (supported: {supported})")
     dtype, channels, conversion = spec
+    if width <= 0 or height <= 0:
+        raise InputError(f"{name}: {encoding} image of size {width}×{height} (no pixel)")
     if channels == 2 and width % 2:
         raise InputError(f"{name}: {encoding} image of odd width {width} (YUV 4:2:2 pairs the pixels of each row)")
     itemsize = np.dtype(dtype).itemsize

@@ -75,7 +75,6 @@ class LogSource(Source):
         pair_tolerance_ns: int = 10_000_000,
     ):
         super().__init__(path)
-        self._damaged: list[str] = []  # stereo pairs skipped for an image that cannot be decoded
         self.reader = self._open_reader()
         try:
             self._read_log(left_topic, right_topic, calibration, pair_tolerance_ns)
@@ -149,7 +148,7 @@ class LogSource(Source):
                 )
             infos = [self._first(t) for t in (left, right)]
             if not all(infos):
-                raise CalibrationError(f"{self.path}: {left} or {right} holds no message; pass --calibration")
+                raise CalibrationError(f"{self.path}: {left} or {right} holds no readable message; pass --calibration")
             return self._calibration_of(infos[0][0], infos[1][0])
         except CalibrationError as exc:
             self.calibration_error = exc
@@ -277,8 +276,7 @@ class LogSource(Source):
             left = msgs.image_array(left_msg, types[self.left_topic], self.left_topic)
             right = msgs.image_array(right_msg, types[self.right_topic], self.right_topic)
         except DamagedImageError as exc:  # one bad image: that pair is lost, the run goes on
-            self._damaged.append(f"{self.path}: stereo pair at {stamp_ns / 1e9:.3f} s ({exc})")
-            logger.warning("%s: damaged, skipped", self._damaged[-1])
+            self._skip_damaged(f"{self.path}: stereo pair at {stamp_ns / 1e9:.3f} s", exc)
             return None
         left, right = stereo_pair(left, right, self.left_topic, self.right_topic)
         return StereoFrame(

@@ -101,6 +101,9 @@ def _window(info: dict, msg, topic: str) -> dict:
     windowed = width > 0 and height > 0 and (x0, y0, width, height) != (0, 0, info["width"], info["height"])
     if not windowed and bx == by == 1:
         return info
+    size = (width, height) if windowed else (info["width"], info["height"])
+    if size[0] and (size[0] < bx or size[1] < by):
+        raise CalibrationError(f"{topic}: binning {bx}×{by} leaves no pixel of the {size[0]}×{size[1]} image")
     if windowed and info["width"] and (x0 + width > info["width"] or y0 + height > info["height"]):
         raise CalibrationError(f"{topic}: region of interest {width}×{height} at ({x0}, {y0}) reaches outside the "
                                f"calibrated {info['width']}×{info['height']} image")
@@ -110,7 +113,6 @@ def _window(info: dict, msg, topic: str) -> dict:
         P[:2, 2] -= (x0, y0)
     K[0], P[0] = K[0] / bx, P[0] / bx
     K[1], P[1] = K[1] / by, P[1] / by
-    size = (width, height) if windowed else (info["width"], info["height"])
     return {**info, "K": K, "P": P, "width": size[0] // bx, "height": size[1] // by, "roi": windowed}
 
 
@@ -137,8 +139,9 @@ def calibration_from_infos(
         raise CalibrationError(f"{source}: the left camera info is {left['width']}×{left['height']} px but the "
                                f"right one {right['width']}×{right['height']}: not one stereo pair")
     for side, info in (("left", left), ("right", right)):
-        if not np.all(np.isfinite(info["P"])):
-            raise CalibrationError(f"{source}: the {side} camera info's projection P is not finite: {info['P'].tolist()}")
+        for key, what in (("P", "projection P"), ("R", "rectifying rotation R")):
+            if not np.all(np.isfinite(info[key])):
+                raise CalibrationError(f"{source}: the {side} camera info's {what} is not finite: {info[key].tolist()}")
     from_tf = left["P"][0, 3] == right["P"][0, 3]  # a driver that leaves Tx at 0 (mono calibrations)
     # Undistorted cameras calibrated one by one are no rectified pair: rectify them with tf's pose.
     rectified = rectified_images or not from_tf and all(

@@ -26,12 +26,14 @@ def usable(translation, quaternion_xyzw) -> bool:
     """Whether a transform is finite with a quaternion that is not (near) zero: logs do carry
     broken ones, which are skipped rather than turned into a rotation."""
     q = np.asarray(quaternion_xyzw, float)
-    return bool(np.isfinite(translation).all() and np.isfinite(q).all() and np.linalg.norm(q) > 1e-6)
+    return bool(np.isfinite(translation).all() and np.isfinite(q).all() and np.abs(q).max() > 1e-6)
 
 
 def quaternion_to_matrix(q_xyzw) -> np.ndarray:
     """3×3 rotation matrix of a quaternion given as (x, y, z, w); normalised first."""
-    x, y, z, w = np.asarray(q_xyzw, float) / (np.linalg.norm(q_xyzw) or 1.0)
+    q = np.asarray(q_xyzw, float)
+    q = q / (np.abs(q).max() or 1.0)  # first to about 1: the norm of a quaternion of 1e200 overflows
+    x, y, z, w = q / (np.linalg.norm(q) or 1.0)
     return np.array(
         [
             [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
