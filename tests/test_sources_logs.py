@@ -356,6 +356,9 @@ def test_undistorted_raw_images_with_a_rectifying_rotation_are_still_rectified()
     broken = {**right, "P": right["P"] * np.nan}
     with pytest.raises(CalibrationError, match=r"test: the right camera info's projection P is not finite"):
         calibration_from_infos(left, broken, rectified_images=True, source="test")
+    broken = {**right, "R": right["R"] * np.nan}
+    with pytest.raises(CalibrationError, match=r"test: the right camera info's rectifying rotation R is not finite"):
+        calibration_from_infos(left, broken, rectified_images=True, source="test")
     assert calibration_from_infos(left, {**right, "width": 0, "height": 0}, rectified_images=True, source="test")
 
 
@@ -662,6 +665,8 @@ def test_camera_info_binning_and_region_of_interest_give_the_published_images_ca
     outside = SimpleNamespace(x_offset=40, y_offset=4, width=32, height=24, do_rectify=False)
     with pytest.raises(CalibrationError, match=r"/t: region of interest 32×24 at \(40, 4\) reaches outside"):
         camera_info(info_msg(T0, "left", 8, 6, 0.0, **full, roi=outside), "/t")
+    with pytest.raises(CalibrationError, match=r"/t: binning 4294967295×1 leaves no pixel of the 64×48 image"):
+        camera_info(info_msg(T0, "left", 8, 6, 0.0, **full, binning_x=2**32 - 1), "/t")
     distorted = [camera_info(info_msg(T0, side, 8, 6, 0.0, (0.1, 0, 0, 0, 0), **{**full, "p": p}, roi=roi), side)
                  for side, p in (("left", [400.0, 0, 30, 0, 0, 410.0, 20, 0, 0, 0, 1, 0]), ("right", full["p"]))]
     with pytest.raises(CalibrationError, match="region of interest and distortion.*raw image topics"):

@@ -175,6 +175,8 @@ def test_decode_raw_handles_row_padding_and_big_endian():
     np.testing.assert_array_equal(out, image)
     with pytest.raises(InputError, match="/t: image of 4×3 rgb8"):
         decode_raw(b"\x00" * 10, width=4, height=3, step=12, encoding="rgb8", name="/t")
+    with pytest.raises(InputError, match=r"/t: mono8 image of size 0×0 \(no pixel\)"):
+        decode_raw(b"\x00" * 10, width=0, height=0, step=0, encoding="mono8", name="/t")
 
 
 def _smooth_rgb(height=12, width=16, scale=1):

@@ -264,6 +264,7 @@ UNRECTIFIED = {"rectified": False, "K_left": _K, "K_right": _K, "dist_left": np.
         ({**UNRECTIFIED, "K_right": np.diag([1e300, 1e300, 1.0])}, "K_right must be a camera matrix"),
         ({**UNRECTIFIED, "T": np.array([-1e300, 0, 0])}, r"T \(the baseline\) must be 0.001..100 m long, got 1e\+300"),
         ({**UNRECTIFIED, "T": np.array([-1e-5, 0, 0])}, r"T \(the baseline\) must be 0.001..100 m long"),
+        ({**UNRECTIFIED, "T": np.array([0, 0, -0.5])}, "the cameras are not side by side .*forward-looking stereo"),
     ],
 )
 def test_bad_calibration_is_rejected(changes, message):
