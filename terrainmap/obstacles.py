@@ -191,27 +191,25 @@ def _clusters(
     x, y, z = np.array(points.take(selected[keep], axis=0).T, np.float64)
     per_cell = np.ones(m0 * m1) if cell_counts is None else np.asarray(cell_counts, float).ravel()
     ncells, in_cells = (np.bincount(cells.ravel(), w, n + 1)[1:] for w in (None, per_cell))
+    split = None
     if config.split_gap_fraction > 0:
-        cut, split = _split_at_gaps(x, y, Segments(cid, n), grid_config.cell_size_m, config)
-        if split > n:  # the parts of a cut cluster may share cells: count each part's from its points
-            recount = np.zeros(split, bool)  # the cut clusters (their first part keeps the id) and the new parts
-            recount[cid[cut != cid]] = recount[n:] = True
-            kept = np.flatnonzero(cut >= 0)
-            kept = kept[_by_cluster(cut[kept], split)]
-            x, y, z, cid, idx = x[kept], y[kept], z[kept], cut[kept], idx[kept]
-            redo = recount[cid]
-            part_cell = np.unique(cid[redo] * (m0 * m1) + idx[redo])
-            part, cell = part_cell // (m0 * m1), part_cell % (m0 * m1)
-            ncells, in_cells = (
-                np.where(recount, np.bincount(part, w, split), np.append(old, np.zeros(split - n, old.dtype)))
-                for w, old in ((None, ncells), (per_cell[cell], in_cells))
-            )
-            n = split
+        split = _split_at_gaps(x, y, Segments(cid, n), grid_config.cell_size_m, config)
+    if split is not None:  # the points in their new order, without the dropped ones
+        order, cut, parts = split
+        kept = order[cut >= 0]
+        x, y, z, idx, cid = x[kept], y[kept], z[kept], idx[kept], cut[cut >= 0]
+        n = int(parts.sum())
+        per = Segments(cid, n)
+        ncells, in_cells = np.repeat(ncells, parts), np.repeat(in_cells, parts)
+        for part in np.flatnonzero(np.repeat(parts > 1, parts)):  # the parts of a cut cluster may share cells
+            present = np.bincount(idx[per.run(part)], minlength=m0 * m1) > 0
+            ncells[part], in_cells[part] = present.sum(), per_cell[present].sum()
+    else:
+        per = Segments(cid, n)
     height = z - terrain(x, y)
     if kind == "negative":
         height = -height
 
-    per = Segments(cid, n)
     npts = per.sum()
     top = per.reduce(np.maximum, height)
     ok = (npts >= config.min_points) & (ncells >= config.min_cells) & (top >= min_height)
@@ -313,13 +311,16 @@ def _split_at_gaps(
     that holds at least ``split_min_part`` of the cluster's points (and ``min_points``) becomes a
     cluster of its own when there are two or more, and the other points are dropped.
 
-    ``per``: the points' clusters (sorted). Returns the cluster of each point (−1: dropped; a new
-    array) and the number of clusters (``per.n`` when nothing was cut).
+    ``per``: the points' clusters (sorted). Returns None when no cluster was cut, else
+    ``(order, cid, parts)``: the permutation of the points that puts each cut cluster's parts one
+    after the other in its run (the dropped points first, every part's points in their order),
+    the new cluster of each point in that order (−1: dropped; non-decreasing otherwise, the parts
+    of cluster c numbered from ``(parts[:c]).sum()``), and the clusters each cluster became (n,).
     """
-    n = per.n
     npts = per.sum()
     _, u, _ = _principal_axes(x, y, per, npts, minor=False)
-    cid = np.repeat(np.arange(n), npts)
+    parts = np.ones(per.n, np.intp)
+    cuts = []  # (cluster, part of each of its points, −1: dropped)
     for c in np.flatnonzero(per.reduce(np.maximum, u) - per.reduce(np.minimum, u) >= config.split_min_length_m):
         members = per.run(c)
         along = u[members]
@@ -327,16 +328,26 @@ def _split_at_gaps(
         counts = np.bincount(bins)
         peak = np.minimum(np.maximum.accumulate(counts), np.maximum.accumulate(counts[::-1])[::-1])
         dense = counts > config.split_gap_fraction * peak  # an end bin is its own peak: never a gap
-        stretch = np.where(dense, np.cumsum(dense & np.diff(dense, prepend=False)) - 1, -1)[bins]
-        sizes = np.bincount(stretch[stretch >= 0])
-        parts = np.flatnonzero(sizes >= max(config.min_points, config.split_min_part * along.size))
-        if len(parts) < 2:
+        stretch = np.where(dense, np.cumsum(dense & np.diff(dense, prepend=False)) - 1, -1)  # per bin
+        sizes = np.bincount(stretch[dense], counts[dense])  # points per stretch, counted by bin
+        kept = np.flatnonzero(sizes >= max(config.min_points, config.split_min_part * along.size))
+        if len(kept) < 2:
             continue
-        new_id = np.full(sizes.size, -1)
-        new_id[parts] = [c, *range(n, n + len(parts) - 1)]
-        n += len(parts) - 1
-        cid[members] = np.where(stretch >= 0, new_id[stretch], -1)
-    return cid, n
+        part = np.full(sizes.size + 1, -1)  # [-1]: the gaps' bins
+        part[kept] = np.arange(len(kept))
+        cuts.append((c, part[stretch][bins]))
+        parts[c] = len(kept)
+    if not cuts:
+        return None
+    first = np.cumsum(parts) - parts  # each cluster's first new id
+    cid = np.repeat(first, npts)
+    order = np.arange(cid.size)
+    for c, part in cuts:
+        run = per.run(c)
+        local = np.argsort(part, kind="stable")
+        order[run] = run.start + local
+        cid[run] = np.where(part < 0, -1, first[c] + part)[local]
+    return order, cid, parts
 
 
 def _robust_extent(w: np.ndarray, per: Segments, npts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

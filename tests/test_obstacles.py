@@ -265,6 +265,9 @@ def test_small_obstacle_smeared_into_a_tall_one_is_cut_off():
     np.testing.assert_allclose(found_pole.center_m[:2], [11.0, -2.5], atol=0.1)
     np.testing.assert_allclose(found_rock.center_m[:2], [14.5, -2.5], atol=0.15)
     assert found_rock.height_m == pytest.approx(0.5, abs=0.01)
+    # Each part counts its own cells: the pole's 4 are too few for min_cells 5, the cluster's were not.
+    (only,) = extract_obstacles(points, labels, GRID, plane, ObstacleConfig(min_cells=5))
+    assert only.point_count == found_rock.point_count
 
 
 def test_long_dense_obstacle_is_not_split():
