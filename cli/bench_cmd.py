@@ -36,9 +36,9 @@ def bench(
         frame = lib.first_frame(log_path, **source_opts.open_kwargs())
         click.echo(f"input: the first stereo pair of {log_path}, {frame.left.shape[1]}×{frame.left.shape[0]}")
     results = lib.run(config, runs=runs, stages=lib.all_stages(config, frame))
-    click.echo(f"{'stage':<14}{'median ms':>10}{'min ms':>10}{'max ms':>10}{'runs':>6}")
+    click.echo(f"{'stage':<18}{'median ms':>10}{'min ms':>10}{'max ms':>10}{'runs':>6}")
     for name, r in results.items():
-        click.echo(f"{name:<14}{r['median_ms']:10.2f}{r['min_ms']:10.2f}{r['max_ms']:10.2f}{r['runs']:6d}")
+        click.echo(f"{name:<18}{r['median_ms']:10.2f}{r['min_ms']:10.2f}{r['max_ms']:10.2f}{r['runs']:6d}")
     for what, value, limit in lib.goals(results):
         click.echo(f"{what}: {value:.2f} ({'meets' if value <= limit else 'MISSES'} the goal of at most {limit:g})")
     if json_path:

@@ -106,10 +106,11 @@ def test_bench_reports_every_stage(tmp_path, monkeypatch):
     assert result.exit_code == 0, result.output
     assert not any(scratch.iterdir())  # the MCAP that mcap_write times is gone with its folder
     assert "machine:" in result.output
-    assert "frame_total / sgbm_alone:" in result.output and "grid + labels, ms:" in result.output
+    assert "frame_total / sgbm_alone:" in result.output and "grid + labels, ms (numpy's floor for their passes: " in result.output
     assert "frame_every_row / sgbm_alone:" in result.output
     stages = json.loads((tmp_path / "b.json").read_text())
-    for name in ("grid", "surface", "labels", "obstacles", "sgbm_alone", "frame_total", "upright", "mcap_write"):
+    for name in ("grid", "surface", "labels", "grid_labels_floor", "obstacles", "sgbm_alone", "frame_total", "upright",
+                 "mcap_write"):
         assert set(stages[name]) == {"median_ms", "min_ms", "max_ms", "runs"}
         assert 0 < stages[name]["min_ms"] <= stages[name]["median_ms"] <= stages[name]["max_ms"]
 
@@ -156,6 +157,18 @@ def test_bench_stages_take_turns_and_goals_follow_the_medians():
         ("frame_total / sgbm_alone", 1.7, 1.6),
         ("frame_every_row / sgbm_alone", 1.8, 1.6),
     ]
+    floor = bench.goals({name: {"median_ms": ms} for name, ms in {**fake, "grid_labels_floor": 3.25}.items()})
+    assert floor[1] == ("grid + labels, ms (numpy's floor for their passes: 3.25)", 4.5, 5.0)
+
+
+def test_the_numpy_floor_labels_every_point():
+    from terrainmap import bench
+    from terrainmap.config import Config
+    from terrainmap.synthetic import cloud
+
+    points = cloud(5000, grid=Config().grid)
+    labels = bench.numpy_floor(points, Config())()
+    assert labels.shape == (5000,) and labels.dtype.name == "uint8"
 
 
 def test_eval_artificial_obstacle_on_a_simulated_base_frame(tmp_path):
