@@ -202,8 +202,8 @@ def _clusters(
         per = Segments(cid, n)
         ncells, in_cells = np.repeat(ncells, parts), np.repeat(in_cells, parts)
         for part in np.flatnonzero(np.repeat(parts > 1, parts)):  # the parts of a cut cluster may share cells
-            present = np.bincount(idx[per.run(part)], minlength=m0 * m1) > 0
-            ncells[part], in_cells[part] = present.sum(), per_cell[present].sum()
+            present = np.unique(idx[per.run(part)])
+            ncells[part], in_cells[part] = present.size, per_cell[present].sum()
     else:
         per = Segments(cid, n)
     height = z - terrain(x, y)
@@ -299,7 +299,7 @@ class Segments:
 
 def _split_at_gaps(
     x: np.ndarray, y: np.ndarray, per: Segments, bin_m: float, config: ObstacleConfig
-) -> tuple[np.ndarray, int]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """Split clusters at least ``split_min_length_m`` long where their points thin out along the
     major axis, and drop the thin stretches.
 

@@ -157,7 +157,8 @@ def check_calibration(calibration: StereoCalibration, *, size_known: bool = True
 def _check_camera_matrix(K: np.ndarray, name: str) -> None:
     """:class:`CalibrationError` naming ``name`` unless ``K`` is a camera matrix ``[[fx, s, cx],
     [0, fy, cy], [0, 0, 1]]`` with focal lengths in :data:`PLAUSIBLE` and the rest finite pixels."""
-    if not (np.all(np.abs(K) < 1e6) and np.allclose(K[2], [0, 0, 1]) and K[1, 0] == 0):  # < 1e6: False for NaN
+    upper = abs(K[1, 0]) <= 1e-9 * abs(K[1, 1])  # zero, up to a text file's rounding
+    if not (np.all(np.abs(K) < 1e6) and np.allclose(K[2], [0, 0, 1]) and upper):  # < 1e6: False for NaN
         raise CalibrationError(f"{name} must be a camera matrix [[fx, s, cx], [0, fy, cy], [0, 0, 1]] of finite "
                                f"pixels, got {K.tolist()}")
     for field, value in (("fx", K[0, 0]), ("fy", K[1, 1])):

@@ -401,6 +401,14 @@ def test_a_pair_with_an_image_file_that_cannot_be_decoded_is_skipped(tmp_path, c
     assert "libpng" not in capfd.readouterr().err  # nothing from libpng on stderr
 
 
+def test_a_folder_whose_first_image_is_damaged_is_described_by_the_next(tmp_path):
+    root = generic_folder(tmp_path, n=3)
+    (root / "left" / "000000.png").write_bytes(DAMAGED_PNGS["without its end (IEND)"])
+    source = open_source(root)  # what info shows: the calibration checked against pair 1's image
+    assert source.describe()["first_pair"] == ["000000.png", "000000.png"]
+    assert [frame.index for frame in source.frames()] == [1, 2]
+
+
 @pytest.mark.parametrize("ext", [".png", ".jpg"])
 def test_compressed_images_cut_short_are_refused_and_trailing_data_is_not(ext, capfd):
     data = cv2.imencode(ext, image(0, (48, 64, 3)))[1].tobytes()

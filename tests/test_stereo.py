@@ -273,6 +273,11 @@ def test_bad_calibration_is_rejected(changes, message):
     assert "calib.yaml" in str(info.value) and "\n" not in str(info.value)
 
 
+def test_camera_matrices_as_calibration_files_write_them_are_accepted():
+    rounded = _K + [[0, 0.5, 0], [1e-17, 0, 0], [0, 0, 0]]  # skew, and a zero written with rounding
+    StereoMatcher(dataclasses.replace(GOOD, **{**UNRECTIFIED, "K_left": rounded, "K_right": _K * [[1.01], [1], [1]]}))
+
+
 def test_bad_images_are_rejected():
     matcher = StereoMatcher(GOOD)
     image = np.zeros((48, 64), np.uint8)

@@ -158,7 +158,12 @@ class FolderSource(Source):
     def describe(self) -> dict:
         first = self.pairs[0]
         calib, extrinsics = self.calibration_for(first)
-        calib = calib_io.fit_to_image(calib, read_image(first.left).shape, str(first.left))
+        for pair in self.pairs:  # the size of the first left image that decodes (frames() skips the others)
+            try:
+                calib = calib_io.fit_to_image(calib, read_image(pair.left).shape, str(pair.left))
+                break
+            except DamagedImageError:
+                continue
         return {
             "format": self.format,
             "path": str(self.path),
