@@ -137,11 +137,23 @@ def kitti_folder(tmp_path_factory, rendered):
 def test_a_kitti_folder_is_scored_and_its_pair_without_truth_skipped(kitti_folder):
     report = ev.evaluate_disparity(kitti_folder, Config())
     assert report["pairs"] == 1 and report["pairs_without_truth"] == 1 and report["failed_frames"] == {}
+    assert report["skipped"] == []
     every = report["bands"]["all"]
     assert every["truth_pixels"] > 0.6 * 320 * 240 and every["coverage"] > 0.5
     assert every["median_abs_error_px"] < 0.5 and every["d1"] < 0.1
     assert report["bands"]["0-10"]["truth_pixels"] + report["bands"]["10-20"]["truth_pixels"] == (
         report["bands"]["0-20"]["truth_pixels"])
+
+
+def test_a_pair_whose_image_cannot_be_decoded_is_skipped_and_listed(tmp_path, kitti_folder):
+    import shutil
+
+    root = tmp_path / "kitti"
+    shutil.copytree(kitti_folder, root)
+    (root / "image_3" / "000000_11.png").write_bytes(b"not a png")
+    report = ev.evaluate_disparity(root, Config())
+    assert report["pairs"] == 1 and len(report["skipped"]) == 1 and "000000_11.png" in report["skipped"][0]
+    assert ", 1 damaged and skipped" in ev.format_table(report).splitlines()[0]
 
 
 def test_a_middlebury_scene_gives_the_same_figures(tmp_path, rendered, kitti_folder):

@@ -19,7 +19,8 @@ ground-truth disparity, and compares the disparities pixel by pixel:
   per-pixel depth truth; the sky has none.
 
 Pairs without a ground-truth file are skipped (``pairs_without_truth``); pairs the front end
-cannot match are counted by reason (``failed_frames``). Metrics over the pixels with a true
+cannot match are counted by reason (``failed_frames``); pairs whose images cannot be decoded are
+skipped as ``process`` skips them, and listed (``skipped``). Metrics over the pixels with a true
 disparity, per band of true camera depth ``Z = f·B / (d + doffs)`` (``0-10``, ``10-20``, ``0-20``,
 ``20-35``, ``all``, metres; :data:`.scores.BANDS`) and summed over the pairs:
 
@@ -177,8 +178,8 @@ def evaluate_disparity(
     """Score terrainmap's disparities against the ground truth of ``path`` (module docstring):
     a KITTI stereo or Middlebury folder, or a log written by ``terrainmap simulate``.
 
-    Returns ``{"path", "pairs", "pairs_without_truth", "failed_frames", "bands": {band: {metric:
-    value or None}}}``. Raises :class:`InputError` when the path holds no ground-truth disparity
+    Returns ``{"path", "pairs", "pairs_without_truth", "failed_frames", "skipped", "bands": {band:
+    {metric: value or None}}}``. Raises :class:`InputError` when the path holds no ground-truth disparity
     (the message says what is looked for) or a file cannot be read, and :class:`ConfigError` for
     a bad config.
     """
@@ -207,8 +208,9 @@ def evaluate_disparity(
             pinhole = matched.stereo.pinhole
             score_disparity(stats, matched.stereo.disparity, truth, pinhole.fx * pinhole.baseline_m, pinhole.doffs)
             scored += 1
+        skipped = source.skipped()
     return {"path": str(path), "pairs": scored, "pairs_without_truth": without_truth, "failed_frames": dict(failed),
-            "bands": {name: s.summary() for name, s in stats.items()}}
+            "skipped": skipped, "bands": {name: s.summary() for name, s in stats.items()}}
 
 
 def _truth_reader(path: Path, source, stack: ExitStack) -> Callable[[StereoFrame], np.ndarray | None]:
@@ -242,8 +244,9 @@ def format_table(report: dict) -> str:
                ("bias_px", "bias", "{:+.2f}"), ("over_1px", ">1px", "{:.3f}"), ("over_3px", ">3px", "{:.3f}"),
                ("d1", "D1", "{:.3f}"))
     pairs = f"{report['pairs']} pair" + ("" if report["pairs"] == 1 else "s")
+    skipped = f", {len(report['skipped'])} damaged and skipped" if report.get("skipped") else ""
     lines = [f"{report['path']}: {pairs} scored, {report['pairs_without_truth']} without ground "
-             f"truth, failed {report['failed_frames'] or 0}",
+             f"truth, failed {report['failed_frames'] or 0}{skipped}",
              "disparity against the ground truth (px), by true depth (m)",
              f"{'depth':<6}" + "".join(f"{title:>10}" for _, title, _ in columns)]
     for band, scores in report["bands"].items():
