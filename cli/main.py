@@ -55,6 +55,7 @@ class LazyGroup(click.Group):
 def cli(ctx: click.Context, verbose: bool) -> None:
     """terrainmap: terrain maps from stereo camera logs (Broggi et al., rational B-splines)."""
     ctx.obj = {"verbose": verbose}
+    _verbose[0] = verbose  # for main(), which outlives the context
     if not verbose:  # OpenCV's own log lines (e.g. "[ERROR] ... IHDR" on a corrupt PNG) would add to
         os.environ.setdefault("OPENCV_LOG_LEVEL", "SILENT")  # the one-line error; read at its import
     # Warnings as one line each ("warning: <file>: ..."); with -v, the module that logged it too.
@@ -67,9 +68,14 @@ def _signal_exit_code() -> int:
     return 128 + (GracefulStop.last_signal or signal.SIGINT)
 
 
+_verbose = [False]
+"""Whether the group's ``--verbose`` was given (as parsed: a file named ``-v`` is no flag)."""
+
+
 def main(argv: list[str] | None = None) -> None:
-    """Run the CLI, turning library errors into one-line messages."""
-    verbose = "-v" in (argv or sys.argv[1:]) or "--verbose" in (argv or sys.argv[1:])
+    """Run the CLI, turning library errors into one-line messages (exit code 2; with
+    ``--verbose``, the traceback and exit code 2)."""
+    _verbose[0] = False
     GracefulStop.last_signal = None
     try:
         cli.main(args=argv, prog_name="terrainmap", standalone_mode=False)
@@ -87,9 +93,7 @@ def main(argv: list[str] | None = None) -> None:
         exc.show()
         sys.exit(exc.exit_code)
     except TerrainmapError as exc:
-        if verbose and not _rerun_stuck():
-            raise
-        if verbose:  # the traceback, without the normal exit that would wait for Rerun for ever
+        if _verbose[0]:
             traceback.print_exc()
         else:
             click.echo(f"Error: {exc}", err=True)
@@ -98,8 +102,8 @@ def main(argv: list[str] | None = None) -> None:
         click.echo("Interrupted.", err=True)
         sys.exit(_signal_exit_code())
     except OSError as exc:  # a report or plot that cannot be written (disk full, permissions)
-        if verbose:
-            raise
+        if _verbose[0]:
+            traceback.print_exc()
         where = f"{exc.filename}: " if exc.filename else ""
         click.echo(f"Error: {where}{exc.strerror or exc}", err=True)
         sys.exit(2)

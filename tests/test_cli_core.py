@@ -6,7 +6,6 @@ import pytest
 from click.testing import CliRunner
 
 from terrainmap.cli.main import cli, main
-from terrainmap.errors import ConfigError
 
 
 def test_config_prints_effective_toml():
@@ -22,8 +21,17 @@ def test_bad_override_is_a_one_line_error(capsys):
     assert exc.value.code == 2
     err = capsys.readouterr().err
     assert err.strip() == "Error: terrain.degree: must be 1..5, got 0"
-    with pytest.raises(ConfigError, match="terrain.degree"):  # --verbose, before the command: the traceback
+    with pytest.raises(SystemExit) as exc:  # --verbose, before the command: the traceback
         main(["-v", "config", "--set", "terrain.degree=0"])
+    err = capsys.readouterr().err
+    assert exc.value.code == 2 and "Traceback" in err and "ConfigError: terrain.degree: must be 1..5" in err
+
+
+def test_a_file_named_like_the_verbose_flag_is_no_flag(capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["info", "--", "-v"])
+    err = capsys.readouterr().err
+    assert exc.value.code == 2 and "Traceback" not in err and len(err.strip().splitlines()) == 1
 
 
 @pytest.mark.parametrize(
