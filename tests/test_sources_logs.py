@@ -238,6 +238,20 @@ def test_rosbag2_directory_of_several_files(tmp_path):
         assert len(list(source.frames())) == 4
 
 
+def test_a_listed_file_missing_from_a_rosbag2_directory_is_damage(tmp_path, caplog):
+    bag = tmp_path / "bag"
+    bag.mkdir()
+    write_ros2_log(bag / "bag_0.mcap", n=2)
+    write_ros2_log(bag / "bag_2.mcap", n=2, tf=False, camera_info=False)
+    (bag / "metadata.yaml").write_text("rosbag2_bagfile_information:\n  relative_file_paths: "
+                                       "[bag_0.mcap, bag_1.mcap, bag_2.mcap, bag_2.mcap]\n")  # bag_1 lost, bag_2 twice
+    with open_source(bag) as source:
+        info = source.describe()
+        assert info["damage"] == f"{bag / 'metadata.yaml'} lists bag_1.mcap, not in the folder"
+        assert len(info["files"]) == 2 and len(list(source.frames())) == 4
+    assert "bag_1.mcap, not in the folder: their messages are lost" in caplog.text
+
+
 def test_files_that_give_a_topic_two_types_are_not_read_as_one_log(tmp_path):
     bag = tmp_path / "bag"
     bag.mkdir()
@@ -565,6 +579,36 @@ def test_a_ros1_bag_cut_short_points_to_reindexing(tmp_path):
     with pytest.raises(InputError, match=r"cut.bag: not a readable ROS 1 bag \(.*\); a bag cut short has no index: "
                                          r"`rosbag reindex` rebuilds it$"):
         open_source(cut)
+
+
+def _with_garbage(bag: Path, dst: Path, topic: str, which: int) -> Path:
+    """``bag`` (ROS 1) rewritten with the ``which``-th message of ``topic`` replaced by garbage bytes."""
+    from rosbags.rosbag1 import Reader, Writer
+
+    with Reader(bag) as reader:
+        messages = list(reader.messages())
+    writer, connections, seen = Writer(dst), {}, 0
+    writer.open()
+    for connection, stamp, raw in messages:
+        if connection.topic not in connections:
+            connections[connection.topic] = writer.add_connection(
+                connection.topic, connection.msgtype, msgdef=connection.msgdef.data, md5sum=connection.digest)
+        if connection.topic == topic:
+            seen += 1
+            raw = bytes(range(64)) if seen == which + 1 else raw
+        writer.write(connections[connection.topic], stamp, raw)
+    writer.close()
+    return dst
+
+
+def test_a_message_of_a_ros1_bag_that_cannot_be_decoded_is_skipped(tmp_path, caplog):
+    log = write_ros2_log(tmp_path / "run.mcap", n=3)
+    bag = _with_garbage(ros1_bag(log, tmp_path / "run.bag"), tmp_path / "bad.bag", "/cam/left/image_rect", 0)
+    with open_source(bag) as source:
+        assert len(list(source.frames())) == 2  # of 3: the pair of the bad image is lost
+        (skipped,) = source.skipped()
+    assert skipped.startswith(f"{bag}: /cam/left/image_rect message at log time ")
+    assert "not a readable sensor_msgs/msg/Image" in skipped and "damaged, skipped" in caplog.text
 
 
 def test_ros1_mcap_of_the_real_bag(tmp_path):

@@ -120,7 +120,37 @@ def register_ros1_type(typestore, name: str, definition: str) -> None:
         typestore.register(get_types_from_msg(definition, name))
 
 
-class McapFile:
+class _SkipsDamage:
+    """A reader that skips what is damaged and notes it: ``skipped_parts`` maps a key (a chunk's
+    byte offset, a message's topic and time) to one line naming the file and what was skipped."""
+
+    path: Path
+    skipped_parts: dict
+
+    @property
+    def skipped(self) -> list[str]:
+        """The damaged parts skipped so far, one line each."""
+        return list(self.skipped_parts.values())
+
+    def _skip(self, key, what: str, exc: Exception) -> None:
+        """Note a damaged part in :attr:`skipped_parts` (once) and warn about it."""
+        if key not in self.skipped_parts:
+            self.skipped_parts[key] = f"{self.path}: {what} ({_reason(exc)})"
+            logger.warning("%s: damaged, skipped", self.skipped_parts[key])
+
+    def _undecodable(self, failing: Counter, topic: str, kind: str, log_time: int, exc: Exception) -> None:
+        """A message of ``topic`` that cannot be decoded as ``kind``: skipped, unless it is the
+        :data:`_MAX_UNDECODABLE`-th in a row of its topic (``failing`` counts them; then
+        :class:`InputError`: the topic's type is wrong, which is no damage)."""
+        failing[topic] += 1
+        if failing[topic] >= _MAX_UNDECODABLE:
+            raise InputError(f"{self.path}: topic {topic}: {_MAX_UNDECODABLE} messages in a row are not a "
+                             f"readable {kind} ({_reason(exc)})") from exc
+        self._skip(("message", topic, log_time), f"{topic} message at log time {log_time / 1e9:.3f} s, not a "
+                   f"readable {kind}", exc)
+
+
+class McapFile(_SkipsDamage):
     """One MCAP file: its channels from the summary, or from a linear scan when it has none."""
 
     def __init__(self, path: Path):
@@ -136,9 +166,9 @@ class McapFile:
         """What is damaged in the file as a whole (None: nothing found at open): where a scan of a
         file without a summary stopped early, or a summary that fails its CRC (its messages are
         then all read, from start to end)."""
-        self.skipped: dict[int | tuple, str] = {}
+        self.skipped_parts: dict[int | tuple, str] = {}
         """Damaged chunks of an indexed file (byte offset → what) and messages that could not be
-        decoded (("message", channel id, log time) → what), met while reading messages."""
+        decoded (("message", topic, log time) → what), met while reading messages."""
         try:
             with open(path, "rb") as stream:
                 reader = make_reader(stream)
@@ -226,15 +256,10 @@ class McapFile:
                         decoded = decoders[channel.id](message.data)
                     except Exception as exc:  # one bad message (its chunk's CRC held): skipped, reading goes on
                         kind = schema.name if schema is not None else channel.message_encoding
-                        failing[channel.id] += 1
-                        if failing[channel.id] >= _MAX_UNDECODABLE:  # not damage: a channel whose type is wrong
-                            raise InputError(f"{self.path}: topic {channel.topic}: {_MAX_UNDECODABLE} messages in a "
-                                             f"row are not a readable {kind} ({_reason(exc)})") from exc
-                        self._skip(("message", channel.id, message.log_time), f"{channel.topic} message at log time "
-                                   f"{message.log_time / 1e9:.3f} s, not a readable {kind}", exc)
+                        self._undecodable(failing, channel.topic, kind, message.log_time, exc)
                         continue
                     if failing:
-                        failing.pop(channel.id, None)
+                        failing.pop(channel.topic, None)
                     yield channel.topic, message.log_time, decoded
                     count += 1
         except InputError:
@@ -243,12 +268,6 @@ class McapFile:
             raise InputError(
                 f"{self.path}: log is truncated or corrupt after {count} messages of {', '.join(topics)} ({_reason(exc)})"
             ) from exc
-
-    def _skip(self, key, what: str, exc: Exception) -> None:
-        """Note a damaged chunk or message in :attr:`skipped` (once) and warn about it."""
-        if key not in self.skipped:
-            self.skipped[key] = f"{self.path}: {what} ({_reason(exc)})"
-            logger.warning("%s: damaged, skipped", self.skipped[key])
 
     def _indexed_messages(self, stream, topics: set[str]) -> Iterator[tuple[Any, Any, Any]]:
         """(schema, channel, message) of ``topics`` from the chunks of an indexed file, merged in
@@ -318,15 +337,25 @@ _WARNED: set[Path] = set()
 
 
 def bag_files(path: Path) -> list[Path]:
-    """The files a rosbag2 directory's ``metadata.yaml`` lists, in its order, that exist inside the
-    directory ([] without readable metadata)."""
+    """The files a rosbag2 directory's ``metadata.yaml`` lists, in its order and once each, that
+    exist inside the directory ([] without readable metadata)."""
+    inside = path.resolve()
+    return [path / n for n in _listed(path) if (path / n).is_file() and inside in (path / n).resolve().parents]
+
+
+def missing_bag_files(path: Path) -> list[str]:
+    """The files a rosbag2 directory's ``metadata.yaml`` lists that are not in it."""
+    return [n for n in _listed(path) if not (path / n).is_file()]
+
+
+def _listed(path: Path) -> list[str]:
     names = bag_metadata(path).get("relative_file_paths") or []
     if not isinstance(names, list):
-        logger.warning("%s: relative_file_paths is no list; using the .mcap files in the folder", path / "metadata.yaml")
+        if path not in _WARNED:
+            _WARNED.add(path)
+            logger.warning("%s: relative_file_paths is no list; using the files in the folder", path / "metadata.yaml")
         names = []
-    names = [str(name) for name in names]
-    inside = path.resolve()
-    return [path / n for n in names if (path / n).is_file() and inside in (path / n).resolve().parents]
+    return list(dict.fromkeys(str(name) for name in names))
 
 
 def mcap_files(path: Path) -> list[Path]:
@@ -348,6 +377,9 @@ class McapLog:
         self.types: dict[str, str] = {}
         self.counts: dict[str, int | None] = {}
         self.damage = next((f.damage for f in self.files if f.damage), None)
+        if path.is_dir() and (missing := missing_bag_files(path)):  # a recording's file lost: its messages are too
+            self.damage = f"{path / 'metadata.yaml'} lists {', '.join(missing)}, not in the folder"
+            logger.warning("%s: their messages are lost", self.damage)
         self.paths = [f.path for f in self.files]
         where: dict[str, Path] = {}
         for f in self.files:
@@ -362,7 +394,7 @@ class McapLog:
     @property
     def skipped(self) -> list[str]:
         """The damaged chunks and messages skipped so far (:attr:`McapFile.skipped`), one line each."""
-        return [line for f in self.files for line in f.skipped.values()]
+        return [line for f in self.files for line in f.skipped]
 
     def messages(self, topics: list[str]) -> Iterator[tuple[str, int, Any]]:
         for f in self.files:
@@ -377,15 +409,16 @@ def _topics(connections) -> tuple[dict[str, str], dict[str, int]]:
     return {c.topic: normalize_type(c.msgtype) for c in connections}, counts
 
 
-class Ros1Bag:
-    """A ROS 1 bag (v2.0), read with ``rosbags``."""
+class Ros1Bag(_SkipsDamage):
+    """A ROS 1 bag (v2.0), read with ``rosbags``. A message that cannot be decoded is skipped
+    (:meth:`_undecodable`); other damage ends the messages there."""
 
     format = "ros1-bag"
     damage: str | None = None  # rosbags reads the index at open and fails there on a damaged bag
-    skipped: tuple[str, ...] = ()  # and stops at damage inside: nothing is skipped
 
     def __init__(self, path: Path):
         self.path = path
+        self.skipped_parts: dict[tuple, str] = {}
         self.paths = [path]
         self._typestore = ros1_typestore()
         with self._open() as bag:
@@ -413,32 +446,26 @@ class Ros1Bag:
             reader.close()
 
     def messages(self, topics: list[str]) -> Iterator[tuple[str, int, Any]]:
-        count = 0
         with self._open() as bag:
-            connections = [c for c in bag.connections if c.topic in topics]
-            try:
-                for connection, log_time, raw in bag.messages(connections=connections):
-                    yield connection.topic, log_time, self._typestore.deserialize_ros1(raw, connection.msgtype)
-                    count += 1
-            except Exception as exc:
-                raise InputError(f"{self.path}: bag is truncated or corrupt after {count} messages ({_reason(exc)})") from exc
+            yield from _decoded(self, bag, topics, self._typestore.deserialize_ros1)
 
 
-class Rosbag2Bag:
+class Rosbag2Bag(_SkipsDamage):
     """A rosbag2 directory in sqlite3 storage (``.db3``, the default before ROS 2 Iron), or one whose
     files or messages rosbag2 compressed (zstd), read with ``rosbags``; CDR messages are decoded
-    with its type store of standard ROS 2 messages. The bag stays open until :meth:`close`: a
-    compressed file is decompressed once, into a temporary folder, when it opens."""
+    with its type store of standard ROS 2 messages, and one that cannot be decoded is skipped. The
+    bag stays open until :meth:`close`: a compressed file is decompressed once, into a temporary
+    folder, when it opens."""
 
     format = "rosbag2"
     damage: str | None = None  # rosbags reads the storage's index at open and fails there
-    skipped: tuple[str, ...] = ()
 
     def __init__(self, path: Path):
         from rosbags.rosbag2 import Reader
         from rosbags.typesys import Stores, get_typestore
 
         self.path = path
+        self.skipped_parts: dict[tuple, str] = {}
         self.paths = bag_files(path)
         self._typestore = get_typestore(Stores.LATEST)
         try:
@@ -453,13 +480,26 @@ class Rosbag2Bag:
             self._bag.close()
 
     def messages(self, topics: list[str]) -> Iterator[tuple[str, int, Any]]:
-        count = 0
-        connections = [c for c in self._bag.connections if c.topic in topics]
-        try:
-            for connection, log_time, raw in self._bag.messages(connections=connections):
-                yield connection.topic, log_time, self._typestore.deserialize_cdr(raw, connection.msgtype)
-                count += 1
-        except Exception as exc:
-            raise InputError(
-                f"{self.path}: bag is truncated or corrupt after {count} messages of {', '.join(topics)} ({_reason(exc)})"
-            ) from exc
+        yield from _decoded(self, self._bag, topics, self._typestore.deserialize_cdr)
+
+
+def _decoded(log: _SkipsDamage, bag, topics: list[str], deserialize) -> Iterator[tuple[str, int, Any]]:
+    """(topic, log time, message) of ``topics`` in an open ``rosbags`` reader, each decoded by
+    ``deserialize(raw, msgtype)``: one that cannot be decoded is skipped (``log._undecodable``);
+    a read that fails ends the messages with :class:`InputError`."""
+    count, failing = 0, Counter()
+    try:
+        for connection, log_time, raw in bag.messages(connections=[c for c in bag.connections if c.topic in topics]):
+            try:
+                message = deserialize(raw, connection.msgtype)
+            except Exception as exc:  # one bad message: skipped, reading goes on
+                log._undecodable(failing, connection.topic, connection.msgtype, log_time, exc)
+                continue
+            failing.pop(connection.topic, None)
+            yield connection.topic, log_time, message
+            count += 1
+    except InputError:
+        raise
+    except Exception as exc:
+        raise InputError(f"{log.path}: bag is truncated or corrupt after {count} messages of {', '.join(topics)} "
+                         f"({_reason(exc)})") from exc
