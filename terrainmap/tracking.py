@@ -78,6 +78,7 @@ class ObstacleTracker:
         self.area = area
         self._next_id = 1
         self._stamp_ns: int | None = None
+        self._backwards = 0  # stamps that went back: the first is warned about, the rest logged
         self.reset()
 
     def reset(self) -> None:
@@ -178,8 +179,10 @@ class ObstacleTracker:
     def _advance(self, stamp_ns: int) -> float:
         """Seconds since the previous frame (0 for the first one); resets on a stamp going back."""
         if self._stamp_ns is not None and stamp_ns < self._stamp_ns:
-            logger.warning(
-                "tracking: stamp %d is older than the previous %d; tracks reset", stamp_ns, self._stamp_ns
+            self._backwards += 1
+            (logger.warning if self._backwards == 1 else logger.info)(
+                "tracking: stamp %d is older than the previous %d; tracks reset%s", stamp_ns, self._stamp_ns,
+                " (said once; again each time it happens with --verbose)" if self._backwards == 1 else "",
             )
             self.reset()
         dt = 0.0 if self._stamp_ns is None else (stamp_ns - self._stamp_ns) * 1e-9

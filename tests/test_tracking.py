@@ -262,7 +262,7 @@ def test_lower_cluster_in_a_confirmed_obstacles_shadow_starts_no_track():
     assert len(off.update([box(17.0, 3.0, 4.3, 1.5), *others.values()], 2 * DT_NS)) == 6
 
 
-def test_stamp_going_back_resets_the_tracks():
+def test_stamp_going_back_resets_the_tracks(caplog):
     tracker = ObstacleTracker(TrackingConfig())
     tracker.update([detection(10, 0)], 5 * DT_NS)
     (out,) = tracker.update([detection(10, 0)], 6 * DT_NS)
@@ -272,6 +272,8 @@ def test_stamp_going_back_resets_the_tracks():
     tracker.update([detection(10, 0)], 9 * DT_NS, pose(100.0))
     tracker.update([detection(10, 0)], 8 * DT_NS, pose(100.0))  # back in time, with a pose
     assert tracker.in_world_frame
+    warnings = [r for r in caplog.records if r.levelname == "WARNING" and "older than the previous" in r.getMessage()]
+    assert len(warnings) == 1  # a log whose stamps keep going back is not one warning a frame
 
 
 def test_switching_between_pose_and_no_pose_resets_the_tracks():

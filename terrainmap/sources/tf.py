@@ -55,6 +55,7 @@ class TransformTree:
 
     def __init__(self) -> None:
         self._parent: dict[str, tuple[str, np.ndarray]] = {}
+        self._broken: set[tuple[str, str]] = set()  # warned about once each
 
     def __len__(self) -> int:
         return len(self._parent)
@@ -65,7 +66,9 @@ class TransformTree:
         if not child or not parent or child == parent or child in self._parent:
             return
         if not usable(translation, quaternion_xyzw):
-            logger.warning("tf: the transform %s → %s is not finite or its quaternion is zero; ignored", parent, child)
+            if (parent, child) not in self._broken:
+                self._broken.add((parent, child))
+                logger.warning("tf: the transform %s → %s is not finite or its quaternion is zero; ignored", parent, child)
             return
         self._parent[child] = (parent, homogeneous(quaternion_to_matrix(quaternion_xyzw), translation))
 
@@ -130,7 +133,7 @@ class VehiclePoses:
     stays bounded. Two poses in a row stamped more than ``horizon_ns`` before the newest, the
     second later than the first, are a clock that went back and runs again (a reset): the poses
     before them are dropped, with a warning. One such pose alone, or repeated, is a stale message
-    and ignored, as are poses stamped 0.
+    and ignored, as are poses stamped 0 or broken (one warning for those).
     """
 
     def __init__(self, tolerance_ns: int = 100_000_000, horizon_ns: int = 2_000_000_000):
@@ -139,6 +142,7 @@ class VehiclePoses:
         self._stamps: list[int] = []
         self._poses: list[np.ndarray] = []
         self._back: int | None = None  # the stamp of a pose just before, far before the newest
+        self._warned_broken = False
 
     @property
     def newest_ns(self) -> int | None:
@@ -149,8 +153,12 @@ class VehiclePoses:
         parent, child = parent.lstrip("/"), child.lstrip("/")
         if child not in VEHICLE_FRAMES or parent in VEHICLE_FRAMES or parent != (self.parent or parent):
             return
-        if not usable(translation, quaternion_xyzw) or stamp_ns == 0:
-            return  # broken, or never stamped
+        if not usable(translation, quaternion_xyzw) or stamp_ns == 0:  # broken, or never stamped
+            if not self._warned_broken:
+                self._warned_broken = True
+                logger.warning("odometry: a pose %s → %s is not finite, has a zero quaternion or no stamp; such poses "
+                               "are ignored", parent, child)
+            return
         if self._stamps and stamp_ns <= self._stamps[-1]:
             far_back = self._stamps[-1] - stamp_ns > self.horizon_ns
             running = self._back is not None and stamp_ns > self._back  # later than the last far-back one
