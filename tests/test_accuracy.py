@@ -367,7 +367,13 @@ def test_damaged_truth_files_are_named(tmp_path, damaged, content):
             list(truth.frames())
 
 
-def test_truth_arrays_that_do_not_fit_are_named(tmp_path):
+@pytest.mark.parametrize(
+    "change, message",
+    [(lambda a: {"depth": np.zeros((10, 10), np.float32)}, "differ in size"),
+     (lambda a: {"obstacle_size_m": a["obstacle_size_m"] * np.nan}, "obstacle 1 is not a finite box of positive size"),
+     (lambda a: {"obstacle_size_m": -a["obstacle_size_m"]}, "obstacle 1 is not a finite box of positive size")],
+)
+def test_truth_arrays_that_do_not_fit_are_named(tmp_path, change, message):
     from terrainmap.errors import InputError
     from terrainmap.sim import SimConfig, open_truth, simulate
 
@@ -376,10 +382,23 @@ def test_truth_arrays_that_do_not_fit_are_named(tmp_path):
     frame = log / "truth" / "000000.npz"
     with np.load(frame) as data:
         arrays = dict(data)
-    np.savez(frame, **{**arrays, "depth": np.zeros((10, 10), np.float32)})
-    with pytest.raises(InputError, match="000000.npz: damaged ground truth .*differ in size"):
+    np.savez(frame, **{**arrays, **change(arrays)})
+    with pytest.raises(InputError, match=f"000000.npz: damaged ground truth .*{message}"):
         with open_truth(log) as truth:
             list(truth.frames())
+
+
+def test_a_truth_grid_that_is_no_grid_is_named():
+    from types import SimpleNamespace
+
+    from terrainmap.errors import InputError
+    from terrainmap.sim.messages import heightfield_from_grid_map
+
+    info = SimpleNamespace(resolution=0.0, length_x=10.0, length_y=8.0, pose=SimpleNamespace(position=SimpleNamespace(x=0, y=0)))
+    grid = SimpleNamespace(layers=["elevation"], info=info, data=[SimpleNamespace(data=[0.0] * 4)],
+                           outer_start_index=0, inner_start_index=0)
+    with pytest.raises(InputError, match=r"/truth/terrain: GridMap of 10×8 m at 0 m resolution is no grid"):
+        heightfield_from_grid_map(grid, "/truth/terrain")
 
 
 @pytest.mark.parametrize("where", ["chunk", "summary"])

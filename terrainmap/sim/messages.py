@@ -104,6 +104,9 @@ def heightfield_from_grid_map(msg, topic: str) -> Heightfield:
         raise InputError(f"{topic}: GridMap has no 'elevation' layer (layers: {', '.join(msg.layers)})")
     info = msg.info
     res = info.resolution
+    numbers = (res, info.length_x, info.length_y, info.pose.position.x, info.pose.position.y)
+    if not (np.isfinite(numbers).all() and res > 0 and info.length_x >= res and info.length_y >= res):
+        raise InputError(f"{topic}: GridMap of {info.length_x:g}×{info.length_y:g} m at {res:g} m resolution is no grid")
     nx, ny = round(info.length_x / res), round(info.length_y / res)
     values = np.asarray(msg.data[msg.layers.index("elevation")].data, dtype=np.float32)
     if values.size != nx * ny or msg.outer_start_index or msg.inner_start_index:

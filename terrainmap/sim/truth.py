@@ -27,7 +27,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..sources.readers import summary_section
-from ..sources.tf import quaternion_to_matrix
+from ..sources.tf import quaternion_to_matrix, usable
 from ..types import Extrinsics, StereoCalibration
 from .heightfield import Heightfield
 from .mcap_log import METADATA_NAME, TRUTH_TOPICS
@@ -59,6 +59,10 @@ class TruthFrame:
             raise ValueError("vehicle pose is not finite")
         if np.shape(self.depth) != np.shape(self.label) or np.shape(self.label) != np.shape(self.instance):
             raise ValueError("depth, label and instance images differ in size")
+        for box in self.obstacles:
+            numbers = np.concatenate([box.center_m, box.size_m, [box.yaw_rad, box.height_m]])
+            if not (np.isfinite(numbers).all() and np.all(np.asarray(box.size_m) > 0)):
+                raise ValueError(f"obstacle {box.id} is not a finite box of positive size")
 
     def pose_world_base(self) -> np.ndarray:
         """4×4 pose of base_link in odom (``p_world = T @ p_base``)."""
@@ -198,19 +202,22 @@ def _open_mcap(path: Path) -> Truth:
             meta = next((m.metadata for m in reader.iter_metadata() if m.name == METADATA_NAME), None)
             if meta is None or "scene" not in meta:
                 raise NoTruthError(f"{path}: no '{METADATA_NAME}' metadata record (not written by terrainmap simulate)")
-            _, _, _, grid = next(reader.iter_decoded_messages(topics=["/truth/terrain"]))
-            terrain = heightfield_from_grid_map(grid, "/truth/terrain")
+            with _damaged(f"{path}: /truth/terrain"):
+                first = next(reader.iter_decoded_messages(topics=["/truth/terrain"]), None)
+            if first is None:
+                raise InputError(f"{path}: /truth/terrain holds no message")
+            terrain = heightfield_from_grid_map(first[3], f"{path}: /truth/terrain")
     except InputError:
         raise
     except Exception as exc:  # mcap raises many kinds of errors on damaged or foreign files
         raise InputError(f"{path}: cannot read as an MCAP log ({exc})") from exc
-    with _damaged(path):
+    with _damaged(f"{path}: the '{METADATA_NAME}' metadata"):
         return Truth(path, terrain, _description(meta["scene"]), _mcap_frames)
 
 
 @contextmanager
-def _damaged(path: Path):
-    """Turn the errors of reading a damaged truth file into one InputError naming it."""
+def _damaged(path: Path | str):
+    """Turn the errors of reading a damaged truth file into one InputError naming it (or its part)."""
     try:
         yield
     except (OSError, ValueError, KeyError, TypeError, EOFError, zipfile.BadZipFile) as exc:  # npz, json on garbage
@@ -256,6 +263,8 @@ def _mcap_frame(truth: Truth, index: int, stamp_ns: int, parts: dict) -> TruthFr
         raise InputError(f"{truth.path}: frame at stamp {stamp_ns} lacks {', '.join(missing)}")
     p = parts["/truth/pose"].pose
     q = p.orientation
+    if not usable((p.position.x, p.position.y, p.position.z), (q.x, q.y, q.z, q.w)):
+        raise InputError(f"{truth.path}: /truth/pose at stamp {stamp_ns} is not finite or its quaternion is zero")
     return TruthFrame(
         index=index,
         stamp_ns=int(stamp_ns),
