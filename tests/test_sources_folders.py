@@ -308,6 +308,9 @@ def test_middlebury_folder_of_scenes(tmp_path):
     np.testing.assert_array_equal(frames[1].right, image(4))
     calib = frames[0].calibration
     assert calib.baseline_m == pytest.approx(0.09799) and calib.doffs == 12.5 and calib.fx == pytest.approx(1758.23)
+    (tmp_path / "Jadeplant" / "calib.txt").write_text(MIDDLEBURY_CALIB.replace("cam0=", "camera0="))
+    with pytest.raises(CalibrationError, match="Jadeplant/calib.txt: Middlebury calibration lacks 'cam0'$"):
+        list(open_source(tmp_path).frames())
 
 
 def test_sixteen_bit_grey_images_are_scaled_together(tmp_path):

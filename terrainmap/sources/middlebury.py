@@ -10,6 +10,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from ..types import Extrinsics, StereoCalibration
+from .calibration import middlebury_calibration
 from .folder import FolderSource, ImagePair
 
 
@@ -37,3 +39,6 @@ class MiddleburyFolder(FolderSource):
 
     def _find_pairs(self) -> list[ImagePair]:
         return [ImagePair(s / "im0.png", s / "im1.png", s / "calib.txt") for s in _scenes(self.path)]
+
+    def _read_calibration(self, path: Path) -> tuple[StereoCalibration, Extrinsics | None]:
+        return middlebury_calibration(path), None  # a calib.txt without cam0 is no KITTI file either
