@@ -456,6 +456,23 @@ def test_unparsable_schema_names_the_topic_and_prints_nothing(tmp_path, capfd):
     assert capfd.readouterr().err == ""
 
 
+def test_a_log_of_an_encoding_without_a_decoder_names_both_encodings(tmp_path):
+    from mcap.writer import Writer
+
+    path = tmp_path / "json.mcap"
+    with open(path, "wb") as f:
+        writer = Writer(f)
+        writer.start()
+        schema = writer.register_schema("foxglove.RawImage", "jsonschema", b"{}")
+        for topic in ("/cam/left/image_rect", "/cam/right/image_rect"):
+            writer.add_message(writer.register_channel(topic, "json", schema), log_time=1, data=b"{}", publish_time=1)
+        writer.finish()
+    with pytest.raises(InputError, match="no decoder for topic /cam/left/image_rect \\(message encoding 'json', "
+                                         "schema encoding 'jsonschema'; terrainmap reads "):
+        with open_source(path) as source:
+            list(source.frames())
+
+
 @pytest.mark.parametrize("damage", ["half", "overwrite", "garbage"])
 def test_corrupt_real_log_gives_one_line_error(tmp_path, damage):
     real = DATA / "kitti2015_000005_ros2_raw" / "kitti2015_000005_ros2_raw.mcap"

@@ -251,7 +251,10 @@ class McapFile(_SkipsDamage):
                     if channel.id not in decoders:
                         decoders[channel.id] = self._decoder(factories, channel, schema)
                     if decoders[channel.id] is None:
-                        raise InputError(f"{self.path}: no decoder for topic {channel.topic} ({channel.message_encoding})")
+                        schema_encoding = schema.encoding if schema is not None else "none"
+                        raise InputError(f"{self.path}: no decoder for topic {channel.topic} (message encoding "
+                                         f"{channel.message_encoding!r}, schema encoding {schema_encoding!r}; "
+                                         "terrainmap reads cdr with ros2msg, ros1 with ros1msg and protobuf)")
                     try:
                         decoded = decoders[channel.id](message.data)
                     except Exception as exc:  # one bad message (its chunk's CRC held): skipped, reading goes on
