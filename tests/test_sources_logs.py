@@ -436,20 +436,26 @@ def test_truncated_log_names_its_damage_in_describe(tmp_path):
         assert source.describe()["damage"].startswith(f"{cut}: truncated or corrupt after ")
 
 
-def test_unparsable_schema_names_the_topic_and_prints_nothing(tmp_path, capfd):
-    """mcap_ros2's definition parser prints the bad line to stderr before raising: kept quiet,
-    and the error says which topic's schema it is (not that the log is truncated)."""
+def _one_message_a_camera(path: Path, schema: tuple[str, str, bytes], encoding: str, data: bytes) -> Path:
+    """An MCAP of one message on each of two image topics: ``schema`` (name, encoding, text),
+    message ``encoding`` and ``data``."""
     from mcap.writer import Writer
 
-    path = tmp_path / "schema.mcap"
     with open(path, "wb") as f:
         writer = Writer(f)
         writer.start()
-        schema = writer.register_schema("sensor_msgs/msg/Image", "ros2msg", b"int32 x y z\n")
+        schema_id = writer.register_schema(*schema)
         for topic in ("/cam/left/image_rect", "/cam/right/image_rect"):
-            channel = writer.register_channel(topic, "cdr", schema)
-            writer.add_message(channel, log_time=1, data=b"\0" * 20, publish_time=1)
+            writer.add_message(writer.register_channel(topic, encoding, schema_id), log_time=1, data=data, publish_time=1)
         writer.finish()
+    return path
+
+
+def test_unparsable_schema_names_the_topic_and_prints_nothing(tmp_path, capfd):
+    """mcap_ros2's definition parser prints the bad line to stderr before raising: kept quiet,
+    and the error says which topic's schema it is (not that the log is truncated)."""
+    path = _one_message_a_camera(tmp_path / "schema.mcap", ("sensor_msgs/msg/Image", "ros2msg", b"int32 x y z\n"),
+                                 "cdr", b"\0" * 20)
     with pytest.raises(InputError, match="topic /cam/left/image_rect: unreadable schema sensor_msgs/msg/Image"):
         with open_source(path) as source:
             list(source.frames())
@@ -457,16 +463,7 @@ def test_unparsable_schema_names_the_topic_and_prints_nothing(tmp_path, capfd):
 
 
 def test_a_log_of_an_encoding_without_a_decoder_names_both_encodings(tmp_path):
-    from mcap.writer import Writer
-
-    path = tmp_path / "json.mcap"
-    with open(path, "wb") as f:
-        writer = Writer(f)
-        writer.start()
-        schema = writer.register_schema("foxglove.RawImage", "jsonschema", b"{}")
-        for topic in ("/cam/left/image_rect", "/cam/right/image_rect"):
-            writer.add_message(writer.register_channel(topic, "json", schema), log_time=1, data=b"{}", publish_time=1)
-        writer.finish()
+    path = _one_message_a_camera(tmp_path / "json.mcap", ("foxglove.RawImage", "jsonschema", b"{}"), "json", b"{}")
     with pytest.raises(InputError, match="no decoder for topic /cam/left/image_rect \\(message encoding 'json', "
                                          "schema encoding 'jsonschema'; terrainmap reads "):
         with open_source(path) as source:
