@@ -764,6 +764,16 @@ def test_a_rosbag2_whose_metadata_lists_no_files_is_read_from_its_mcap_files(tmp
     assert "relative_file_paths is no list" in caplog.text
 
 
+def test_a_sqlite3_rosbag2_whose_metadata_lists_no_files_is_refused_naming_the_key(tmp_path):
+    """rosbags would read a string of file names letter by letter and miss each letter's file."""
+    log = write_ros2_log(tmp_path / "run.mcap", n=2)
+    bag = rewrite_rosbag2(log, tmp_path / "bag", storage="sqlite3")
+    metadata = bag / "metadata.yaml"
+    metadata.write_text(metadata.read_text().replace("relative_file_paths:\n  - ", "relative_file_paths: "))
+    with pytest.raises(InputError, match="metadata.yaml: relative_file_paths must be a list of file names$"):
+        open_source(bag)
+
+
 @pytest.mark.parametrize(("text", "reason"), [("", "no rosbag2_bagfile_information mapping"),
                                               ("rosbag2_bagfile_information: [unclosed\n", "ParserError")])
 def test_an_unreadable_rosbag2_metadata_is_warned_about_once(tmp_path, caplog, text, reason):

@@ -440,9 +440,10 @@ class Ros1Bag(_SkipsDamage):
         try:
             reader = Reader(self.path)
             reader.open()
-        except Exception as exc:  # rosbags raises ReaderError, but also struct/OS errors on garbage
+        except Exception as exc:  # rosbags raises ReaderError, but also struct/OS/assertion errors on garbage
             hint = "; a bag cut short has no index: `rosbag reindex` rebuilds it" if "index" in str(exc).lower() else ""
-            raise InputError(f"{self.path}: not a readable ROS 1 bag ({_reason(exc)}){hint}") from exc
+            why = _reason(exc) if str(exc) else f"its header or index does not add up: {_reason(exc)}"
+            raise InputError(f"{self.path}: not a readable ROS 1 bag ({why}){hint}") from exc
         try:
             yield reader
         finally:
@@ -469,6 +470,8 @@ class Rosbag2Bag(_SkipsDamage):
 
         self.path = path
         self.skipped_parts: dict[tuple, str] = {}
+        if not isinstance(bag_metadata(path).get("relative_file_paths", []), list):  # rosbags would read its letters
+            raise InputError(f"{path / 'metadata.yaml'}: relative_file_paths must be a list of file names")
         self.paths = bag_files(path)
         self._typestore = get_typestore(Stores.LATEST)
         try:
