@@ -56,8 +56,9 @@ def cli(ctx: click.Context, verbose: bool) -> None:
     """terrainmap: terrain maps from stereo camera logs (Broggi et al., rational B-splines)."""
     ctx.obj = {"verbose": verbose}
     _verbose[0] = verbose  # for main(), which outlives the context
-    if not verbose:  # OpenCV's own log lines (e.g. "[ERROR] ... IHDR" on a corrupt PNG) would add to
-        os.environ.setdefault("OPENCV_LOG_LEVEL", "SILENT")  # the one-line error; read at its import
+    if not verbose:  # OpenCV's and Rerun's own log lines (e.g. "[ERROR] ... IHDR" on a corrupt PNG, Rerun's
+        os.environ.setdefault("OPENCV_LOG_LEVEL", "SILENT")  # on a full disk) would add to the one-line
+        os.environ.setdefault("RUST_LOG", "off")  # error; both read at their import
     # Warnings as one line each ("warning: <file>: ..."); with -v, the module that logged it too.
     fmt = "%(levelname)s %(name)s: %(message)s" if verbose else "warning: %(message)s"
     logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, format=fmt)

@@ -49,6 +49,15 @@ def test_usage_errors_are_one_line(capsys, args, line):
     assert capsys.readouterr().err.splitlines() == [line]
 
 
+@pytest.mark.parametrize(("flags", "quiet"), [([], True), (["-v"], False)])
+def test_opencv_and_rerun_log_lines_are_silenced_unless_verbose(monkeypatch, flags, quiet):
+    """Their own lines (libpng's, Rerun's on a full disk) would add to the one-line error."""
+    for name in ("OPENCV_LOG_LEVEL", "RUST_LOG"):
+        monkeypatch.delenv(name, raising=False)
+    assert CliRunner().invoke(cli, [*flags, "config"]).exit_code == 0
+    assert (os.environ.get("OPENCV_LOG_LEVEL"), os.environ.get("RUST_LOG")) == (("SILENT", "off") if quiet else (None, None))
+
+
 @pytest.mark.parametrize(
     ("error", "code", "line"),
     [
