@@ -268,9 +268,10 @@ def test_kitti_odometry_sequence(tmp_path):
     frames = list(source.frames(every=2))
     assert [f.stamp_ns for f in frames] == [0, 207_200_000]
     assert frames[1].calibration.baseline_m == pytest.approx(KITTI_BASELINE)
-    (tmp_path / "times.txt").write_text("0.0\ninf\n2.072e-01\n3.108e-01\n")
-    with pytest.raises(InputError, match="times.txt: need one finite time in seconds per line"):
-        open_source(tmp_path)
+    for bad in ("inf", "-5"):
+        (tmp_path / "times.txt").write_text(f"0.0\n{bad}\n2.072e-01\n3.108e-01\n")
+        with pytest.raises(InputError, match="times.txt: need one finite time of 0 or more seconds per line"):
+            open_source(tmp_path)
 
 
 def test_kitti_odometry_grey_cameras(tmp_path):

@@ -120,9 +120,12 @@ class KittiOdometryFolder(FolderSource):
         if not path.is_file():
             return None
         try:
-            return [round(float(line) * 1e9) for line in read_lines(path)]
+            stamps = [round(float(line) * 1e9) for line in read_lines(path)]
+            if any(stamp < 0 for stamp in stamps):  # seconds since the sequence's start
+                raise ValueError
+            return stamps
         except (ValueError, OverflowError):  # OverflowError: inf
-            raise InputError(f"{path}: need one finite time in seconds per line") from None
+            raise InputError(f"{path}: need one finite time of 0 or more seconds per line") from None
 
     def _read_calibration(self, path: Path):
         return calib_io.kitti_calibration(path, self._keys), None
