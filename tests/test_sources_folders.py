@@ -289,7 +289,7 @@ def test_kitti_odometry_grey_cameras(tmp_path):
 
 
 MIDDLEBURY_CALIB = """cam0=[1758.23 0 953.34; 0 1758.23 552.29; 0 0 1]
-cam1=[1758.23 0 953.34; 0 1758.23 552.29; 0 0 1]
+cam1=[1758.23 0 965.84; 0 1758.23 552.29; 0 0 1]
 doffs=12.5
 baseline=97.99
 width=8
@@ -298,7 +298,7 @@ ndisp=290
 """
 
 
-def test_middlebury_folder_of_scenes(tmp_path):
+def test_middlebury_folder_of_scenes(tmp_path, caplog):
     for k, scene in enumerate(("Adirondack", "Jadeplant")):
         write(tmp_path / scene / "im0.png", image(k))
         write(tmp_path / scene / "im1.png", image(k + 3))
@@ -309,6 +309,10 @@ def test_middlebury_folder_of_scenes(tmp_path):
     np.testing.assert_array_equal(frames[1].right, image(4))
     calib = frames[0].calibration
     assert calib.baseline_m == pytest.approx(0.09799) and calib.doffs == 12.5 and calib.fx == pytest.approx(1758.23)
+    assert "cam1" not in caplog.text  # cam1 is cam0 moved by doffs, as in Middlebury's files
+    (tmp_path / "Jadeplant" / "calib.txt").write_text(MIDDLEBURY_CALIB.replace("965.84", "1065.84"))
+    list(open_source(tmp_path).frames())
+    assert "Jadeplant/calib.txt: cam1 (fx 1758.23, cx 1065.84) is not cam0 shifted by doffs 12.5" in caplog.text
     (tmp_path / "Jadeplant" / "calib.txt").write_text(MIDDLEBURY_CALIB.replace("cam0=", "camera0="))
     with pytest.raises(CalibrationError, match="Jadeplant/calib.txt: Middlebury calibration lacks 'cam0'$"):
         list(open_source(tmp_path).frames())

@@ -145,12 +145,16 @@ def middlebury_calibration(path: Path) -> StereoCalibration:
             doffs=float(values.get("doffs", 0.0)),
             source=str(path),
         )
+        K1 = _numbers(values["cam1"]).reshape(3, 3) if "cam1" in values else None
     except KeyError as exc:
         raise CalibrationError(f"{path}: Middlebury calibration lacks {exc.args[0]!r}") from None
     except ValueError:
         raise CalibrationError(
-            f"{path}: cam0 must be a 3×3 matrix, baseline and doffs numbers, width and height whole pixels"
+            f"{path}: cam0 and cam1 must be 3×3 matrices, baseline and doffs numbers, width and height whole pixels"
         ) from None
+    if K1 is not None and not (np.isclose(K1[0, 0], K0[0, 0], rtol=0.01) and abs(K1[0, 2] - K0[0, 2] - calib.doffs) <= 0.5):
+        logger.warning("%s: cam1 (fx %g, cx %g) is not cam0 shifted by doffs %g (fx %g, cx %g): not one rectified "
+                       "pair? cam0 and doffs are used", path, K1[0, 0], K1[0, 2], calib.doffs, K0[0, 0], K0[0, 2])
     return check_calibration(calib)
 
 
