@@ -94,7 +94,7 @@ def source_options(func: Callable) -> Callable:
     func = click.option("--max-frames", type=click.IntRange(min=1), default=None, help="Process at most this many frames.")(func)
     func = click.option("--every", type=click.IntRange(min=1), default=1, show_default=True,
                         help="Keep every N-th stereo pair.")(func)
-    func = click.option("--end", type=Finite(min=0), default=None, help="End, seconds after the first stereo pair.")(func)
+    func = click.option("--end", type=Finite(min=0), default=None, help="End (inclusive), seconds after the first stereo pair's stamp.")(func)
     func = click.option("--start", type=Finite(min=0), default=None,
-                        help="Start, seconds after the first stereo pair.")(func)
+                        help="Start (inclusive), seconds after the first stereo pair's stamp.")(func)
     return _add_open_options(func)

@@ -88,6 +88,12 @@ def test_selection_start_end_every_max_and_index_from_source_start(tmp_path):
         assert next(source.frames(start_s=0.2)).stamp_ns == 1_200_000_000
         with pytest.raises(ConfigError, match="every"):
             list(source.frames(every=0))
+        # stamped out of order (0.30 and 0.45 s swapped): the window is by stamp, for --end as for --start
+        stamps = [0, 5, 10, 15, 20, 25, 45, 35, 40, 30]
+        (root / "timestamps.txt").write_text("\n".join(str(1_000_000_000 + s * 10_000_000) for s in stamps))
+    with open_source(root) as source:
+        assert [f.index for f in source.frames(end_s=0.37)] == [0, 1, 2, 3, 4, 5, 7, 9]
+        assert [f.index for f in source.frames(start_s=0.37)] == [6, 8]
         for bad, message in (({"start_s": float("nan")}, "start: must be a finite number"),
                              ({"end_s": "1"}, "end: must be a finite number"),
                              ({"every": 2.5}, "every: must be a whole number"),

@@ -18,6 +18,9 @@ logger = logging.getLogger(__name__)
 DEFAULT_PERIOD_NS = 100_000_000
 """Stamp spacing of folders without timestamps: index × 100 ms."""
 
+END_SLACK_S = 1.0
+"""How far past ``end_s`` reading goes on for pairs stamped out of order (:meth:`Source.frames`)."""
+
 
 @dataclass
 class PairRef:
@@ -111,6 +114,8 @@ class Source(ABC):
             Stop after this many frames.
 
         ``StereoFrame.index`` counts pairs from the start of the source, not from ``start_s``.
+        The window is by stamp: a pair stamped out of order is kept where its stamp lies in it, and
+        reading stops at the first pair stamped :data:`END_SLACK_S` past ``end_s``.
         """
         check_selection(start_s, end_s, every, max_frames)
         first_ns: int | None = None
@@ -125,7 +130,9 @@ class Source(ABC):
             if start_s is not None and offset_s < start_s:
                 continue
             if end_s is not None and offset_s > end_s:
-                return
+                if offset_s > end_s + END_SLACK_S:
+                    return
+                continue
             if in_window % every == 0:
                 tally.selected += 1
                 if (frame := ref.load()) is not None:  # None: skipped as damaged
