@@ -625,6 +625,26 @@ def test_a_message_of_a_ros1_bag_that_cannot_be_decoded_is_skipped(tmp_path, cap
     assert "not a readable sensor_msgs/msg/Image" in skipped and "damaged, skipped" in caplog.text
 
 
+def test_a_ros1_bag_whose_index_names_an_unknown_connection_is_damaged(tmp_path, monkeypatch, caplog):
+    """A chunk-info record whose data is garbage names connections the bag lacks: rosbags then
+    skips that chunk's messages, and its counts come from the same index, so nothing else shows it."""
+    from rosbags.rosbag1 import Reader
+
+    bag = ros1_bag(write_ros2_log(tmp_path / "run.mcap", n=2), tmp_path / "run.bag")
+    opened = Reader.open
+
+    def open_damaged(self):
+        opened(self)
+        first = self.chunk_infos[0]
+        self.chunk_infos[0] = first._replace(connection_counts={0xFFFFFFFF: 1})
+
+    monkeypatch.setattr(Reader, "open", open_damaged)
+    with open_source(bag) as source:
+        damage = source.describe()["damage"]
+    assert damage.startswith(f"{bag}: the index of the chunk at byte ") and "names connection 4294967295" in damage
+    assert "messages of that chunk may be lost" in caplog.text
+
+
 def test_ros1_mcap_of_the_real_bag(tmp_path):
     real = DATA / "kitti2015_000005_ros1_raw.bag"
     if not real.is_file():

@@ -417,11 +417,11 @@ class Ros1Bag(_SkipsDamage):
     (:meth:`_undecodable`); other damage ends the messages there."""
 
     format = "ros1-bag"
-    damage: str | None = None  # rosbags reads the index at open and fails there on a damaged bag
 
     def __init__(self, path: Path):
         self.path = path
         self.skipped_parts: dict[tuple, str] = {}
+        self.damage: str | None = None  # rosbags reads the index at open and fails there on most damage
         self.paths = [path]
         self._typestore = ros1_typestore()
         with self._open() as bag:
@@ -432,6 +432,13 @@ class Ros1Bag(_SkipsDamage):
                     logger.info("%s: topic %s: cannot parse the definition of %s (%s)", path, c.topic, c.msgtype,
                                 _reason(exc))
             self.types, self.counts = _topics(bag.connections)
+            ids = {c.id for c in bag.connections}
+            for chunk in bag.chunk_infos:  # an index that names no connection of the bag lost the messages it held
+                if unknown := sorted(set(chunk.connection_counts) - ids):
+                    self.damage = (f"{path}: the index of the chunk at byte {chunk.pos} names connection "
+                                   f"{', '.join(map(str, unknown))}, which the bag does not define")
+                    logger.warning("%s: messages of that chunk may be lost", self.damage)
+                    break
 
     @contextmanager
     def _open(self):
