@@ -12,8 +12,10 @@ from terrainmap.config import load_config
 
 from .options import (
     PLOT_SUFFIXES,
+    Failed,
     Finite,
     config_options,
+    failures,
     output_file,
     refuse_overwriting_inputs,
     write_text,
@@ -58,6 +60,8 @@ def accuracy(log, methods, max_frames, json_path, plot_path, obstacle_margin, co
         click.echo(err=True)
     click.echo(format_table(report))
     click.echo(f"\nwall time {report['seconds']['wall']:.1f} s")
+    if report["frames"] == 0:  # nothing to write: every metric would be null
+        raise Failed(f"no frame of {log} could be scored ({failures(report['failed_frames']) or 'no frame read'})")
     if json_path:
         write_text(json_path, json.dumps(report, indent=2) + "\n")
     if plot_path:

@@ -62,7 +62,7 @@ def eval_group() -> None:
 @click.option("--width", "width_m", type=Finite(min=0, min_open=True), default=22.0, show_default=True,
               help="Area width along y, m.")
 @click.option("--cell", "cell_m", type=Finite(min=0, min_open=True), default=0.5, show_default=True, help="Cell size, m.")
-@click.option("--degree", type=int, default=3, show_default=True, help="Spline degree.")
+@click.option("--degree", type=int, default=None, help="Spline degree (default: terrain.degree of the config, 3).")
 @click.option("--nets", default="5,25", show_default=True, callback=_numbers(whole=True),
               help="Control points per axis, comma-separated.")
 @click.option("--widths", default="0.8,2,4,6,8,10,12", show_default=True, callback=_numbers(), help="Obstacle widths, m.")
@@ -103,7 +103,8 @@ def artificial_obstacle(
     else:
         grid, base_points = GridConfig(x_min_m=0.0, length_m=length_m, width_m=width_m, y_center_m=0.0, cell_size_m=cell_m), None
     terrain = config.terrain
-    terrain.degree = degree
+    if degree is not None:
+        terrain.degree = degree
     net_list = [int(n) for n in nets]
     terrain.start_control_points = min([terrain.start_control_points, *net_list])
     scenarios = ao.grid_of_scenarios(net_list, widths, heights)

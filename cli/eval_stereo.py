@@ -9,7 +9,15 @@ import click
 
 from terrainmap.config import load_config
 
-from .options import config_options, output_file, refuse_overwriting_inputs, write_text
+from .options import (
+    Failed,
+    config_options,
+    counted,
+    failures,
+    output_file,
+    refuse_overwriting_inputs,
+    write_text,
+)
 
 
 @click.command("stereo")
@@ -33,5 +41,8 @@ def stereo(path, calibration, max_frames, json_path, config_path, overrides):
     config = load_config(config_path, overrides)
     report = evaluate_disparity(path, config, max_frames=max_frames, calibration=calibration)
     click.echo(format_table(report))
+    if report["pairs"] == 0:  # nothing to write: every metric would be null
+        why = failures(report["failed_frames"]) or f"{counted(report['pairs_without_truth'], 'pair')} without ground truth"
+        raise Failed(f"no stereo pair of {path} could be scored ({why})")
     if json_path:
         write_text(json_path, json.dumps(report, indent=2) + "\n")

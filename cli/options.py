@@ -86,6 +86,11 @@ NO_PAIRS = "no left and right images whose stamps agree within --pair-tolerance-
 """Why a log with stereo topics gives no stereo pair (``process`` and ``info --check`` say it)."""
 
 
+def failures(counts: dict[str, int]) -> str:
+    """``no_ground ×3, too_few_cells ×1``: frame failures by reason, most frequent first."""
+    return ", ".join(f"{reason} ×{n}" for reason, n in sorted(counts.items(), key=lambda item: -item[1]))
+
+
 def counted(count: int, noun: str) -> str:
     """``1 frame``, ``2 frames``: a count with its noun in the right number."""
     return f"{count} {noun}{'s' * (count != 1)}"

@@ -16,6 +16,7 @@ from .options import (
     GracefulStop,
     config_options,
     counted,
+    failures,
     output_file,
     refuse_overwriting_inputs,
     writable,
@@ -93,7 +94,7 @@ def process(log, output, flavor, compression, rrd, overwrite, source_opts, confi
                     click.echo(err=True)
     _report(summary, outputs, source.skipped())
     if summary.frames_done == 0:
-        raise Failed(f"no frame of {log} could be processed ({_reasons(summary)})")
+        raise Failed(f"no frame of {log} could be processed ({failures(summary.failures)})")
 
 
 def _check_outputs(log: Path, output: Path, rrd: Path | None, overwrite: bool, inputs: list) -> None:
@@ -129,15 +130,10 @@ def _why_none(source) -> str:
     return why
 
 
-def _reasons(summary) -> str:
-    """The frames' failures, most frequent first (every frame that was read is done or failed)."""
-    return ", ".join(f"{reason} ×{n}" for reason, n in summary.failures.most_common())
-
-
 def _report(summary, outputs, skipped: list[str]) -> None:
     from terrainmap.extrinsics import describe_extrinsics
 
-    failed = f", {summary.frames_failed} failed ({_reasons(summary)})" if summary.frames_failed else ""
+    failed = f", {summary.frames_failed} failed ({failures(summary.failures)})" if summary.frames_failed else ""
     click.echo(f"processed {counted(summary.frames_done, 'frame')}{failed} in {summary.wall_s:.1f} s ({summary.fps:.1f} frames/s)")
     if skipped:
         click.echo(f"skipped {counted(len(skipped), 'damaged part')}: " + "; ".join(skipped))

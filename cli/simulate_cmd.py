@@ -26,7 +26,7 @@ from .options import GracefulStop, counted, output_file, wrote_before_stopping
 @click.option("--camera-height-m", type=float, default=1.8, show_default=True, help="Camera above the ground, metres.")
 @click.option("--pitch-deg", type=float, default=6.0, show_default=True, help="Camera pitch down, degrees.")
 @click.option("--noise", type=float, default=2.0, show_default=True, help="Pixel noise σ, grey levels.")
-@click.option("--vignetting", type=float, default=0.15, show_default=True, help="Darkening at the corners (0–1).")
+@click.option("--vignetting", type=float, default=0.15, show_default=True, help="Darkening at the corners, in [0, 1).")
 @click.option("--texture-detail", type=float, default=1.0, show_default=True,
               help="Fine texture kept with range (2: about a pixel's box filter, no other blur).")
 @click.option("--speed-mps", type=float, default=4.0, show_default=True, help="Vehicle speed, m/s.")

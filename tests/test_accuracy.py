@@ -342,6 +342,14 @@ def test_cli_prints_the_table_and_writes_json_and_plot(tiny_log, tmp_path):
     assert out_png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
+def test_a_log_no_frame_of_which_can_be_scored_is_an_error_and_writes_no_report(tiny_log, tmp_path):
+    out_json = tmp_path / "r.json"
+    result = CliRunner().invoke(accuracy, [str(tiny_log), "--methods", "terrainmap", "--max-frames", "2", "--json",
+                                           str(out_json), "--set", "grid.z_min_m=40", "--set", "grid.z_max_m=50"])
+    assert result.exit_code == 2 and f"no frame of {tiny_log} could be scored (no_points_in_area ×2)" in result.output
+    assert not out_json.exists()  # a report of nulls only would read as a result
+
+
 def test_credited_track_keeps_a_matching_track_and_switches_only_when_it_is_lost():
     """CLEAR MOT: two tracks on one obstacle do not make switches while the credited one matches."""
     assert acc.credited_track(None, [7, 9], np.array([1.0, 0.2])) == 9  # first match: the nearest

@@ -42,12 +42,29 @@ def test_terrainmap_beats_the_flat_and_single_fit_baselines_on_rolling_terrain(s
     assert rmse("terrainmap") < rmse("ransac_plane") / 5
 
 
-def test_optional_methods_are_listed_only_when_installed(monkeypatch):
+@pytest.mark.parametrize("how", ["missing", "broken"])
+def test_optional_methods_are_listed_only_when_installed_and_importable(monkeypatch, how):
+    import importlib
     import importlib.util
 
+    from terrainmap.evaluation import baselines
+
+    optional = ("CSF", "pypatchworkpp")
+
+    def broken(name, real=importlib.import_module):
+        if name in optional:
+            raise OSError(f"{name}: cannot open shared object file")
+        return real(name)
+
+    found = {"missing": None, "broken": object()}[how]  # a broken install is found, then fails to import
     real = importlib.util.find_spec
-    monkeypatch.setattr(importlib.util, "find_spec", lambda n: None if n in ("CSF", "pypatchworkpp") else real(n))
-    assert available_methods() == ["terrainmap", "bspline_single", "ransac_plane", "lowest_point"]
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name: found if name in optional else real(name))
+    monkeypatch.setattr(importlib, "import_module", broken)
+    baselines._importable.cache_clear()  # what an earlier call found
+    try:
+        assert available_methods() == ["terrainmap", "bspline_single", "ransac_plane", "lowest_point"]
+    finally:
+        baselines._importable.cache_clear()
 
 
 def test_baselines_label_with_terrainmaps_thresholds_for_the_rig(scene):

@@ -98,6 +98,15 @@ def test_eval_artificial_obstacle_writes_json_csv_and_plot(tmp_path):
     assert (tmp_path / "r.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
+def test_eval_artificial_obstacle_takes_the_degree_from_the_config_unless_given():
+    args = ["eval", "artificial-obstacle", "--nets", "5", "--widths", "4", "--heights", "1"]
+    table = {extra: CliRunner().invoke(cli, [*args, *extra]).output.splitlines()[-1]
+             for extra in ((), ("--set", "terrain.degree=2"), ("--degree", "2"), ("--set", "terrain.degree=2", "--degree", "3"))}
+    assert len(set(table.values())) == 2  # degree 3 (default, or given) and degree 2 (config, or given)
+    assert table[()] == table[("--set", "terrain.degree=2", "--degree", "3")] != table[("--set", "terrain.degree=2")]
+    assert table[("--set", "terrain.degree=2")] == table[("--degree", "2")]
+
+
 @pytest.mark.parametrize("widths", ["a,b", "1,,2", "1,"])
 def test_eval_rejects_bad_lists(widths):
     result = CliRunner().invoke(cli, ["eval", "artificial-obstacle", "--widths", widths])

@@ -180,6 +180,17 @@ def test_a_simulated_log_is_scored_from_its_depth_truth(tiny_mcap):
     assert every["median_abs_error_px"] < 0.5
 
 
+def test_a_folder_no_pair_of_which_can_be_scored_is_an_error(tmp_path, kitti_folder):
+    from click.testing import CliRunner
+
+    from terrainmap.cli.eval_stereo import stereo
+
+    out_json = tmp_path / "r.json"
+    result = CliRunner().invoke(stereo, [str(kitti_folder), "--json", str(out_json), "--set", "extrinsics.min_points=10000000"])
+    assert result.exit_code == 2 and f"no stereo pair of {kitti_folder} could be scored (" in result.output
+    assert not out_json.exists()
+
+
 def test_folders_and_logs_without_ground_truth_are_named(tmp_path, kitti_folder, tiny_mcap):
     import shutil
 

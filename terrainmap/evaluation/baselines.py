@@ -23,12 +23,14 @@ of σ): what then differs from terrainmap is only how the surface is estimated.
 
 from __future__ import annotations
 
+import importlib
 import importlib.util
 import os
 import sys
 from collections.abc import Callable
 from contextlib import contextmanager
 from dataclasses import dataclass
+from functools import cache
 
 import numpy as np
 
@@ -204,5 +206,17 @@ _PACKAGES = {"patchworkpp": "pypatchworkpp", "csf": "CSF"}
 
 
 def available_methods() -> list[str]:
-    """Methods that can run here (the optional ones need their package installed)."""
-    return [m for m in METHODS if m not in _PACKAGES or importlib.util.find_spec(_PACKAGES[m]) is not None]
+    """Methods that can run here (the optional ones need their package installed, and importable)."""
+    return [m for m in METHODS if m not in _PACKAGES or _importable(_PACKAGES[m])]
+
+
+@cache
+def _importable(package: str) -> bool:
+    """Whether ``package`` imports: one that is found but fails to import counts as missing."""
+    if importlib.util.find_spec(package) is None:
+        return False
+    try:
+        importlib.import_module(package)
+    except Exception:  # a broken build raises anything (ImportError, OSError for a missing library...)
+        return False
+    return True
