@@ -409,16 +409,17 @@ def test_a_second_signal_waits_while_outputs_are_open():
 
     from terrainmap.cli.options import GracefulStop
 
+    # raise_signal delivers to this thread and runs the handler before it returns; os.kill may hand
+    # the signal to another thread of the process (OpenCV's, an executor's), its handler a moment later.
     with GracefulStop() as stop:
-        os.kill(os.getpid(), signal.SIGINT)
+        signal.raise_signal(signal.SIGINT)
         assert stop.requested
         with stop.outputs_open():
-            os.kill(os.getpid(), signal.SIGTERM)  # ignored: outputs are being written
+            signal.raise_signal(signal.SIGTERM)  # ignored: outputs are being written
             with pytest.raises(KeyboardInterrupt):
                 stop.check()  # between frames: the run stops there
         with pytest.raises(KeyboardInterrupt):
-            os.kill(os.getpid(), signal.SIGINT)
-            sum(range(1000))  # the handler runs between bytecodes
+            signal.raise_signal(signal.SIGINT)
 
 
 def test_an_output_that_is_no_regular_file_is_refused(small_log, tmp_path):
