@@ -149,19 +149,20 @@ class PipelineState:
     once, not every frame, and again when the config is changed (in place too)."""
 
     def __post_init__(self) -> None:
-        self.check(self.config, None)  # a config built in code: ConfigError here, not a numpy error mid-run
+        self.check(self.config)  # a config built in code: ConfigError here, not a numpy error mid-run
         if self.tracker is None:
             self.tracker = make_tracker(self.config)
 
-    def check(self, config: Config, extrinsics: Extrinsics | None, where: str = "frame") -> None:
-        """Validate ``config`` (ConfigError) and a frame's ``extrinsics`` (CalibrationError for a
-        pose that is no rigid motion, naming ``where`` the frame comes from and where the
-        extrinsics do), each only when it is not the one checked last."""
-        checked = self.checked[0]
+    def check(self, config: Config, frame: StereoFrame | None = None) -> None:
+        """Validate ``config`` (ConfigError) and the ``frame``'s extrinsics (CalibrationError for a
+        pose that is no rigid motion, naming where the frame and the extrinsics come from), each
+        only when it is not the one checked last."""
+        checked, extrinsics = self.checked[0], frame.extrinsics if frame is not None else None
         if config != checked:
             config.validate()
             checked = replace(config, **{f.name: replace(getattr(config, f.name)) for f in fields(config)})
         if extrinsics is not None and extrinsics is not self.checked[1]:
+            where = f"{frame.source or 'frame'} (pair {frame.index})"
             extrinsics_from_calibration(extrinsics.rotation, extrinsics.translation,
                                         name=f"{where}: extrinsics ({extrinsics.source})")
         self.checked = (checked, extrinsics)
@@ -195,7 +196,7 @@ def match_frame(frame: StereoFrame, config: Config, state: PipelineState) -> Mat
             if state.matcher is not None:  # another camera or scene (a folder of KITTI or Middlebury
                 state.extrinsics = None  # scenes): the pose estimated before does not hold for it
             state.matcher = StereoMatcher(frame.calibration, config.stereo)
-        state.check(config, frame.extrinsics, f"{frame.source or 'frame'} (pair {frame.index})")
+        state.check(config, frame)
         extrinsics = frame.extrinsics or state.extrinsics
         stereo = state.matcher.compute(frame.left, frame.right, extrinsics)  # drops the sky if it can
     with watch("points"):

@@ -115,9 +115,7 @@ def check_calibration(calibration: StereoCalibration, *, size_known: bool = True
         if not (math.isfinite(value) and value > 0):
             swapped = " (left and right swapped?)" if field == "baseline_m" and value < 0 else ""
             raise CalibrationError(f"{name}: {field} must be > 0, got {value}{swapped}")
-        low, high, unit = PLAUSIBLE[field]
-        if not low <= value <= high:  # a wrong unit or a typo, which would only end in "no ground" later
-            raise CalibrationError(f"{name}: {field} must be within {low:g}..{high:g} {unit}, got {value:g}")
+        _check_plausible(name, field, value)
     for field in ("cx", "cy", "doffs", "cx_right"):
         value = getattr(calibration, field)
         if value is not None and not (math.isfinite(value) and abs(value) < 1e6):
@@ -161,10 +159,16 @@ def _check_camera_matrix(K: np.ndarray, name: str) -> None:
     if not (np.all(np.abs(K) < 1e6) and np.allclose(K[2], [0, 0, 1]) and upper):  # < 1e6: False for NaN
         raise CalibrationError(f"{name} must be a camera matrix [[fx, s, cx], [0, fy, cy], [0, 0, 1]] of finite "
                                f"pixels, got {K.tolist()}")
-    for field, value in (("fx", K[0, 0]), ("fy", K[1, 1])):
-        low, high, unit = PLAUSIBLE[field]
-        if not low <= value <= high:
-            raise CalibrationError(f"{name}: {field} must be within {low:g}..{high:g} {unit}, got {value:g}")
+    _check_plausible(name, "fx", K[0, 0])
+    _check_plausible(name, "fy", K[1, 1])
+
+
+def _check_plausible(name: str, field: str, value: float) -> None:
+    """:class:`CalibrationError` naming ``name`` and ``field`` unless ``value`` lies in its
+    :data:`PLAUSIBLE` range: a wrong unit or a typo, which would only end in "no ground" later."""
+    low, high, unit = PLAUSIBLE[field]
+    if not low <= value <= high:
+        raise CalibrationError(f"{name}: {field} must be within {low:g}..{high:g} {unit}, got {value:g}")
 
 
 def _rectification(calibration: StereoCalibration) -> tuple[tuple, tuple, RectifiedPinhole]:

@@ -63,8 +63,13 @@ def _labels(points, elevation, gx, gy, config: Config, camera: StereoCamera | No
     return label_points(points, elevation, gx, gy, config.grid, config.segmentation, index=index, limits=limits)
 
 
-def _from_surface(points, elevation, gx, gy, config: Config, camera: StereoCamera | None) -> MethodOutput:
-    return MethodOutput(elevation, slope_angle(gx, gy), _labels(points, elevation, gx, gy, config, camera))
+def _from_surface(
+    points, elevation, gx, gy, config: Config, camera: StereoCamera | None, valid: np.ndarray | None = None
+) -> MethodOutput:
+    """A surface's output: its elevation (:func:`as_written` where ``valid`` is given), slope and
+    the points labelled against it."""
+    written = elevation if valid is None else as_written(elevation, valid)
+    return MethodOutput(written, slope_angle(gx, gy), _labels(points, elevation, gx, gy, config, camera))
 
 
 def as_written(elevation: np.ndarray, valid: np.ndarray) -> np.ndarray:
@@ -89,9 +94,7 @@ def bspline_single(points, config: Config, extrinsics=None, camera=None) -> Meth
     fit = fitter_for(config.grid, t.control_points_x, t.control_points_y, t.degree)
     R = np.ones(fit.shape)
     Q = fit.fit(grid.z, np.where(grid.observed, 1.0, np.where(grid.valid, t.filled_weight, 0.0)), R, t.smoothness)
-    elevation, gx, gy = fit.evaluate_with_gradient(Q, R)
-    labels = _labels(points, elevation, gx, gy, config, camera)
-    return MethodOutput(as_written(elevation, grid.valid), slope_angle(gx, gy), labels)  # terrainmap's cells
+    return _from_surface(points, *fit.evaluate_with_gradient(Q, R), config, camera, valid=grid.valid)  # terrainmap's cells
 
 
 def ransac_plane(points, config: Config, extrinsics=None, camera=None, *, iterations: int = 200,

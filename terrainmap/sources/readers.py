@@ -412,7 +412,32 @@ def _topics(connections) -> tuple[dict[str, str], dict[str, int]]:
     return {c.topic: normalize_type(c.msgtype) for c in connections}, counts
 
 
-class Ros1Bag(_SkipsDamage):
+class _RosbagsLog(_SkipsDamage):
+    """A log read with ``rosbags`` (:class:`Ros1Bag`, :class:`Rosbag2Bag`)."""
+
+    def _decoded(self, bag, topics: list[str], deserialize) -> Iterator[tuple[str, int, Any]]:
+        """(topic, log time, message) of ``topics`` in an open ``rosbags`` reader, each decoded by
+        ``deserialize(raw, msgtype)``: one that cannot be decoded is skipped (:meth:`_undecodable`);
+        a read that fails ends the messages with :class:`InputError`."""
+        count, failing = 0, Counter()
+        try:
+            for connection, log_time, raw in bag.messages(connections=[c for c in bag.connections if c.topic in topics]):
+                try:
+                    message = deserialize(raw, connection.msgtype)
+                except Exception as exc:  # one bad message: skipped, reading goes on
+                    self._undecodable(failing, connection.topic, connection.msgtype, log_time, exc)
+                    continue
+                failing.pop(connection.topic, None)
+                yield connection.topic, log_time, message
+                count += 1
+        except InputError:
+            raise
+        except Exception as exc:
+            raise InputError(f"{self.path}: bag is truncated or corrupt after {count} messages of {', '.join(topics)} "
+                             f"({_reason(exc)})") from exc
+
+
+class Ros1Bag(_RosbagsLog):
     """A ROS 1 bag (v2.0), read with ``rosbags``. A message that cannot be decoded is skipped
     (:meth:`_undecodable`); other damage ends the messages there."""
 
@@ -458,10 +483,10 @@ class Ros1Bag(_SkipsDamage):
 
     def messages(self, topics: list[str]) -> Iterator[tuple[str, int, Any]]:
         with self._open() as bag:
-            yield from _decoded(self, bag, topics, self._typestore.deserialize_ros1)
+            yield from self._decoded(bag, topics, self._typestore.deserialize_ros1)
 
 
-class Rosbag2Bag(_SkipsDamage):
+class Rosbag2Bag(_RosbagsLog):
     """A rosbag2 directory in sqlite3 storage (``.db3``, the default before ROS 2 Iron), or one whose
     files or messages rosbag2 compressed (zstd), read with ``rosbags``; CDR messages are decoded
     with its type store of standard ROS 2 messages, and one that cannot be decoded is skipped. The
@@ -493,26 +518,5 @@ class Rosbag2Bag(_SkipsDamage):
             self._bag.close()
 
     def messages(self, topics: list[str]) -> Iterator[tuple[str, int, Any]]:
-        yield from _decoded(self, self._bag, topics, self._typestore.deserialize_cdr)
+        yield from self._decoded(self._bag, topics, self._typestore.deserialize_cdr)
 
-
-def _decoded(log: _SkipsDamage, bag, topics: list[str], deserialize) -> Iterator[tuple[str, int, Any]]:
-    """(topic, log time, message) of ``topics`` in an open ``rosbags`` reader, each decoded by
-    ``deserialize(raw, msgtype)``: one that cannot be decoded is skipped (``log._undecodable``);
-    a read that fails ends the messages with :class:`InputError`."""
-    count, failing = 0, Counter()
-    try:
-        for connection, log_time, raw in bag.messages(connections=[c for c in bag.connections if c.topic in topics]):
-            try:
-                message = deserialize(raw, connection.msgtype)
-            except Exception as exc:  # one bad message: skipped, reading goes on
-                log._undecodable(failing, connection.topic, connection.msgtype, log_time, exc)
-                continue
-            failing.pop(connection.topic, None)
-            yield connection.topic, log_time, message
-            count += 1
-    except InputError:
-        raise
-    except Exception as exc:
-        raise InputError(f"{log.path}: bag is truncated or corrupt after {count} messages of {', '.join(topics)} "
-                         f"({_reason(exc)})") from exc
