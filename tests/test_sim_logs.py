@@ -215,6 +215,10 @@ def test_bad_options_raise_config_errors_naming_them():
         SimConfig(baseline_m=0.0005).validate()
     with pytest.raises(ConfigError, match=r"--focal-px: must be within 1..1e\+06 pixels, got 0.5"):
         SimConfig(focal_px=0.5).validate()
+    # ... and so are images too narrow for its stereo matcher (16 px of disparity at least)
+    with pytest.raises(ConfigError, match=r"--width: must be 32..4096 pixels, got 16"):
+        SimConfig(width=16, height=16).validate()
+    SimConfig(width=32, height=16).validate()
 
 
 def test_cli_simulate_writes_a_log_and_guards_existing_output(tmp_path):

@@ -69,9 +69,11 @@ class SimConfig:
         check(self.format in ("mcap", "folder"), "format", f"must be mcap or folder, got {self.format!r}")
         check(1 <= self.frames <= 100_000, "frames", f"must be in 1..100000, got {self.frames}")
         check(0 <= self.seed < 2**32, "seed", f"must be in 0..2^32-1, got {self.seed}")
-        for name in ("width", "height"):
+        # process's stereo matcher searches at least 16 px of disparity: narrower images leave too
+        # few columns for it (at 16 px none), so a log it could not use is refused here.
+        for name, low in (("width", 32), ("height", 16)):
             value = getattr(self, name)
-            check(16 <= value <= 4096, name, f"must be 16..4096 pixels, got {value}")
+            check(low <= value <= 4096, name, f"must be {low}..4096 pixels, got {value}")
         for name in ("focal_px", "baseline_m", "camera_height_m", "fps", "terrain_resolution_m"):
             value = getattr(self, name)
             check(math.isfinite(value) and value > 0, name, f"must be > 0, got {value}")
