@@ -33,6 +33,11 @@ MAX_CELLS_PER_AXIS = 2000
 """Upper bound on m0 and m1 (a 1 km square at 0.5 m): beyond it a grid is a typo, not a map."""
 MAX_OFFSET_M = 10_000.0
 """Upper bound on the area's offsets and height limits from the vehicle, metres: likewise."""
+NUMBER_RANGE = (1e-9, 1e6)
+"""The magnitudes a float field may take besides 0 (every field's unit: m, px, s, degrees or
+none): beyond them a value is a typo, and squares or quotients of it overflow mid-run."""
+MAX_INT = 2**31 - 1
+"""Upper bound on the magnitude of an integer field (OpenCV's matcher takes C ints)."""
 
 
 @dataclass
@@ -723,6 +728,8 @@ class Config:
         self.segmentation.validate()
         for section in (self.stereo, self.extrinsics, self.obstacles, self.tracking, self.cost, self.mcap, self.rerun):
             section.validate()
+        for section in fields(self):
+            _check_magnitudes(section.name, getattr(self, section.name))
         return self
 
     def to_dict(self) -> dict[str, dict[str, Any]]:
@@ -758,6 +765,19 @@ def _check_kinds(name: str, section: Any) -> None:
         _check(ok, f"{name}.{f.name}", f"must be {what}, got {value!r}")
         if kind == "float":
             _check(math.isfinite(value), f"{name}.{f.name}", f"must be finite, got {value!r}")
+
+
+def _check_magnitudes(name: str, section: Any) -> None:
+    """Every number of ``section`` within :data:`NUMBER_RANGE` (floats) or :data:`MAX_INT` (ints):
+    checked after the sections' own ranges, so that a field with one names it."""
+    low, high = NUMBER_RANGE
+    for f in fields(section):
+        value, kind = getattr(section, f.name), str(f.type)
+        if kind == "float":
+            _check(value == 0 or low <= abs(value) <= high, f"{name}.{f.name}",
+                   f"must be 0 or of magnitude {low:g} to {high:g}, got {value!r}")
+        elif kind == "int":
+            _check(abs(value) <= MAX_INT, f"{name}.{f.name}", f"must be within ±{MAX_INT}, got {value!r}")
 
 
 def _toml_value(value: Any) -> str:

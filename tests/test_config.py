@@ -68,6 +68,11 @@ def test_toml_round_trip_and_overrides(tmp_path):
         ("stereo.p2_per_pixel=99999999999", "stereo.p2_per_pixel: must be at most 10000"),
         ("stereo.num_disparities=4096", "stereo.num_disparities: must be at most 1024"),
         ("stereo.texture_window=99999", "stereo.texture_window: must be odd and in 3..101"),
+        # Fields with no range of their own: squares and quotients of such values overflow mid-run
+        ("stereo.min_texture=1e160", r"stereo.min_texture: must be 0 or of magnitude 1e-09 to 1e\+06, got 1e\+160"),
+        ("tracking.measurement_std_m=1e200", "tracking.measurement_std_m: must be 0 or of magnitude"),
+        ("stereo.min_range_m=1e-300", "stereo.min_range_m: must be 0 or of magnitude"),
+        ("stereo.disp12_max_diff=-2147483649", "stereo.disp12_max_diff: must be within ±2147483647"),
     ],
 )
 def test_bad_values_name_the_field(override, message):
@@ -80,8 +85,9 @@ def test_a_whole_number_written_with_a_point_is_an_integer_in_set_as_in_toml(tmp
     path = tmp_path / "c.toml"
     path.write_text("[terrain]\ndegree = 3.0\n")
     assert load_config(path).terrain.degree == 3 == load_config(overrides=["terrain.degree=3.0"]).terrain.degree
-    big = load_config(overrides=["terrain.min_valid_cells=9007199254740993"]).terrain.min_valid_cells
-    assert big == 9007199254740993  # an integer written as one is read exactly, not through a float
+    # An integer written as one is read exactly, not through a float (which gives ...992)
+    with pytest.raises(ConfigError, match="must be within ±2147483647, got 9007199254740993$"):
+        load_config(overrides=["terrain.min_valid_cells=9007199254740993"])
     with pytest.raises(ConfigError, match="terrain.degree: cannot use '3.5', expected an integer"):
         load_config(overrides=["terrain.degree=3.5"])
 
