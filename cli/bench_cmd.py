@@ -28,6 +28,7 @@ def bench(
     from terrainmap import bench as lib
 
     refuse_overwriting_inputs({"--json": json_path}, [config_path, log_path, source_opts.calibration])
+    source_opts.require(log_path, "--log")
     config = load_config(config_path, overrides)
     env = lib.environment()
     click.echo("machine: " + ", ".join(f"{k}={v}" for k, v in env.items()))

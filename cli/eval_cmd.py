@@ -97,6 +97,7 @@ def artificial_obstacle(
                               [base_log, config_path, source_opts.calibration])
     if frame_index and not base_log:
         raise click.UsageError("--frame picks a stereo pair of the --base log; give --base too")
+    source_opts.require(base_log, "--base")
     config = load_config(config_path, overrides)
     if base_log:
         grid, base_points = config.grid, ao.points_from_log(base_log, config, frame_index, **source_opts.open_kwargs())

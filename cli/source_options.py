@@ -54,6 +54,15 @@ class SourceOptions:
         """Keyword arguments of :meth:`terrainmap.sources.Source.frames`."""
         return {"start_s": self.start, "end_s": self.end, "every": self.every, "max_frames": self.max_frames}
 
+    def require(self, source, option: str) -> None:
+        """Refuse the open options (UsageError) when ``source``, the value of ``option`` that they
+        apply to, is not given: they would be ignored."""
+        defaults = SourceOptions()
+        given = [f"--{name.replace('_', '-')}" for name in _OPEN_NAMES if getattr(self, name) != getattr(defaults, name)]
+        if given and not source:
+            raise click.UsageError(f"{', '.join(given)} {'is' if len(given) == 1 else 'are'} for the log of {option}; "
+                                   f"give {option} too")
+
     def open(self, path: str):
         """Open ``path`` with these options (imports the sources package lazily)."""
         from terrainmap.sources import open_source

@@ -96,6 +96,8 @@ class GridConfig:
                 f"grid.{name}",
                 f"must be a whole number of cells of {self.cell_size_m} m, got {getattr(self, name)}",
             )
+            _check(round(cells) >= 1, f"grid.{name}",
+                   f"must hold at least one cell of {self.cell_size_m} m, got {getattr(self, name)}")
         _check(self.z_min_m < self.z_max_m, "grid.z_min_m", "must be below grid.z_max_m")
         _check(self.stereo_noise_px >= 0, "grid.stereo_noise_px", f"must be >= 0, got {self.stereo_noise_px}")
         _check(0 <= self.sigma_factor <= 5, "grid.sigma_factor", f"must be in [0, 5], got {self.sigma_factor}")

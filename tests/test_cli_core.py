@@ -306,6 +306,12 @@ def test_a_report_written_through_a_symbolic_link_keeps_the_link(tmp_path):
     (["eval", "artificial-obstacle", "--frame", "2"],
      "Error: --frame picks a stereo pair of the --base log; give --base too "
      "(see 'terrainmap eval artificial-obstacle --help')"),
+    (["eval", "artificial-obstacle", "--length", "1e-9"],  # no cell at all: named as the option, not the net
+     "Error: --length/--cell (grid.length_m: must hold at least one cell of 0.5 m, got 1e-09)"),
+    (["eval", "artificial-obstacle", "--left-topic", "/x"],  # would be ignored without the log
+     "Error: --left-topic is for the log of --base; give --base too (see 'terrainmap eval artificial-obstacle --help')"),
+    (["bench", "--runs", "1", "--right-topic", "/x", "--pair-tolerance-ms", "5"],
+     "Error: --right-topic, --pair-tolerance-ms are for the log of --log; give --log too (see 'terrainmap bench --help')"),
     (["process", "x.mcap", "-o", ""],
      "Error: Invalid value for '-o' / '--output': must name a file, got an empty path (see 'terrainmap process --help')"),
 ])

@@ -65,6 +65,7 @@ def test_toml_round_trip_and_overrides(tmp_path):
         ("stereo.pass_tolerance_px=0", "stereo.pass_tolerance_px: must be > 0"),
         ("grid.cell_size_m=0.001", "at most 2000 per axis"),  # 34 000 × 22 000 cells: a typo, not a map
         ("grid.length_m=1e300", "at most 2000 per axis"),
+        ("grid.width_m=1e-9", r"grid.width_m: must hold at least one cell of 0.5 m, got 1e-09"),
         ("stereo.p2_per_pixel=99999999999", "stereo.p2_per_pixel: must be at most 10000"),
         ("stereo.num_disparities=4096", "stereo.num_disparities: must be at most 1024"),
         ("stereo.texture_window=99999", "stereo.texture_window: must be odd and in 3..101"),
