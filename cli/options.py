@@ -197,5 +197,13 @@ def config_options(func: Callable) -> Callable:
         help="Override one config field, e.g. --set terrain.control_points_x=15 (repeatable).",
     )(func)
     return click.option(
-        "--config", "config_path", type=click.Path(dir_okay=False), default=None, help="TOML config file."
+        "--config", "config_path", type=click.Path(dir_okay=False), multiple=True, callback=_one_config,
+        help="TOML config file.",
     )(func)
+
+
+def _one_config(ctx: click.Context, param: click.Parameter, values: tuple[str, ...]) -> str | None:
+    """The ``--config`` file, refusing a second one (click would keep the last silently)."""
+    if len(values) > 1:
+        raise click.BadParameter(f"given {len(values)} times; give one file, and --set for single fields")
+    return values[0] if values else None

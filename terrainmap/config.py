@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 import tomllib
 from dataclasses import dataclass, field, fields
 from pathlib import Path
@@ -794,12 +795,18 @@ def _toml_value(value: Any) -> str:
     return repr(value)
 
 
+_DECIMAL = re.compile(r"[+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?", re.ASCII)
+"""A number as ``--set`` takes it: what TOML writes, without Python's ``1_0`` or non-ASCII digits."""
+
+
 def _coerce(section: str, name: str, current: Any, value: Any, text: bool) -> Any:
     """Convert ``value`` to the type of ``current``: from a ``--set`` string when ``text``, else a
     TOML value, which must already have the field's kind (a quoted "0.5" is no number)."""
     key = f"{section}.{name}"
     try:
         if not text and isinstance(value, str) != isinstance(current, str):
+            raise ValueError
+        if text and type(current) in (int, float) and not _DECIMAL.fullmatch(value.strip()):
             raise ValueError
         if isinstance(current, bool):
             if isinstance(value, str):
@@ -825,6 +832,8 @@ def _coerce(section: str, name: str, current: Any, value: Any, text: bool) -> An
         if isinstance(current, (tuple, list)):
             items = value.split(",") if text else list(value)
             return type(current)(_coerce(section, name, current[0], v, text) for v in items)
+        if text and len(value) > 1 and value[0] == value[-1] and value[0] in "\"'":  # TOML's quoting, as in a file
+            value = value[1:-1]
         return str(value)
     except (TypeError, ValueError, OverflowError):
         kind = _KINDS[type(current).__name__][1]

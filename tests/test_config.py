@@ -47,6 +47,8 @@ def test_toml_round_trip_and_overrides(tmp_path):
         ("terrain.weight_max=1e308", r"terrain.weight_max: must be in \(1, 1e6\]"),
         ("terrain.smoothness=1e300", r"terrain.smoothness: must be in \(0, 1000\]"),
         ("grid.cell_size_m=nan", "cannot use 'nan'"),
+        ("grid.cell_size_m=0_5", "grid.cell_size_m: cannot use '0_5', expected a number"),  # Python's float() reads 5
+        ("terrain.degree=\uff13", "terrain.degree: cannot use '\uff13', expected an integer"),  # a full-width 3
         ("grid.stereo_noise_px=-0.5", "grid.stereo_noise_px: must be >= 0"),
         ("mcap.max_points=-1", r"mcap.max_points: must be >= 0 \(0: every point\)"),
         ("segmentation.below_tolerance_px=-1", "segmentation.below_tolerance_px: must be >= 0"),
@@ -79,6 +81,11 @@ def test_toml_round_trip_and_overrides(tmp_path):
 def test_bad_values_name_the_field(override, message):
     with pytest.raises(ConfigError, match=message):
         load_config(overrides=[override])
+
+
+def test_a_string_set_may_be_quoted_as_in_toml():
+    assert load_config(overrides=['stereo.mode="sgbm"']).stereo.mode == "sgbm"
+    assert load_config(overrides=["stereo.mode='sgbm'"]).stereo.mode == "sgbm"
 
 
 def test_a_whole_number_written_with_a_point_is_an_integer_in_set_as_in_toml(tmp_path):
