@@ -312,6 +312,9 @@ def test_a_report_written_through_a_symbolic_link_keeps_the_link(tmp_path):
      "Error: --left-topic is for the log of --base; give --base too (see 'terrainmap eval artificial-obstacle --help')"),
     (["bench", "--runs", "1", "--right-topic", "/x", "--pair-tolerance-ms", "5"],
      "Error: --right-topic, --pair-tolerance-ms are for the log of --log; give --log too (see 'terrainmap bench --help')"),
+    (["config", "--config", "a.toml", "--config", "b.toml"],  # click would keep b.toml alone
+     "Error: Invalid value for '--config': given 2 times; give one file, and --set for single fields "
+     "(see 'terrainmap config --help')"),
     (["process", "x.mcap", "-o", ""],
      "Error: Invalid value for '-o' / '--output': must name a file, got an empty path (see 'terrainmap process --help')"),
 ])
