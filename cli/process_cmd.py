@@ -48,7 +48,9 @@ def process(log, output, flavor, compression, rrd, overwrite, source_opts, confi
     and write elevation, slope, labels, obstacles and cost to an MCAP (and optionally Rerun)."""
     from terrainmap import runner
     from terrainmap.sinks import open_mcap_sink
+    from terrainmap.sources import log_path
 
+    log = log_path(log)  # a rosbag2's metadata.yaml: its folder, for the default output's name too
     config = load_config(config_path, overrides)
     if output is None:  # a given -o was checked writable with the options; the default is checked here
         output = default_output(log)

@@ -236,6 +236,12 @@ def test_rosbag2_directory_of_several_files(tmp_path):
         info = source.describe()
         assert info["format"] == "rosbag2" and len(info["files"]) == 2 and info["frames"] == 4
         assert len(list(source.frames())) == 4
+    with open_source(bag / "metadata.yaml") as source:  # its metadata.yaml stands for it, as in `ros2 bag`
+        assert source.describe()["files"] == info["files"]
+    from terrainmap.cli.process_cmd import default_output
+    from terrainmap.sources import log_path
+
+    assert default_output(log_path(bag / "metadata.yaml")) == tmp_path / "bag.terrain.mcap"  # beside the folder
 
 
 def test_a_listed_file_missing_from_a_rosbag2_directory_is_damage(tmp_path, caplog):

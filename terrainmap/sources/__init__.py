@@ -20,7 +20,8 @@
 ``folder``         ``left/``, ``right/``, ``calibration.yaml`` (format in :mod:`.calibration`)
 =================  ===================================================================
 
-A directory of ``.mcap`` files without ``metadata.yaml`` that no layout above matches is read as a
+A rosbag2's ``metadata.yaml`` stands for its folder (:func:`log_path`). A directory of ``.mcap``
+files without ``metadata.yaml`` that no layout above matches is read as a
 rosbag2 whose recording was cut before it wrote its metadata (its files in name order); a stray
 ``.mcap`` in an image folder does not make the folder a log.
 
@@ -55,12 +56,19 @@ SOURCES: tuple[type[Source], ...] = (
 )
 """The registry: source classes in the order :func:`open_source` tries them."""
 
-__all__ = ["SOURCES", "Source", "open_source", "source_class"]
+__all__ = ["SOURCES", "Source", "log_path", "open_source", "source_class"]
+
+
+def log_path(path: str | Path) -> Path:
+    """``path``, or the rosbag2 folder where ``path`` is its ``metadata.yaml`` (as ``ros2 bag``
+    takes either)."""
+    path = Path(path)
+    return path.parent if path.name == "metadata.yaml" and path.is_file() else path
 
 
 def source_class(path: str | Path) -> type[Source]:
     """The source class that reads ``path`` (path guessing only, nothing is opened)."""
-    path = Path(path)
+    path = log_path(path)
     if not path.exists():
         raise InputError(f"{path}: does not exist")
     for cls in SOURCES:
@@ -104,6 +112,7 @@ def open_source(
     """
     if isinstance(pair_tolerance_ns, bool) or not isinstance(pair_tolerance_ns, numbers.Integral) or pair_tolerance_ns < 0:
         raise ConfigError(f"pair tolerance must be a whole number of nanoseconds ≥ 0, got {pair_tolerance_ns!r}")
+    path = log_path(path)
     cls = source_class(path)
     if issubclass(cls, LogSource):
         return cls(path, left_topic=left_topic, right_topic=right_topic, calibration=calibration,
