@@ -44,8 +44,11 @@ def test_rectified_uncompressed_pair_is_preferred():
 def test_unrelated_topics_do_not_pair():
     assert side_tokens("/front/image", "/rear/image") is None
     assert side_tokens("/cam0/image", "/cam0/depth") is None
-    with pytest.raises(InputError, match="log: no stereo image topics found.*/front/image"):
+    with pytest.raises(InputError, match="log: no stereo image topics found.*/front/image.*; give --left-topic and "
+                       "--right-topic$"):
         stereo_topics({"/front/image": IMAGE, "/rear/image": IMAGE}, None, None, "log")
+    with pytest.raises(InputError, match=r"topics: /front/image \[.*\]\)$"):  # one image topic: nothing to give
+        stereo_topics({"/front/image": IMAGE}, None, None, "log")
 
 
 def test_calibration_topic_by_namespace():

@@ -73,9 +73,9 @@ def stereo_topics(
     pairs = [(a, b) for a in images for b in images if types[a] == types[b] and side_tokens(a, b)]
     if not pairs:
         everything = ", ".join(f"{t} [{k}]" for t, k in sorted(types.items())) or "none"
+        hint = "; give --left-topic and --right-topic" if len(images) >= 2 else ""  # none to choose from else
         raise InputError(
-            f"{where}: no stereo image topics found (image topics: {listing}; all topics: {everything}); "
-            f"give --left-topic and --right-topic{video_note}"
+            f"{where}: no stereo image topics found (image topics: {listing}; all topics: {everything}){hint}{video_note}"
         )
     return min(pairs, key=lambda pair: _preference(*pair, types))
 
