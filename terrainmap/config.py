@@ -157,7 +157,8 @@ class TerrainConfig:
     eq. 1's samples with the stereo noise on the terrain's slope instead of level ground
     (decision 7 in :mod:`terrainmap.terrain`; 0: level ground throughout)."""
     epsilon_m: float = 0.005
-    """Stop early when no valid sample moved more than this in the last equalization."""
+    """Stop early when no valid sample moved more than this in the last equalization (0: never
+    early, every net up to the final one is fitted)."""
     smoothness: float = 1e-3
     """Weight of the second-difference penalty on control points, relative to the mean data
     weight per control point; keeps fits well-posed where knot spans hold no sample."""
@@ -191,7 +192,7 @@ class TerrainConfig:
         _check(self.equalize_tolerance_per_m >= 0, "terrain.equalize_tolerance_per_m", "must be >= 0")
         _check(self.trust_below_px >= 0, "terrain.trust_below_px", "must be >= 0")
         _check(0 <= self.slope_noise_iterations <= 100, "terrain.slope_noise_iterations", "must be in 0..100")
-        _check(self.epsilon_m > 0, "terrain.epsilon_m", "must be > 0")
+        _check(self.epsilon_m >= 0, "terrain.epsilon_m", f"must be >= 0 (0: never stop early), got {self.epsilon_m}")
         _check(0 < self.smoothness <= 1e3, "terrain.smoothness", f"must be in (0, 1000], got {self.smoothness}")
         _check(0 <= self.filled_weight <= 1, "terrain.filled_weight", "must be in [0, 1]")
         _check(self.min_valid_cells >= 0, "terrain.min_valid_cells", "must be >= 0")
@@ -887,6 +888,8 @@ def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str
             raise ConfigError(f"{path}: cannot read config file ({exc})") from None
         except tomllib.TOMLDecodeError as exc:
             raise ConfigError(f"{path}: not valid TOML ({exc})") from None
+        except RecursionError:
+            raise ConfigError(f"{path}: not valid TOML (values nested too deep)") from None
         apply_values(config, data, source=str(path))
     set_keys = set()
     for text in texts:

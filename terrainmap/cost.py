@@ -73,7 +73,10 @@ def traversability_cost(
     ------
     InputError
         A layer does not have the grid's shape.
+    ConfigError
+        ``config`` does not validate.
     """
+    config.validate()
     shape = grid_config.shape
     layers = {"elevation": elevation, "slope": slope, "valid": valid}
     if step is not None:

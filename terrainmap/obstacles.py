@@ -121,9 +121,14 @@ def terrain_at(x: np.ndarray, y: np.ndarray, elevation: np.ndarray, grid_config:
     between cell-centre values, (N,) float64.
 
     Exact where the terrain is a plane; points beyond the outermost cell centres take the
-    nearest value along that axis.
+    nearest value along that axis; non-finite points get NaN. :class:`InputError` if ``elevation``
+    is not (m0, m1) or x and y are not of one shape.
     """
-    return _Bilinear(elevation, grid_config)(x, y)
+    x, y = np.asarray(x, float), np.asarray(y, float)
+    check_shapes("terrain_at", grid_config.shape, elevation=elevation)
+    check_shapes("terrain_at", x.shape, y=y)
+    with np.errstate(invalid="ignore"):  # non-finite points: NaN, without numpy's warnings
+        return _Bilinear(elevation, grid_config)(x, y)
 
 
 class _Bilinear:

@@ -100,6 +100,9 @@ class StereoResult:
 
 PLAUSIBLE = {"fx": (1.0, 1e6, "pixels"), "fy": (1.0, 1e6, "pixels"), "baseline_m": (1e-3, 100.0, "m")}
 """Ranges that a stereo camera's focal lengths and baseline fall in (:func:`check_calibration`)."""
+MAX_SIDE_PX, MAX_PIXELS = 16384, 2**26
+"""The largest image a calibration may describe: the matcher's per-pixel tables (16 bytes a pixel)
+and SGBM's buffers are allocated for it before any image is seen."""
 
 
 def check_calibration(calibration: StereoCalibration, *, size_known: bool = True) -> StereoCalibration:
@@ -125,6 +128,9 @@ def check_calibration(calibration: StereoCalibration, *, size_known: bool = True
         raise CalibrationError(
             f"{name}: image size must be positive, got {calibration.width}×{calibration.height}"
         )
+    if max(calibration.width, calibration.height) > MAX_SIDE_PX or calibration.width * calibration.height > MAX_PIXELS:
+        raise CalibrationError(f"{name}: image size must be at most {MAX_SIDE_PX} px a side and {MAX_PIXELS} pixels "
+                               f"(a {MAX_PIXELS / 1e6:.0f} MP camera), got {calibration.width}×{calibration.height}")
     if not calibration.rectified:
         for field, shape in (("K_left", (3, 3)), ("K_right", (3, 3)), ("R", (3, 3)), ("T", (3,))):
             value = getattr(calibration, field)
@@ -265,6 +271,7 @@ class StereoMatcher:
         check_calibration(calibration)
         self.calibration = calibration
         self.config = replace(config or StereoConfig())  # a copy: same_setup sees a config changed in place
+        self.config.validate()  # a section built in code: ConfigError, not an OpenCV error
         n = disparity_range(self.config, calibration.width)
         if not (0 < self.config.min_disparity + n < calibration.width and n < calibration.width):
             raise CalibrationError(  # OpenCV would crash or search nothing that gives depth

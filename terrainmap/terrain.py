@@ -180,10 +180,13 @@ def estimate_terrain(grid: HeightGrid, config: TerrainConfig) -> TerrainEstimate
 
     Raises
     ------
+    ConfigError
+        ``config`` does not validate against the grid.
     FrameError
         ``too_few_cells`` if fewer cells are observed than the net needs; ``fit_failed`` if a fit
         cannot be solved.
     """
+    config.validate(grid.config)
     check_grid(grid, config)
     gcfg = grid.config
     xs, ys = cell_centers(gcfg)

@@ -71,9 +71,17 @@ class ObstacleTracker:
     config : TrackingConfig
     area : GridConfig, optional
         The grid area (vehicle frame); tracks whose predicted centre leaves it are dropped.
+
+    Raises
+    ------
+    ConfigError
+        ``config`` or ``area`` does not validate.
     """
 
     def __init__(self, config: TrackingConfig, *, area: GridConfig | None = None):
+        config.validate()
+        if area is not None:
+            area.validate()
         self.config = config
         self.area = area
         self._next_id = 1

@@ -12,6 +12,8 @@ from enum import IntEnum
 
 import numpy as np
 
+from .errors import InputError
+
 
 class Label(IntEnum):
     """Per-point and per-cell labels (uint8 in every output)."""
@@ -181,6 +183,17 @@ class StereoCamera:
     cx_px: float = 0.0
     width_px: int = 0
 
+    def __post_init__(self) -> None:
+        # Built once a frame: a rig of no baseline or a NaN centre would silently label every point terrain
+        vectors = {"center_m": self.center_m, "axis": self.axis, **({"right": self.right} if self.right is not None else {})}
+        for name, value in vectors.items():
+            if np.shape(value) != (3,) or not np.all(np.isfinite(value)):
+                raise InputError(f"StereoCamera: {name} must be 3 finite numbers, got {value!r}")
+        if not (np.isfinite(self.focal_baseline) and self.focal_baseline > 0) or not np.any(self.axis):
+            raise InputError(f"StereoCamera: needs focal_baseline > 0 and an axis, got {self.focal_baseline!r}, {self.axis!r}")
+        if self.right is not None and not (np.isfinite(self.fx_px) and self.fx_px > 0 and np.isfinite(self.cx_px)):
+            raise InputError(f"StereoCamera: fx_px must be > 0 and cx_px finite, got {self.fx_px!r}, {self.cx_px!r}")
+
     @classmethod
     def from_rig(
         cls, fx_px: float, baseline_m: float, extrinsics, cx_px: float | None = None, width_px: int = 0
@@ -210,7 +223,7 @@ class StereoCamera:
         ``u = cx + fx · (ρ·right)/(ρ·axis)``, ``cx`` for points not in front of the camera.
         Needs :attr:`has_image`."""
         if not self.has_image:
-            raise ValueError("StereoCamera.column needs the image's columns (from_rig with width_px)")
+            raise InputError("StereoCamera.column needs the image's columns (from_rig with width_px)")
         rx, ry, rz, depth = self._ray(x, y, z)
         across = rx * self.right[0] + ry * self.right[1] + rz * self.right[2]
         with np.errstate(divide="ignore", invalid="ignore"):

@@ -4,6 +4,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from terrainmap.config import Config, GridConfig, SegmentationConfig
+from terrainmap.errors import InputError
 from terrainmap.grid import cell_centers, cell_index, quantize
 from terrainmap.pipeline import map_points
 from terrainmap.segmentation import (
@@ -201,7 +202,7 @@ def test_column_is_where_a_point_appears_in_the_image():
     depth = (point - camera.center_m) @ camera.axis
     assert camera.column(*point) == pytest.approx(319.5 + 500.0 * 5.0 / depth)
     assert camera.column(-5.0, 0.0, 0.0) == pytest.approx(319.5)  # behind the camera: the centre
-    with pytest.raises(ValueError):
+    with pytest.raises(InputError, match="StereoCamera.column needs the image"):
         CAMERA.column(*point)  # no image given
     assert StereoCamera.from_rig(500.0, 0.3, CAMERA_POSE, width_px=640).cx_px == 319.5  # the centre by default
 

@@ -252,6 +252,9 @@ UNRECTIFIED = {"rectified": False, "K_left": _K, "K_right": _K, "dist_left": np.
         ({"baseline_m": -0.3}, r"baseline_m must be > 0, got -0.3 \(left and right swapped\?\)"),
         ({"fx": 0.0}, "fx must be > 0"),
         ({"fy": float("nan")}, "fy must be > 0"),
+        ({"width": 100_000, "height": 100_000},  # refused before 37 GiB of per-pixel tables are allocated
+         r"calib.yaml: image size must be at most 16384 px a side and 67108864 pixels \(a 67 MP camera\), got 100000×100000"),
+        ({"width": 10_000, "height": 10_000}, "image size must be at most"),
         ({"rectified": False}, "rectified is false, so K_left"),
         ({**UNRECTIFIED, "R": np.arange(9.0).reshape(3, 3)}, "R must be a rotation matrix"),
         ({**UNRECTIFIED, "K_left": np.zeros((3, 3))}, "K_left must be a camera matrix"),

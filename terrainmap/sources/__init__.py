@@ -69,7 +69,11 @@ def log_path(path: str | Path) -> Path:
 def source_class(path: str | Path) -> type[Source]:
     """The source class that reads ``path`` (path guessing only, nothing is opened)."""
     path = log_path(path)
-    if not path.exists():
+    try:
+        exists = path.exists()
+    except OSError as exc:  # e.g. a name longer than the file system allows
+        raise InputError(f"{path}: cannot be read ({exc.strerror})") from None
+    if not exists:
         raise InputError(f"{path}: does not exist")
     for cls in SOURCES:
         if cls.matches(path):

@@ -217,7 +217,8 @@ def _load_table(path: Path) -> dict:
         if path.suffix.lower() == ".toml":
             return tomllib.loads(path.read_text())
         data = yaml.safe_load(path.read_text())
-    except (OSError, UnicodeDecodeError, yaml.YAMLError, tomllib.TOMLDecodeError) as exc:
+    except (OSError, UnicodeDecodeError, yaml.YAMLError, tomllib.TOMLDecodeError, RecursionError) as exc:
+        # RecursionError: lists nested thousands deep
         reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise CalibrationError(f"{path}: cannot parse the calibration file ({reason})") from None
     if not isinstance(data, dict):

@@ -328,7 +328,7 @@ def bag_metadata(path: Path) -> dict:
         if isinstance(info, dict):
             return info
         raise ValueError("no rosbag2_bagfile_information mapping in it")
-    except (OSError, ValueError, yaml.YAMLError) as exc:
+    except (OSError, ValueError, yaml.YAMLError, RecursionError) as exc:  # RecursionError: nested thousands deep
         if metadata not in _WARNED:  # once per file: several readers look at it
             _WARNED.add(metadata)
             logger.warning("%s: unreadable (%s)", metadata, _reason(exc))

@@ -1,0 +1,76 @@
+"""Bad input to the library's entry points raises terrainmap's own errors, naming what is wrong,
+instead of an error from numpy, OpenCV or Python deep inside (found by fuzzing the public API)."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from terrainmap.config import Config, GridConfig, StereoConfig, load_config
+from terrainmap.cost import traversability_cost
+from terrainmap.errors import ConfigError, InputError
+from terrainmap.grid import quantize
+from terrainmap.obstacles import terrain_at
+from terrainmap.sources import open_source
+from terrainmap.sources.calibration import terrainmap_calibration
+from terrainmap.stereo import StereoMatcher
+from terrainmap.synthetic import cloud
+from terrainmap.terrain import estimate_terrain
+from terrainmap.tracking import ObstacleTracker
+from terrainmap.types import StereoCalibration, StereoCamera
+
+C = Config()
+AXIS, UP = np.array([1.0, 0.0, 0.0]), np.array([0.0, 0.0, 1.8])
+
+
+@pytest.mark.parametrize(("args", "message"), [
+    ((UP, AXIS, 0.0), "StereoCamera: needs focal_baseline > 0"),  # labelled every point terrain
+    ((UP, np.zeros(3), 150.0), "StereoCamera: needs focal_baseline > 0 and an axis"),
+    ((np.array([0.0, 0.0, np.nan]), AXIS, 150.0), "StereoCamera: center_m must be 3 finite numbers"),
+    ((UP, AXIS[:2], 150.0), "StereoCamera: axis must be 3 finite numbers"),
+    ((UP, AXIS, 150.0, np.array([0.0, -1.0, 0.0]), 0.0), "StereoCamera: fx_px must be > 0"),
+])
+def test_a_stereo_camera_is_checked(args, message):
+    with pytest.raises(InputError, match=message):
+        StereoCamera(*args)
+
+
+def test_terrain_at_needs_the_grids_elevation_and_matching_points():
+    with pytest.raises(InputError, match=r"terrain_at: elevation must have shape \(68, 44\), got \(5, 5\)"):
+        terrain_at(np.array([30.0]), np.array([8.0]), np.zeros((5, 5)), C.grid)  # read the wrong grid before
+    with pytest.raises(InputError, match=r"terrain_at: y must have shape \(2,\), got \(1,\)"):
+        terrain_at(np.array([1.0, 2.0]), np.array([1.0]), np.zeros(C.grid.shape), C.grid)
+    with np.errstate(all="raise"):  # no numpy warning for a point at infinity: NaN
+        assert np.isnan(terrain_at(np.array([np.inf]), np.array([0.0]), np.ones(C.grid.shape), C.grid)).all()
+
+
+def test_sections_built_in_code_are_checked_where_they_are_used():
+    points = cloud(20_000, grid=C.grid)
+    with pytest.raises(ConfigError, match="grid.cell_size_m: must be > 0"):
+        quantize(points, dataclasses.replace(C.grid, cell_size_m=0.0))  # ZeroDivisionError before
+    grid = quantize(points, C.grid)
+    with pytest.raises(ConfigError, match="terrain.control_points_x"):
+        estimate_terrain(grid, dataclasses.replace(C.terrain, control_points_x=2))
+    with pytest.raises(ConfigError, match="tracking.gate_m: must be > 0, got nan"):
+        ObstacleTracker(dataclasses.replace(C.tracking, gate_m=float("nan")))  # never associated before
+    with pytest.raises(ConfigError, match="grid.length_m"):
+        ObstacleTracker(C.tracking, area=GridConfig(length_m=-34.0))
+    zeros = np.zeros(C.grid.shape)
+    with pytest.raises(ConfigError, match="cost.max_step_m: must be > 0"):  # NaN cost everywhere before
+        traversability_cost(zeros, zeros, zeros > -1, C.grid, [], dataclasses.replace(C.cost, max_step_m=0.0), step=zeros)
+    calibration = StereoCalibration(64, 48, 100.0, 100.0, 32.0, 24.0, 0.5)
+    with pytest.raises(ConfigError, match="stereo.mode"):
+        StereoMatcher(calibration, dataclasses.replace(StereoConfig(), mode="x"))  # KeyError before
+
+
+def test_files_nested_too_deep_and_names_too_long_are_input_errors(tmp_path):
+    deep = tmp_path / "calibration.yaml"
+    deep.write_text("a: " + "[" * 5000 + "]" * 5000 + "\n")
+    with pytest.raises(InputError, match="calibration.yaml: cannot parse the calibration file"):
+        terrainmap_calibration(deep)  # RecursionError before
+    toml = tmp_path / "deep.toml"
+    toml.write_text("[grid]\nx = " + "[" * 5000 + "]" * 5000 + "\n")
+    with pytest.raises(ConfigError, match=r"deep.toml: not valid TOML \(values nested too deep\)"):
+        load_config(toml)
+    with pytest.raises(InputError, match="cannot be read"):
+        open_source(tmp_path / ("a" * 300))  # OSError (file name too long) before
