@@ -104,7 +104,10 @@ def wrote_before_stopping(frames: int, paths) -> str:
 def refuse_overwriting_inputs(outputs: dict[str, Path | None], inputs: Iterable[str | Path | None]) -> None:
     """Raise a UsageError when an output (option name → path) is an input file (also through a
     link) or lies inside an input folder, or when two outputs are one file: a report must never
-    replace the data it reports on, nor another report."""
+    replace the data it reports on, nor another report. A rosbag2's metadata.yaml stands for its
+    folder, as for the sources."""
+    from terrainmap.sources import log_path
+
     given = {option: Path(path).resolve() for option, path in outputs.items() if path is not None}
     for (a, path), (b, other) in itertools.combinations(given.items(), 2):
         if path == other:
@@ -113,7 +116,7 @@ def refuse_overwriting_inputs(outputs: dict[str, Path | None], inputs: Iterable[
         if path is None:
             continue
         target = Path(path).resolve()
-        for source in (Path(p) for p in inputs if p is not None):
+        for source in (log_path(p) for p in inputs if p is not None):
             same = target.exists() and source.exists() and os.path.samefile(target, source)
             if same or target == source.resolve():
                 raise click.UsageError(f"{option} {path} would overwrite the input {source}")

@@ -57,8 +57,9 @@ class SourceOptions:
     def require(self, source, option: str) -> None:
         """Refuse the open options (UsageError) when ``source``, the value of ``option`` that they
         apply to, is not given: they would be ignored."""
-        defaults = SourceOptions()
-        given = [f"--{name.replace('_', '-')}" for name in _OPEN_NAMES if getattr(self, name) != getattr(defaults, name)]
+        ctx = click.get_current_context()
+        given = [f"--{name.replace('_', '-')}" for name in _OPEN_NAMES
+                 if ctx.get_parameter_source(name) not in (None, click.core.ParameterSource.DEFAULT)]
         if given and not source:
             raise click.UsageError(f"{', '.join(given)} {'is' if len(given) == 1 else 'are'} for the log of {option}; "
                                    f"give {option} too")

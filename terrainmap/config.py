@@ -34,11 +34,11 @@ MAX_CELLS_PER_AXIS = 2000
 """Upper bound on m0 and m1 (a 1 km square at 0.5 m): beyond it a grid is a typo, not a map."""
 MAX_OFFSET_M = 10_000.0
 """Upper bound on the area's offsets and height limits from the vehicle, metres: likewise."""
-NUMBER_RANGE = (1e-9, 1e6)
-"""The magnitudes a float field may take besides 0 (every field's unit: m, px, s, degrees or
-none): beyond them a value is a typo, and squares or quotients of it overflow mid-run."""
-MAX_INT = 2**31 - 1
-"""Upper bound on the magnitude of an integer field (OpenCV's matcher takes C ints)."""
+MAX_NUMBER = 1e6
+"""Upper bound on the magnitude of a float field (its unit m, px, s, degrees or none): beyond it a
+value is a typo, and squares or products of it overflow mid-run."""
+INT_RANGE = (-(2**31), 2**31 - 1)
+"""The range of an integer field: a C int, as OpenCV's matcher takes them."""
 
 
 @dataclass
@@ -187,7 +187,7 @@ class TerrainConfig:
         _check(self.threshold_factor > 0, "terrain.threshold_factor", "must be > 0")
         _check(self.threshold_min_m > 0, "terrain.threshold_min_m", "must be > 0")
         _check(self.alpha_per_iteration > 0, "terrain.alpha_per_iteration", "must be > 0")
-        _check(0 < self.control_weight_min <= 1, "terrain.control_weight_min", "must be in (0, 1]")
+        _check(1e-6 <= self.control_weight_min <= 1, "terrain.control_weight_min", "must be in [1e-6, 1]")
         _check(self.equalize_tolerance_m >= 0, "terrain.equalize_tolerance_m", "must be >= 0")
         _check(self.equalize_tolerance_per_m >= 0, "terrain.equalize_tolerance_per_m", "must be >= 0")
         _check(self.trust_below_px >= 0, "terrain.trust_below_px", "must be >= 0")
@@ -296,7 +296,8 @@ class SegmentationConfig:
         _check(self.upright_min_height_m > 0, "segmentation.upright_min_height_m", "must be > 0")
         _check(self.upright_min_ground_gradient > 0, "segmentation.upright_min_ground_gradient", "must be > 0")
         _check(self.upright_above_m >= 0, "segmentation.upright_above_m", "must be >= 0")
-        _check(self.upright_min_range_m >= 0, "segmentation.upright_min_range_m", "must be >= 0")
+        value = self.upright_min_range_m
+        _check(value == 0 or value >= 0.01, "segmentation.upright_min_range_m", f"must be 0 or >= 0.01 m, got {value}")
         _check(0 <= self.edge_margin_m <= 10, "segmentation.edge_margin_m", "must be in [0, 10]")
         _check(0 < self.side_band <= 0.5, "segmentation.side_band", "must be in (0, 0.5]")
         _check(0 <= self.side_gain <= 100, "segmentation.side_gain", "must be in [0, 100]")
@@ -476,7 +477,7 @@ class StereoConfig:
             "stereo.mode",
             f"must be one of sgbm, hh, sgbm_3way, hh4, got {self.mode!r}",
         )
-        _check(0 < self.min_range_m < self.max_range_m, "stereo.min_range_m", "must be in (0, max_range_m)")
+        _check(0.01 <= self.min_range_m < self.max_range_m, "stereo.min_range_m", "must be in [0.01 m, max_range_m)")
         _check(self.max_range_m <= MAX_OFFSET_M, "stereo.max_range_m", f"must be at most {MAX_OFFSET_M:g} m")
         _check(self.min_texture >= 0, "stereo.min_texture", "must be >= 0")
         _check(
@@ -726,14 +727,7 @@ class Config:
     def validate(self) -> Config:
         """Check every section; raise :class:`ConfigError` naming the first bad field."""
         for section in fields(self):
-            _check_kinds(section.name, getattr(self, section.name))
-        self.grid.validate()
-        self.terrain.validate(self.grid)
-        self.segmentation.validate()
-        for section in (self.stereo, self.extrinsics, self.obstacles, self.tracking, self.cost, self.mcap, self.rerun):
-            section.validate()
-        for section in fields(self):
-            _check_magnitudes(section.name, getattr(self, section.name))
+            check_section(getattr(self, section.name), self.grid)
         return self
 
     def to_dict(self) -> dict[str, dict[str, Any]]:
@@ -749,9 +743,31 @@ class Config:
         return "\n".join(lines)
 
 
+_SECTION_NAMES = {f.default_factory: f.name for f in fields(Config)}
+"""Section class → its name in a config (``GridConfig`` → ``grid``), for messages."""
+
 _KINDS = {"bool": ((bool,), "true or false"), "int": ((int,), "an integer"), "float": ((int, float), "a number"),
           "str": ((str,), "a string")}
 """Declared field type → (accepted Python types, how a message names it)."""
+
+
+def check_section(section: Any, grid: GridConfig | None = None) -> None:
+    """What :meth:`Config.validate` checks of one section, for a section used on its own (the
+    stage functions take one): kinds and finite numbers, its own ranges (the terrain's against
+    ``grid``), then :data:`MAX_NUMBER` and :data:`INT_RANGE`, so that a field with a range of its
+    own names it. :class:`ConfigError` naming the first bad field."""
+    name = _SECTION_NAMES[type(section)]
+    _check_kinds(name, section)
+    if isinstance(section, TerrainConfig):
+        section.validate(grid)
+    else:
+        section.validate()
+    for f in fields(section):
+        value, kind = getattr(section, f.name), str(f.type)
+        if kind == "float" and abs(value) > MAX_NUMBER:
+            raise ConfigError(f"{name}.{f.name}: must be at most {MAX_NUMBER:g} in magnitude, got {value!r}")
+        if kind == "int" and not INT_RANGE[0] <= value <= INT_RANGE[1]:
+            raise ConfigError(f"{name}.{f.name}: must be within {INT_RANGE[0]}..{INT_RANGE[1]}, got {value!r}")
 
 
 def _check_kinds(name: str, section: Any) -> None:
@@ -765,23 +781,10 @@ def _check_kinds(name: str, section: Any) -> None:
             value = value.item()
             setattr(section, f.name, value)
         types, what = _KINDS[kind]
-        ok = isinstance(value, types) and (kind == "bool" or not isinstance(value, bool))
-        _check(ok, f"{name}.{f.name}", f"must be {what}, got {value!r}")
-        if kind == "float":
-            _check(math.isfinite(value), f"{name}.{f.name}", f"must be finite, got {value!r}")
-
-
-def _check_magnitudes(name: str, section: Any) -> None:
-    """Every number of ``section`` within :data:`NUMBER_RANGE` (floats) or :data:`MAX_INT` (ints):
-    checked after the sections' own ranges, so that a field with one names it."""
-    low, high = NUMBER_RANGE
-    for f in fields(section):
-        value, kind = getattr(section, f.name), str(f.type)
-        if kind == "float":
-            _check(value == 0 or low <= abs(value) <= high, f"{name}.{f.name}",
-                   f"must be 0 or of magnitude {low:g} to {high:g}, got {value!r}")
-        elif kind == "int":
-            _check(abs(value) <= MAX_INT, f"{name}.{f.name}", f"must be within ±{MAX_INT}, got {value!r}")
+        if not isinstance(value, types) or (kind != "bool" and isinstance(value, bool)):
+            raise ConfigError(f"{name}.{f.name}: must be {what}, got {value!r}")
+        if kind == "float" and not math.isfinite(value):
+            raise ConfigError(f"{name}.{f.name}: must be finite, got {value!r}")
 
 
 def _toml_value(value: Any) -> str:
@@ -796,19 +799,22 @@ def _toml_value(value: Any) -> str:
     return repr(value)
 
 
-_DECIMAL = re.compile(r"[+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?", re.ASCII)
-"""A number as ``--set`` takes it: what TOML writes, without Python's ``1_0`` or non-ASCII digits."""
+_DECIMAL = re.compile(r"[+-]?((0|[1-9](_?\d)*)(\.(\d(_?\d)*)?)?|\.\d(_?\d)*)([eE][+-]?\d(_?\d)*)?", re.ASCII)
+"""A number as ``--set`` takes it: as TOML writes numbers (``100_000``, no leading zero, so not
+``0_5``, which Python's float() reads as 5; ASCII digits only), and ``.5`` or ``5.`` too."""
 
 
 def _coerce(section: str, name: str, current: Any, value: Any, text: bool) -> Any:
     """Convert ``value`` to the type of ``current``: from a ``--set`` string when ``text``, else a
     TOML value, which must already have the field's kind (a quoted "0.5" is no number)."""
-    key = f"{section}.{name}"
+    key, given = f"{section}.{name}", value
     try:
         if not text and isinstance(value, str) != isinstance(current, str):
             raise ValueError
-        if text and type(current) in (int, float) and not _DECIMAL.fullmatch(value.strip()):
-            raise ValueError
+        if text and type(current) in (int, float):
+            if not _DECIMAL.fullmatch(value.strip()):
+                raise ValueError
+            value = value.replace("_", "")
         if isinstance(current, bool):
             if isinstance(value, str):
                 if value.lower() not in ("true", "false", "1", "0", "yes", "no"):
@@ -838,7 +844,7 @@ def _coerce(section: str, name: str, current: Any, value: Any, text: bool) -> An
         return str(value)
     except (TypeError, ValueError, OverflowError):
         kind = _KINDS[type(current).__name__][1]
-        raise ConfigError(f"{key}: cannot use {value!r}, expected {kind}") from None
+        raise ConfigError(f"{key}: cannot use {given!r}, expected {kind}") from None
 
 
 def apply_values(config: Config, values: dict[str, Any], source: str = "config", *, text: bool = False) -> Config:

@@ -30,7 +30,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
-from .config import CostConfig, GridConfig
+from .config import CostConfig, GridConfig, check_section
 from .errors import InputError
 from .grid import check_shapes
 from .types import Obstacle
@@ -76,7 +76,7 @@ def traversability_cost(
     ConfigError
         ``config`` does not validate.
     """
-    config.validate()
+    check_section(config)
     shape = grid_config.shape
     layers = {"elevation": elevation, "slope": slope, "valid": valid}
     if step is not None:

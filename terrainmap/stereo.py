@@ -29,7 +29,7 @@ from functools import lru_cache
 import cv2
 import numpy as np
 
-from .config import StereoConfig
+from .config import StereoConfig, check_section
 from .errors import CalibrationError, InputError
 from .extrinsics import is_rotation
 from .types import Extrinsics, StereoCalibration, StereoCamera
@@ -271,7 +271,7 @@ class StereoMatcher:
         check_calibration(calibration)
         self.calibration = calibration
         self.config = replace(config or StereoConfig())  # a copy: same_setup sees a config changed in place
-        self.config.validate()  # a section built in code: ConfigError, not an OpenCV error
+        check_section(self.config)  # a section built in code: ConfigError, not an OpenCV error
         n = disparity_range(self.config, calibration.width)
         if not (0 < self.config.min_disparity + n < calibration.width and n < calibration.width):
             raise CalibrationError(  # OpenCV would crash or search nothing that gives depth

@@ -75,7 +75,7 @@ from functools import lru_cache
 import numpy as np
 
 from .bspline import RationalSurface, TensorFit, clamped_knots
-from .config import GridConfig, TerrainConfig
+from .config import GridConfig, TerrainConfig, check_section
 from .errors import FrameError, InputError
 from .grid import HeightGrid, cell_centers
 
@@ -186,7 +186,7 @@ def estimate_terrain(grid: HeightGrid, config: TerrainConfig) -> TerrainEstimate
         ``too_few_cells`` if fewer cells are observed than the net needs; ``fit_failed`` if a fit
         cannot be solved.
     """
-    config.validate(grid.config)
+    check_section(config, grid.config)
     check_grid(grid, config)
     gcfg = grid.config
     xs, ys = cell_centers(gcfg)

@@ -53,7 +53,7 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 from scipy.spatial import cKDTree
 
-from .config import GridConfig, TrackingConfig
+from .config import GridConfig, TrackingConfig, check_section
 from .errors import InputError
 from .extrinsics import is_rotation
 from .types import Obstacle, StereoCamera
@@ -79,9 +79,9 @@ class ObstacleTracker:
     """
 
     def __init__(self, config: TrackingConfig, *, area: GridConfig | None = None):
-        config.validate()
+        check_section(config)
         if area is not None:
-            area.validate()
+            check_section(area)
         self.config = config
         self.area = area
         self._next_id = 1

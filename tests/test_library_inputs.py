@@ -51,8 +51,12 @@ def test_sections_built_in_code_are_checked_where_they_are_used():
     grid = quantize(points, C.grid)
     with pytest.raises(ConfigError, match="terrain.control_points_x"):
         estimate_terrain(grid, dataclasses.replace(C.terrain, control_points_x=2))
-    with pytest.raises(ConfigError, match="tracking.gate_m: must be > 0, got nan"):
+    with pytest.raises(ConfigError, match="tracking.gate_m: must be finite, got nan"):
         ObstacleTracker(dataclasses.replace(C.tracking, gate_m=float("nan")))  # never associated before
+    with pytest.raises(ConfigError, match="tracking.measurement_std_m: must be at most 1e"):
+        ObstacleTracker(dataclasses.replace(C.tracking, measurement_std_m=1e200))  # as Config.validate checks
+    with pytest.raises(ConfigError, match="grid.length_m: must be a number, got '34'"):
+        quantize(points, GridConfig(length_m="34"))
     with pytest.raises(ConfigError, match="grid.length_m"):
         ObstacleTracker(C.tracking, area=GridConfig(length_m=-34.0))
     zeros = np.zeros(C.grid.shape)

@@ -367,6 +367,9 @@ def test_outputs_never_replace_the_input_or_each_other(small_log, tmp_path):
     shutil.copy(small_log, folder / "bag_0.mcap")
     result = CliRunner().invoke(cli, ["process", str(folder), "-o", str(folder / "bag_0.mcap"), "--overwrite"])
     assert result.exit_code == 2 and "inside the input folder" in result.output
+    (folder / "metadata.yaml").write_text("rosbag2_bagfile_information:\n  relative_file_paths: [bag_0.mcap]\n")
+    result = CliRunner().invoke(cli, ["bench", "--log", str(folder / "metadata.yaml"), "--json", str(folder / "b.json")])
+    assert result.exit_code == 2 and "inside the input folder" in result.output  # the metadata stands for the bag
     (tmp_path / "hard.mcap").hardlink_to(log)
     result = CliRunner().invoke(cli, ["process", str(log), "-o", str(tmp_path / "hard.mcap"), "--overwrite"])
     assert result.exit_code == 2 and "would overwrite the input" in result.output  # a hard link too

@@ -69,8 +69,8 @@ class SimConfig:
         check(self.format in ("mcap", "folder"), "format", f"must be mcap or folder, got {self.format!r}")
         check(1 <= self.frames <= 100_000, "frames", f"must be in 1..100000, got {self.frames}")
         check(0 <= self.seed < 2**32, "seed", f"must be in 0..2^32-1, got {self.seed}")
-        # process's stereo matcher searches at least 16 px of disparity: narrower images leave too
-        # few columns for it (at 16 px none), so a log it could not use is refused here.
+        # process's stereo matcher searches at least 16 px of disparity, so at 16 px it has no column
+        # to match; 32 px leaves it 16 (whether they see terrain depends on the rig: the tests use 64×48).
         for name, low in (("width", 32), ("height", 16)):
             value = getattr(self, name)
             check(low <= value <= 4096, name, f"must be {low}..4096 pixels, got {value}")

@@ -72,7 +72,7 @@ def source_class(path: str | Path) -> type[Source]:
     try:
         exists = path.exists()
     except OSError as exc:  # e.g. a name longer than the file system allows
-        raise InputError(f"{path}: cannot be read ({exc.strerror})") from None
+        raise InputError(f"{path}: cannot be read ({exc.strerror or exc})") from None
     if not exists:
         raise InputError(f"{path}: does not exist")
     for cls in SOURCES:
