@@ -40,8 +40,8 @@ Decisions where the paper's text is garbled or silent, each with the property it
    of ``trust_below_px`` pixels moves a point there (:attr:`HeightGrid.height_per_px`): that
    grows with range, and a fixed band let far stereo noise hold the surface 10–20 cm under the
    terrain at 10–20 m. On KITTI 000005 trusting samples below keeps 69 % of the parked cars'
-   points labelled obstacle (61 % without; measured before ``segmentation.edge_margin_m``), where the surface would otherwise climb the
-   occluded kerb strips.
+   points labelled obstacle (61 % without; measured before ``segmentation.edge_margin_m``), where
+   the surface would otherwise climb the occluded kerb strips.
 6. **Stop.** The pseudo-code's loop condition is garbled; the text says the loop ends when the
    final net is reached *or* no sample was equalized in the last step. We stop when no valid
    sample moved more than ``epsilon_m`` or when the net grows to the final one — as in the
