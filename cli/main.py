@@ -54,8 +54,7 @@ class LazyGroup(click.Group):
 @click.pass_context
 def cli(ctx: click.Context, verbose: bool) -> None:
     """terrainmap: terrain maps from stereo camera logs (Broggi et al., rational B-splines)."""
-    ctx.obj = {"verbose": verbose}
-    _verbose[0] = verbose  # for main(), which outlives the context
+    ctx.ensure_object(dict)["verbose"] = verbose  # main() passes the dict in: it outlives the context
     if not verbose:  # OpenCV's and Rerun's own log lines (e.g. "[ERROR] ... IHDR" on a corrupt PNG, Rerun's
         os.environ.setdefault("OPENCV_LOG_LEVEL", "SILENT")  # on a full disk) would add to the one-line
         os.environ.setdefault("RUST_LOG", "off")  # error; both read at their import
@@ -69,17 +68,13 @@ def _signal_exit_code() -> int:
     return 128 + (GracefulStop.last_signal or signal.SIGINT)
 
 
-_verbose = [False]
-"""Whether the group's ``--verbose`` was given (as parsed: a file named ``-v`` is no flag)."""
-
-
 def main(argv: list[str] | None = None) -> None:
     """Run the CLI, turning library errors into one-line messages (exit code 2; with
     ``--verbose``, the traceback and exit code 2)."""
-    _verbose[0] = False
     GracefulStop.last_signal = None
+    options: dict = {}  # the group's --verbose, as parsed (a file named -v is no flag)
     try:
-        cli.main(args=argv, prog_name="terrainmap", standalone_mode=False)
+        cli.main(args=argv, prog_name="terrainmap", standalone_mode=False, obj=options)
     except click.exceptions.Abort:  # click's form of a KeyboardInterrupt outside a run's GracefulStop
         click.echo("Interrupted.", err=True)
         sys.exit(_signal_exit_code())
@@ -94,7 +89,7 @@ def main(argv: list[str] | None = None) -> None:
         exc.show()
         sys.exit(exc.exit_code)
     except TerrainmapError as exc:
-        if _verbose[0]:
+        if options.get("verbose"):
             traceback.print_exc()
         else:
             click.echo(f"Error: {exc}", err=True)
@@ -103,7 +98,7 @@ def main(argv: list[str] | None = None) -> None:
         click.echo("Interrupted.", err=True)
         sys.exit(_signal_exit_code())
     except OSError as exc:  # a report or plot that cannot be written (disk full, permissions)
-        if _verbose[0]:
+        if options.get("verbose"):
             traceback.print_exc()
         where = f"{exc.filename}: " if exc.filename else ""
         click.echo(f"Error: {where}{exc.strerror or exc}", err=True)
