@@ -12,7 +12,9 @@ import logging
 import os
 import signal
 import sys
+import threading
 import traceback
+from contextlib import contextmanager
 
 import click
 
@@ -68,13 +70,36 @@ def _signal_exit_code() -> int:
     return 128 + (GracefulStop.last_signal or signal.SIGINT)
 
 
+@contextmanager
+def _terminate_as_interrupt():
+    """While the CLI runs, SIGTERM ends it as Ctrl-C does ("Interrupted.", exit code 143) instead
+    of killing it silently: commands whose outputs are written whole or not at all (``eval``,
+    ``bench``) clean up their partial files on the way out. Runs that write as they go
+    (``process``, ``simulate``) take both signals over with :class:`GracefulStop` meanwhile. A
+    SIGTERM the process was started ignoring stays ignored; off the main thread nothing changes."""
+    if threading.current_thread() is not threading.main_thread() or signal.getsignal(signal.SIGTERM) is signal.SIG_IGN:
+        yield
+        return
+
+    def interrupt(signum, frame):
+        GracefulStop.last_signal = signum
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGTERM, interrupt)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
 def main(argv: list[str] | None = None) -> None:
     """Run the CLI, turning library errors into one-line messages (exit code 2; with
     ``--verbose``, the traceback and exit code 2)."""
     GracefulStop.last_signal = None
     options: dict = {}  # the group's --verbose, as parsed (a file named -v is no flag)
     try:
-        cli.main(args=argv, prog_name="terrainmap", standalone_mode=False, obj=options)
+        with _terminate_as_interrupt():
+            cli.main(args=argv, prog_name="terrainmap", standalone_mode=False, obj=options)
     except click.exceptions.Abort:  # click's form of a KeyboardInterrupt outside a run's GracefulStop
         click.echo("Interrupted.", err=True)
         sys.exit(_signal_exit_code())

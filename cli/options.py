@@ -136,16 +136,18 @@ def writing(path) -> Iterator[Path]:
     """A temporary path beside ``path``, with its suffix, for a library call to write (a plot);
     renamed to ``path`` once written whole (to the file it links to, where ``path`` is a symbolic
     link, which stays), and said so on stdout. An OSError (disk full) becomes one line naming
-    ``path``, which is left as it was."""
+    ``path``, which is left as it was; on any failure (an interrupt too) the temporary file goes."""
     path = Path(path)
     target = Path(os.path.realpath(path))
     partial = target.with_name(f".{target.stem}.partial{target.suffix}")
     try:
         yield partial
         partial.replace(target)
-    except OSError as exc:
+    except BaseException as exc:
         partial.unlink(missing_ok=True)
-        raise Failed(f"cannot write {path}: {exc.strerror or exc}") from exc
+        if isinstance(exc, OSError):
+            raise Failed(f"cannot write {path}: {exc.strerror or exc}") from exc
+        raise
     click.echo(f"wrote {path}")
 
 

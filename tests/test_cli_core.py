@@ -274,6 +274,27 @@ def test_an_output_that_cannot_be_written_is_named_and_leaves_no_partial_file(tm
         f"Error: {tmp_path / 's.mcap'}: cannot write the simulated log (No space left on device)")
 
 
+def test_sigterm_ends_a_command_like_ctrl_c_and_leaves_no_partial_report(tmp_path, monkeypatch, capsys):
+    """A supervisor's SIGTERM during `eval` (which has no graceful stop of its own) ends it with
+    "Interrupted." and exit code 143, not silently; the report being written is not left half
+    done, and SIGTERM's handler is given back afterwards."""
+    import signal
+    from pathlib import Path
+
+    def terminated(*args, **kwargs):
+        signal.raise_signal(signal.SIGTERM)
+
+    before = signal.getsignal(signal.SIGTERM)
+    monkeypatch.setattr(Path, "replace", terminated)  # the report's last step
+    with pytest.raises(SystemExit) as exc:
+        main(["eval", "artificial-obstacle", "--nets", "5", "--widths", "1", "--heights", "1",
+              "--json", str(tmp_path / "r.json")])
+    assert exc.value.code == 128 + signal.SIGTERM
+    assert capsys.readouterr().err.splitlines()[-1] == "Interrupted."
+    assert list(tmp_path.iterdir()) == []
+    assert signal.getsignal(signal.SIGTERM) is before
+
+
 def test_a_report_written_through_a_symbolic_link_keeps_the_link(tmp_path):
     """A report path that is a symbolic link: the file it links to gets the report, and the link
     stays a link (the report is written beside the target, then renamed onto it)."""
