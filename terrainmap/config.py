@@ -578,6 +578,13 @@ class ObstacleConfig:
     (on the 12 simulated drives 0.05 of 0.40 false obstacles per frame summed, and no true
     obstacle; 1.10 of 4.45 when it came). Taller clusters always stay: where the surface climbs a
     car or a truck, its cells are steep too (KITTI 000005)."""
+    max_points: int = 20000
+    """Where the clusters of one kind (above, below the terrain) hold more points than this in a
+    frame, the largest are thinned to one common size until they fit: their shapes, heights and
+    counts come from every k-th of their points (each standing for k), while smaller clusters
+    (poles, rocks) keep every point and the cells are joined from all. The stage's time then stays
+    bounded however dense the scene. The simulated drives put at most 15,150 points above the
+    terrain in a frame, so nothing is thinned there; KITTI 000005 puts 139,000. 0: no limit."""
 
     def validate(self) -> None:
         _check(self.min_height_m > 0, "obstacles.min_height_m", "must be > 0")
@@ -590,6 +597,7 @@ class ObstacleConfig:
         _check(0 <= self.split_min_part <= 1, "obstacles.split_min_part", "must be in [0, 1]")
         _check(self.tall_height_m > 0, "obstacles.tall_height_m", "must be > 0")
         _check(0 <= self.tall_min_share <= 1, "obstacles.tall_min_share", "must be in [0, 1]")
+        _check(self.max_points >= 0, "obstacles.max_points", "must be >= 0")
 
 
 @dataclass

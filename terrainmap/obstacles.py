@@ -190,6 +190,11 @@ def _clusters(
     # the points of clusters only, sorted by cluster, as contiguous float64 rows x, y, z.
     cid = np.append(cells.ravel(), 0)[idx] - 1
     keep = np.flatnonzero(cid >= 0)
+    # Past max_points, a thinned cluster keeps every stride-th point, each standing for stride
+    # (the cells were chosen from all): point counts below are the full cloud's.
+    stride = _thinning(np.bincount(cid[keep], minlength=n), config.max_points)
+    if stride.max() > 1:
+        keep = keep[keep % stride[cid[keep]] == 0]
     keep = keep[_by_cluster(cid[keep], n)]
     cid, idx = cid[keep], idx[keep]
     # take(): 5× faster than indexing rows with an array
@@ -198,14 +203,14 @@ def _clusters(
     ncells, in_cells = (np.bincount(cells.ravel(), w, n + 1)[1:] for w in (None, per_cell))
     split = None
     if config.split_gap_fraction > 0:
-        split = _split_at_gaps(x, y, Segments(cid, n), grid_config.cell_size_m, config)
+        split = _split_at_gaps(x, y, Segments(cid, n), grid_config.cell_size_m, config, stride)
     if split is not None:  # the points in their new order, without the dropped ones
         order, cut, parts = split
         kept = order[cut >= 0]
         x, y, z, idx, cid = x[kept], y[kept], z[kept], idx[kept], cut[cut >= 0]
         n = int(parts.sum())
         per = Segments(cid, n)
-        ncells, in_cells = np.repeat(ncells, parts), np.repeat(in_cells, parts)
+        ncells, in_cells, stride = (np.repeat(a, parts) for a in (ncells, in_cells, stride))
         for part in np.flatnonzero(np.repeat(parts > 1, parts)):  # the parts of a cut cluster may share cells
             present = np.unique(idx[per.run(part)])
             ncells[part], in_cells[part] = present.size, per_cell[present].sum()
@@ -215,13 +220,13 @@ def _clusters(
     if kind == "negative":
         height = -height
 
-    npts = per.sum()
+    npts = per.sum() * stride
     top = per.reduce(np.maximum, height)
     ok = (npts >= config.min_points) & (ncells >= config.min_cells) & (top >= min_height)
     if cell_counts is not None:  # tall objects hide the ground behind them (ObstacleConfig.tall_height_m)
         ok &= (top < config.tall_height_m) | (npts >= config.tall_min_share * in_cells)
     if steep is not None:  # low relief on ground the cost already forbids (drop_on_steep_ground)
-        on_steep = per.sum(np.asarray(steep, float).ravel()[idx])
+        on_steep = per.sum(np.asarray(steep, float).ravel()[idx]) * stride
         ok &= (top >= config.tall_height_m) | (2 * on_steep <= npts)
     if not ok.any():
         return []
@@ -232,8 +237,8 @@ def _clusters(
     k, npts, top = int(ok.sum()), npts[ok], top[ok]
 
     per = Segments(cid, k)
-    yaw, u, v = _principal_axes(x, y, per, npts)
-    (uc, u_half), (vc, v_half) = (_robust_extent(w, per, npts) for w in (u, v))
+    yaw, u, v = _principal_axes(x, y, per, per.counts)
+    (uc, u_half), (vc, v_half) = (_robust_extent(w, per, per.counts) for w in (u, v))
     cos, sin = np.cos(yaw), np.sin(yaw)
     cx, cy = uc * cos - vc * sin, uc * sin + vc * cos
     ground = terrain(cx, cy)
@@ -303,7 +308,7 @@ class Segments:
 
 
 def _split_at_gaps(
-    x: np.ndarray, y: np.ndarray, per: Segments, bin_m: float, config: ObstacleConfig
+    x: np.ndarray, y: np.ndarray, per: Segments, bin_m: float, config: ObstacleConfig, stride: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """Split clusters at least ``split_min_length_m`` long where their points thin out along the
     major axis, and drop the thin stretches.
@@ -314,7 +319,8 @@ def _split_at_gaps(
     gap when it holds at most ``split_gap_fraction`` of the lower of the two peaks around it (the
     fullest bins before and after it), a valley between two objects; each stretch between gaps
     that holds at least ``split_min_part`` of the cluster's points (and ``min_points``) becomes a
-    cluster of its own when there are two or more, and the other points are dropped.
+    cluster of its own when there are two or more, and the other points are dropped. A point of
+    cluster c stands for ``stride[c]`` points (:func:`_thinning`).
 
     ``per``: the points' clusters (sorted). Returns None when no cluster was cut, else
     ``(order, cid, parts)``: the permutation of the points that puts each cut cluster's parts one
@@ -323,7 +329,7 @@ def _split_at_gaps(
     of cluster c numbered from ``(parts[:c]).sum()``), and the clusters each cluster became (n,).
     """
     npts = per.sum()
-    _, u, _ = _principal_axes(x, y, per, npts, minor=False)
+    _, u, _ = _principal_axes(x, y, per, np.maximum(npts, 1), minor=False)  # (a cluster can be empty of sampled points)
     parts = np.ones(per.n, np.intp)
     cuts = []  # (cluster, part of each of its points, −1: dropped)
     for c in np.flatnonzero(per.reduce(np.maximum, u) - per.reduce(np.minimum, u) >= config.split_min_length_m):
@@ -335,7 +341,7 @@ def _split_at_gaps(
         dense = counts > config.split_gap_fraction * peak  # an end bin is its own peak: never a gap
         stretch = np.where(dense, np.cumsum(dense & np.diff(dense, prepend=False)) - 1, -1)  # per bin
         sizes = np.bincount(stretch[dense], counts[dense])  # points per stretch, counted by bin
-        kept = np.flatnonzero(sizes >= max(config.min_points, config.split_min_part * along.size))
+        kept = np.flatnonzero(sizes >= max(config.min_points / stride[c], config.split_min_part * along.size))
         if len(kept) < 2:
             continue
         part = np.full(sizes.size + 1, -1)  # [-1]: the gaps' bins
@@ -353,6 +359,23 @@ def _split_at_gaps(
         order[run] = run.start + local
         cid[run] = np.where(part < 0, -1, first[c] + part)[local]
     return order, cid, parts
+
+
+def _thinning(sizes: np.ndarray, budget: int) -> np.ndarray:
+    """Per cluster, the stride k (every k-th point kept, standing for k) that brings clusters of
+    ``sizes`` points ((n,) ints) within ``budget`` points together (0: no limit), (n,) int64: the
+    largest are thinned to one common size, the others (small obstacles) keep every point."""
+    stride = np.ones(sizes.size, np.int64)
+    if not budget or sizes.sum() <= budget:
+        return stride
+    s = np.sort(sizes)
+    whole = np.concatenate([[0], np.cumsum(s)[:-1]])  # points of the k smallest, k = 0 .. n-1
+    share = (budget - whole) / np.arange(s.size, 0, -1)  # for each of the other n - k
+    k = np.flatnonzero(share >= np.concatenate([[0], s[:-1]]))[-1]  # the most that fit whole
+    size = max(share[k], 1.0)
+    big = sizes > size
+    stride[big] = np.ceil(sizes[big] / size)
+    return stride
 
 
 def _robust_extent(w: np.ndarray, per: Segments, npts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

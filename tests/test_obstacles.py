@@ -417,3 +417,61 @@ def test_terrain_layers_of_the_wrong_shape_or_none_are_named():
     with pytest.raises(InputError, match=r"obstacles: cell_counts must have shape"):
         extract_obstacles(points, labels, GRID, None, ObstacleConfig(), elevation=np.zeros(GRID.shape),
                           cell_counts=np.zeros((3, 3)))
+
+
+def test_past_max_points_the_largest_clusters_are_thinned_alike():
+    """A dense frame (more points above the terrain than ``max_points``): the largest clusters'
+    shapes, heights and counts come from every k-th of their points and match those from all of
+    them, while a small obstacle keeps every point (the same box to the bit); under the cap
+    nothing changes. Smear cut off (the split) and the tall-share test work on the thinned points."""
+    import warnings
+    from dataclasses import replace
+
+    plane = Plane()
+    person = box_points(plane, (14.0, 3.0), 0.5, 0.5, 1.8, spacing=0.01)
+    car = box_points(plane, (22.0, 3.0), 4.0, 1.8, 1.5, spacing=0.03)
+    trail_x = np.repeat(np.arange(14.3, 20.0, 0.5), 60) + np.random.default_rng(0).uniform(-0.2, 0.2, 720)
+    trail = np.column_stack([trail_x, np.full_like(trail_x, 3.0), np.full_like(trail_x, 1.2)])
+    crate = box_points(plane, (10.0, -4.0), 1.2, 0.8, 1.0, spacing=0.02)
+    pole = box_points(plane, (16.0, -6.0), 0.2, 0.2, 1.5, spacing=0.1)
+    points, labels = labelled(plane, terrain_points(plane), person, car, trail, crate, pole)
+    counts = _cell_counts(points)
+    above = int((labels == Label.OBSTACLE).sum())
+    assert above > 10_000
+
+    def boxes(max_points):
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")  # clusters left with no point: no division warnings
+            found = extract_obstacles(points, labels, GRID, plane, replace(ObstacleConfig(), max_points=max_points),
+                                      cell_counts=counts)
+        return {(round(o.center_m[0]), round(o.center_m[1])): o for o in found}
+
+    full = boxes(0)
+    assert set(full) == {(14, 3), (22, 3), (10, -4), (16, -6)}  # the trail cut off
+    same = boxes(above)
+    for key, o in full.items():
+        assert (o.center_m.tolist(), o.size_m.tolist(), o.point_count) == (
+            same[key].center_m.tolist(), same[key].size_m.tolist(), same[key].point_count)
+    for cap in (5_000, 1_000):
+        thinned = boxes(cap)
+        assert set(thinned) == set(full)
+        for key, o in thinned.items():
+            np.testing.assert_allclose(o.center_m, full[key].center_m, atol=0.1)
+            np.testing.assert_allclose(o.size_m, full[key].size_m, atol=0.15)
+            assert o.height_m == pytest.approx(full[key].height_m, abs=0.05)
+            assert o.point_count == pytest.approx(full[key].point_count, rel=0.1)
+        small = thinned[(16, -6)]
+        assert (small.center_m.tolist(), small.point_count) == (full[(16, -6)].center_m.tolist(), full[(16, -6)].point_count)
+
+
+@pytest.mark.parametrize(("sizes", "budget", "strides"), [
+    ([10, 20, 30], 0, [1, 1, 1]),  # no limit
+    ([10, 20, 30], 60, [1, 1, 1]),  # they fit
+    ([10, 20, 300], 130, [1, 1, 3]),  # the largest thinned to the 100 left
+    ([10, 200, 300], 110, [1, 4, 6]),  # the two largest share 100: 50 each
+    ([500], 5, [100]),
+])
+def test_thinning_keeps_small_clusters_whole_and_fits_the_budget(sizes, budget, strides):
+    from terrainmap.obstacles import _thinning
+
+    assert _thinning(np.array(sizes), budget).tolist() == strides
