@@ -9,7 +9,7 @@ smear joins a near obstacle to one behind it (:func:`_split_at_gaps`). The point
 cluster once, and per-cluster statistics are reduced over each cluster's run of points at once
 (:class:`Segments`), so thousands of tiny clusters cost no Python loop; only the clusters that
 pass the filters become :class:`Obstacle` objects. Past ``max_points`` points of one kind, the
-largest clusters are measured on every k-th of their points (:func:`_thinning`), which bounds
+largest clusters are measured on about one in k of their points (:func:`_thinning`), which bounds
 the work on dense scenes (a street's house fronts) while small obstacles keep every point.
 
 Per cluster (vehicle frame, metres):
@@ -192,8 +192,9 @@ def _clusters(
     # the points of clusters only, sorted by cluster, as contiguous float64 rows x, y, z.
     cid = np.append(cells.ravel(), 0)[idx] - 1
     keep = np.flatnonzero(cid >= 0)
-    # Past max_points, a thinned cluster keeps every stride-th point, each standing for stride
-    # (the cells were chosen from all): point counts below are the full cloud's.
+    # Past max_points, a thinned cluster keeps the points whose position in the kind's points is a
+    # multiple of its stride, each standing for stride (the cells were joined from all): point
+    # counts below are the full cloud's.
     stride = _thinning(np.bincount(cid[keep], minlength=n), config.max_points)
     if stride.max() > 1:
         keep = keep[keep % stride[cid[keep]] == 0]
@@ -331,7 +332,7 @@ def _split_at_gaps(
     of cluster c numbered from ``(parts[:c]).sum()``), and the clusters each cluster became (n,).
     """
     npts = per.sum()
-    _, u, _ = _principal_axes(x, y, per, np.maximum(npts, 1), minor=False)  # (a cluster can be empty of sampled points)
+    _, u, _ = _principal_axes(x, y, per, np.maximum(npts, 1), minor=False)  # thinned: maybe none left
     parts = np.ones(per.n, np.intp)
     cuts = []  # (cluster, part of each of its points, −1: dropped)
     for c in np.flatnonzero(per.reduce(np.maximum, u) - per.reduce(np.minimum, u) >= config.split_min_length_m):
@@ -364,7 +365,7 @@ def _split_at_gaps(
 
 
 def _thinning(sizes: np.ndarray, budget: int) -> np.ndarray:
-    """Per cluster, the stride k (every k-th point kept, standing for k) that brings clusters of
+    """Per cluster, the stride k (about one point in k kept, standing for k) that brings clusters of
     ``sizes`` points ((n,) ints) within ``budget`` points together (0: no limit), (n,) int64: the
     largest are thinned to one common size, the others (small obstacles) keep every point."""
     stride = np.ones(sizes.size, np.int64)

@@ -421,7 +421,7 @@ def test_terrain_layers_of_the_wrong_shape_or_none_are_named():
 
 def test_past_max_points_the_largest_clusters_are_thinned_alike():
     """A dense frame (more points above the terrain than ``max_points``): the largest clusters'
-    shapes, heights and counts come from every k-th of their points and match those from all of
+    shapes, heights and counts come from about one in k of their points and match those from all of
     them, while a small obstacle keeps every point (the same box to the bit); under the cap
     nothing changes. Smear cut off (the split) and the tall-share test work on the thinned points."""
     import warnings
