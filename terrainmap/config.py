@@ -582,8 +582,8 @@ class ObstacleConfig:
     """Where the clusters of one kind (above, below the terrain) hold more points than this in a
     frame, the largest are thinned to one common size until they fit: their shapes, heights and
     counts come from about one in k of their points (each standing for k), while smaller clusters
-    (poles, rocks) keep every point and the cells are joined from all. The stage's time then stays
-    bounded however dense the scene. The simulated drives put at most 15,150 points above the
+    (poles, rocks) keep every point and the cells are joined from all. The clusters' measuring
+    then costs no more however dense the scene (a few passes over all the points remain). The simulated drives put at most 15,150 points above the
     terrain in a frame, so nothing is thinned there; KITTI 000005 puts 139,000. 0: no limit."""
 
     def validate(self) -> None:

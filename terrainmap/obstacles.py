@@ -9,8 +9,8 @@ smear joins a near obstacle to one behind it (:func:`_split_at_gaps`). The point
 cluster once, and per-cluster statistics are reduced over each cluster's run of points at once
 (:class:`Segments`), so thousands of tiny clusters cost no Python loop; only the clusters that
 pass the filters become :class:`Obstacle` objects. Past ``max_points`` points of one kind, the
-largest clusters are measured on about one in k of their points (:func:`_thinning`), which bounds
-the work on dense scenes (a street's house fronts) while small obstacles keep every point.
+largest clusters are measured on about one in k of their points (:func:`_thinning`), which caps
+that work on dense scenes (a street's house fronts) while small obstacles keep every point.
 
 Per cluster (vehicle frame, metres):
 
