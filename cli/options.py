@@ -6,6 +6,7 @@ import itertools
 import math
 import os
 import signal
+from collections import Counter
 from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -88,7 +89,7 @@ NO_PAIRS = "no left and right images whose stamps agree within --pair-tolerance-
 
 def failures(counts: dict[str, int]) -> str:
     """``no_ground ×3, too_few_cells ×1``: frame failures by reason, most frequent first."""
-    return ", ".join(f"{reason} ×{n}" for reason, n in sorted(counts.items(), key=lambda item: -item[1]))
+    return ", ".join(f"{reason} ×{n}" for reason, n in Counter(counts).most_common())
 
 
 def counted(count: int, noun: str) -> str:

@@ -583,8 +583,9 @@ class ObstacleConfig:
     frame, the largest are thinned to one common size until they fit: their shapes, heights and
     counts come from about one in k of their points (each standing for k), while smaller clusters
     (poles, rocks) keep every point and the cells are joined from all. The clusters' measuring
-    then costs no more however dense the scene (a few passes over all the points remain). The simulated drives put at most 15,150 points above the
-    terrain in a frame, so nothing is thinned there; KITTI 000005 puts 139,000. 0: no limit."""
+    then costs no more however dense the scene (a few passes over all the points remain). The
+    simulated drives put at most 15,150 points above the terrain in a frame, so nothing is thinned
+    there; KITTI 000005 puts 139,000. 0: no limit."""
 
     def validate(self) -> None:
         _check(self.min_height_m > 0, "obstacles.min_height_m", "must be > 0")
@@ -763,7 +764,11 @@ def check_section(section: Any, grid: GridConfig | None = None) -> None:
     """What :meth:`Config.validate` checks of one section, for a section used on its own (the
     stage functions take one): kinds and finite numbers, its own ranges (the terrain's against
     ``grid``), then :data:`MAX_NUMBER` and :data:`INT_RANGE`, so that a field with a range of its
-    own names it. :class:`ConfigError` naming the first bad field."""
+    own names it. :class:`ConfigError` naming the first bad field. A section equal to the last one
+    of its kind that passed (values and their types, and ``grid``) is not checked again: the
+    stages check theirs every frame."""
+    if _passed_before(section, grid):
+        return
     name = _SECTION_NAMES[type(section)]
     _check_kinds(name, section)
     if isinstance(section, TerrainConfig):
@@ -776,6 +781,24 @@ def check_section(section: Any, grid: GridConfig | None = None) -> None:
             raise ConfigError(f"{name}.{f.name}: must be at most {MAX_NUMBER:g} in magnitude, got {value!r}")
         if kind == "int" and not INT_RANGE[0] <= value <= INT_RANGE[1]:
             raise ConfigError(f"{name}.{f.name}: must be within {INT_RANGE[0]}..{INT_RANGE[1]}, got {value!r}")
+    _PASSED[type(section)] = (dataclasses.replace(section), grid and dataclasses.replace(grid))
+
+
+_PASSED: dict[type, tuple] = {}
+"""Section class → copies of the last section of that class that :func:`check_section` passed,
+and of its grid."""
+
+
+def _passed_before(section: Any, grid: GridConfig | None) -> bool:
+    passed = _PASSED.get(type(section))
+    if passed is None:
+        return False
+    try:
+        same = passed == (section, grid)
+    except (TypeError, ValueError):  # a field holding an array: not comparable, so checked
+        return False
+    kinds = (type(getattr(section, f.name)) is type(getattr(passed[0], f.name)) for f in fields(section))
+    return same and all(kinds)
 
 
 def _check_kinds(name: str, section: Any) -> None:

@@ -196,8 +196,9 @@ def _clusters(
     # multiple of its stride, each standing for stride (the cells were joined from all): point
     # counts below are the full cloud's.
     cid = cid[keep]
-    stride = _thinning(np.bincount(cid, minlength=n), config.max_points)
-    if stride.max() > 1:
+    stride = np.ones(n, np.int64)
+    if config.max_points and cid.size > config.max_points:  # (the clusters' sizes sum to cid.size)
+        stride = _thinning(np.bincount(cid, minlength=n), config.max_points)
         thin = keep % stride[cid] == 0
         keep, cid = keep[thin], cid[thin]
     order = _by_cluster(cid, n)
@@ -207,9 +208,10 @@ def _clusters(
     x, y, z = np.array(points.take(selected[keep], axis=0).T, np.float64)
     per_cell = np.ones(m0 * m1) if cell_counts is None else np.asarray(cell_counts, float).ravel()
     ncells, in_cells = (np.bincount(cells.ravel(), w, n + 1)[1:] for w in (None, per_cell))
+    per = Segments(cid, n)
     split = None
     if config.split_gap_fraction > 0:
-        split = _split_at_gaps(x, y, Segments(cid, n), grid_config.cell_size_m, config, stride)
+        split = _split_at_gaps(x, y, per, grid_config.cell_size_m, config, stride)
     if split is not None:  # the points in their new order, without the dropped ones
         order, cut, parts = split
         kept = order[cut >= 0]
@@ -220,8 +222,6 @@ def _clusters(
         for part in np.flatnonzero(np.repeat(parts > 1, parts)):  # the parts of a cut cluster may share cells
             present = np.unique(idx[per.run(part)])
             ncells[part], in_cells[part] = present.size, per_cell[present].sum()
-    else:
-        per = Segments(cid, n)
     height = z - terrain(x, y)
     if kind == "negative":
         height = -height

@@ -96,7 +96,7 @@ def map_points(
 
 def _map_points(points_vehicle: np.ndarray, config: Config, watch: Stopwatch, camera: StereoCamera | None) -> TerrainMap:
     """:func:`map_points` for a config already validated (a run checks the whole config once, not
-    every frame; the stage functions still check the section they take, some 30 µs a frame)."""
+    every frame; the stage functions check the section they take only when it changed)."""
     with watch("grid"):
         idx = cell_index(points_vehicle, config.grid)
         grid = quantize(points_vehicle, config.grid, index=idx, camera=camera)

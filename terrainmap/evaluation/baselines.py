@@ -24,7 +24,6 @@ of σ): what then differs from terrainmap is only how the surface is estimated.
 from __future__ import annotations
 
 import importlib
-import importlib.util
 import os
 import sys
 from collections.abc import Callable
@@ -216,10 +215,8 @@ def available_methods() -> list[str]:
 @cache
 def _importable(package: str) -> bool:
     """Whether ``package`` imports: one that is found but fails to import counts as missing."""
-    if importlib.util.find_spec(package) is None:
-        return False
     try:
         importlib.import_module(package)
-    except Exception:  # a broken build raises anything (ImportError, OSError for a missing library...)
+    except Exception:  # not installed, or a broken build (ImportError, OSError for a missing library...)
         return False
     return True

@@ -20,7 +20,7 @@ import zlib
 from collections import Counter
 from collections.abc import Iterator
 from contextlib import contextmanager, redirect_stderr
-from functools import partial
+from functools import lru_cache, partial
 from pathlib import Path
 from typing import Any
 
@@ -138,6 +138,27 @@ class _SkipsDamage:
             self.skipped_parts[key] = f"{self.path}: {what} ({_reason(exc)})"
             logger.warning("%s: damaged, skipped", self.skipped_parts[key])
 
+    def _decoded(self, records: Iterator, topics: list[str], what: str) -> Iterator[tuple[str, int, Any]]:
+        """(topic, log time, message) from ``records`` of (topic, log time, kind, decode), the
+        message being ``decode()``: one that cannot be decoded is skipped (:meth:`_undecodable`); a
+        read that fails ends the messages with :class:`InputError` (``what``: "log", "bag")."""
+        count, failing = 0, Counter()
+        try:
+            for topic, log_time, kind, decode in records:
+                try:
+                    message = decode()
+                except Exception as exc:  # one bad message (its chunk's CRC held): skipped, reading goes on
+                    self._undecodable(failing, topic, kind, log_time, exc)
+                    continue
+                failing.pop(topic, None)
+                yield topic, log_time, message
+                count += 1
+        except InputError:
+            raise
+        except Exception as exc:
+            raise InputError(f"{self.path}: {what} is truncated or corrupt after {count} messages of "
+                             f"{', '.join(topics)} ({_reason(exc)})") from exc
+
     def _undecodable(self, failing: Counter, topic: str, kind: str, log_time: int, exc: Exception) -> None:
         """A message of ``topic`` that cannot be decoded as ``kind``: skipped, unless it is the
         :data:`_MAX_UNDECODABLE`-th in a row of its topic (``failing`` counts them; then
@@ -239,38 +260,26 @@ class McapFile(_SkipsDamage):
         (and noted in :attr:`skipped`): the messages of the other chunks are read all the same.
         A message that cannot be decoded is skipped likewise, in any file.
         Damage that a linear read meets (a file without a summary) ends the messages there."""
+        return self._decoded(self._records(topics), topics, "log")
+
+    def _records(self, topics: list[str]) -> Iterator[tuple[str, int, str, Any]]:
+        """(topic, log time, kind, decode) of ``topics`` (:meth:`_SkipsDamage._decoded`)."""
         factories, decoders = _decoder_factories(), {}
-        count, failing = 0, Counter()
-        try:
-            with open(self.path, "rb") as stream:
-                if self.indexed:
-                    records = self._indexed_messages(stream, set(topics))
-                else:
-                    records = self._linear(stream, topics)
-                for schema, channel, message in records:
-                    if channel.id not in decoders:
-                        decoders[channel.id] = self._decoder(factories, channel, schema)
-                    if decoders[channel.id] is None:
-                        schema_encoding = schema.encoding if schema is not None else "none"
-                        raise InputError(f"{self.path}: no decoder for topic {channel.topic} (message encoding "
-                                         f"{channel.message_encoding!r}, schema encoding {schema_encoding!r}; "
-                                         "terrainmap reads cdr with ros2msg, ros1 with ros1msg and protobuf)")
-                    try:
-                        decoded = decoders[channel.id](message.data)
-                    except Exception as exc:  # one bad message (its chunk's CRC held): skipped, reading goes on
-                        kind = schema.name if schema is not None else channel.message_encoding
-                        self._undecodable(failing, channel.topic, kind, message.log_time, exc)
-                        continue
-                    if failing:
-                        failing.pop(channel.topic, None)
-                    yield channel.topic, message.log_time, decoded
-                    count += 1
-        except InputError:
-            raise
-        except Exception as exc:
-            raise InputError(
-                f"{self.path}: log is truncated or corrupt after {count} messages of {', '.join(topics)} ({_reason(exc)})"
-            ) from exc
+        with open(self.path, "rb") as stream:
+            if self.indexed:
+                records = self._indexed_messages(stream, set(topics))
+            else:
+                records = self._linear(stream, topics)
+            for schema, channel, message in records:
+                if channel.id not in decoders:
+                    decoders[channel.id] = self._decoder(factories, channel, schema)
+                if decoders[channel.id] is None:
+                    schema_encoding = schema.encoding if schema is not None else "none"
+                    raise InputError(f"{self.path}: no decoder for topic {channel.topic} (message encoding "
+                                     f"{channel.message_encoding!r}, schema encoding {schema_encoding!r}; "
+                                     "terrainmap reads cdr with ros2msg, ros1 with ros1msg and protobuf)")
+                kind = schema.name if schema is not None else channel.message_encoding
+                yield channel.topic, message.log_time, kind, partial(decoders[channel.id], message.data)
 
     def _indexed_messages(self, stream, topics: set[str]) -> Iterator[tuple[Any, Any, Any]]:
         """(schema, channel, message) of ``topics`` from the chunks of an indexed file, merged in
@@ -323,11 +332,8 @@ def bag_metadata(path: Path) -> dict:
     if not metadata.is_file():
         return {}
     try:
-        data = yaml.safe_load(metadata.read_text())
-        info = data.get("rosbag2_bagfile_information") if isinstance(data, dict) else None
-        if isinstance(info, dict):
-            return info
-        raise ValueError("no rosbag2_bagfile_information mapping in it")
+        stat = metadata.stat()
+        return _metadata_info(metadata, stat.st_mtime_ns, stat.st_size)
     except (OSError, ValueError, yaml.YAMLError, RecursionError) as exc:  # RecursionError: nested thousands deep
         if metadata not in _WARNED:  # once per file: several readers look at it
             _WARNED.add(metadata)
@@ -335,8 +341,20 @@ def bag_metadata(path: Path) -> dict:
         return {}
 
 
+@lru_cache(maxsize=8)
+def _metadata_info(metadata: Path, mtime_ns: int, size: int) -> dict:
+    """The parsed ``rosbag2_bagfile_information`` of ``metadata`` (read-only; several readers ask
+    for it while a log opens, so it is parsed once for each version of the file)."""
+    data = yaml.safe_load(metadata.read_text())
+    info = data.get("rosbag2_bagfile_information") if isinstance(data, dict) else None
+    if not isinstance(info, dict):
+        raise ValueError("no rosbag2_bagfile_information mapping in it")
+    return info
+
+
 _WARNED: set[Path] = set()
-"""The unreadable metadata.yaml files warned about so far (:func:`bag_metadata`)."""
+"""The unreadable ``metadata.yaml`` files (:func:`bag_metadata`) and the folders whose
+``relative_file_paths`` is no list (:func:`_listed`) warned about so far."""
 
 
 def bag_files(path: Path) -> list[Path]:
@@ -415,26 +433,15 @@ def _topics(connections) -> tuple[dict[str, str], dict[str, int]]:
 class _RosbagsLog(_SkipsDamage):
     """A log read with ``rosbags`` (:class:`Ros1Bag`, :class:`Rosbag2Bag`)."""
 
-    def _decoded(self, bag, topics: list[str], deserialize) -> Iterator[tuple[str, int, Any]]:
+    def _messages(self, bag, topics: list[str], deserialize) -> Iterator[tuple[str, int, Any]]:
         """(topic, log time, message) of ``topics`` in an open ``rosbags`` reader, each decoded by
-        ``deserialize(raw, msgtype)``: one that cannot be decoded is skipped (:meth:`_undecodable`);
-        a read that fails ends the messages with :class:`InputError`."""
-        count, failing = 0, Counter()
-        try:
-            for connection, log_time, raw in bag.messages(connections=[c for c in bag.connections if c.topic in topics]):
-                try:
-                    message = deserialize(raw, connection.msgtype)
-                except Exception as exc:  # one bad message: skipped, reading goes on
-                    self._undecodable(failing, connection.topic, connection.msgtype, log_time, exc)
-                    continue
-                failing.pop(connection.topic, None)
-                yield connection.topic, log_time, message
-                count += 1
-        except InputError:
-            raise
-        except Exception as exc:
-            raise InputError(f"{self.path}: bag is truncated or corrupt after {count} messages of {', '.join(topics)} "
-                             f"({_reason(exc)})") from exc
+        ``deserialize(raw, msgtype)`` (:meth:`_SkipsDamage._decoded`)."""
+        def records():  # a generator, so that rosbags' errors too are met inside _decoded
+            connections = [c for c in bag.connections if c.topic in topics]
+            for c, log_time, raw in bag.messages(connections=connections):
+                yield c.topic, log_time, c.msgtype, partial(deserialize, raw, c.msgtype)
+
+        return self._decoded(records(), topics, "bag")
 
 
 class Ros1Bag(_RosbagsLog):
@@ -483,7 +490,7 @@ class Ros1Bag(_RosbagsLog):
 
     def messages(self, topics: list[str]) -> Iterator[tuple[str, int, Any]]:
         with self._open() as bag:
-            yield from self._decoded(bag, topics, self._typestore.deserialize_ros1)
+            yield from self._messages(bag, topics, self._typestore.deserialize_ros1)
 
 
 class Rosbag2Bag(_RosbagsLog):
@@ -518,5 +525,5 @@ class Rosbag2Bag(_RosbagsLog):
             self._bag.close()
 
     def messages(self, topics: list[str]) -> Iterator[tuple[str, int, Any]]:
-        yield from self._decoded(self._bag, topics, self._typestore.deserialize_cdr)
+        yield from self._messages(self._bag, topics, self._typestore.deserialize_cdr)
 
