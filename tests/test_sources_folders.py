@@ -423,6 +423,20 @@ def test_a_folder_whose_first_image_is_damaged_is_described_by_the_next(tmp_path
     assert [frame.index for frame in source.frames()] == [1, 2]
 
 
+def test_a_folder_of_scenes_whose_first_image_is_damaged_is_described_by_the_next_scene(tmp_path):
+    """Scenes of their own sizes and calibrations (Middlebury): the scene whose image describes
+    the folder gives the calibration too, not the first scene's (which does not fit that image)."""
+    for scene, shape in (("Adirondack", (6, 8, 3)), ("Jadeplant", (10, 12, 3))):
+        write(tmp_path / scene / "im0.png", image(0, shape))
+        write(tmp_path / scene / "im1.png", image(1, shape))
+        calib = MIDDLEBURY_CALIB.replace("width=8", f"width={shape[1]}").replace("height=6", f"height={shape[0]}")
+        (tmp_path / scene / "calib.txt").write_text(calib)
+    (tmp_path / "Adirondack" / "im0.png").write_bytes(DAMAGED_PNGS["without its end (IEND)"])
+    info = open_source(tmp_path).describe()
+    assert (info["calibration"]["width"], info["calibration"]["height"]) == (12, 10)
+    assert info["calibration"]["source"].endswith("Jadeplant/calib.txt")
+
+
 @pytest.mark.parametrize("ext", [".png", ".jpg"])
 def test_compressed_images_cut_short_are_refused_and_trailing_data_is_not(ext, capfd):
     data = cv2.imencode(ext, image(0, (48, 64, 3)))[1].tobytes()

@@ -158,12 +158,14 @@ class FolderSource(Source):
     def describe(self) -> dict:
         first = self.pairs[0]
         calib, extrinsics = self.calibration_for(first)
-        for pair in self.pairs:  # the size of the first left image that decodes (frames() skips the others)
+        for pair in self.pairs:  # the first pair whose left image decodes (frames() skips the others)
             try:
-                calib = calib_io.fit_to_image(calib, read_image(pair.left).shape, str(pair.left))
-                break
+                shape = read_image(pair.left).shape
             except DamagedImageError:
                 continue
+            calib, extrinsics = self.calibration_for(pair)  # scenes of a folder have their own
+            calib = calib_io.fit_to_image(calib, shape, str(pair.left))
+            break
         return {
             "format": self.format,
             "path": str(self.path),
