@@ -688,8 +688,8 @@ class CostConfig:
 
     def validate(self) -> None:
         value = self.max_slope_deg
-        _check(0 < value < 90, "cost.max_slope_deg", f"must be in (0, 90), got {value}")
-        _check(self.max_step_m > 0, "cost.max_step_m", f"must be > 0, got {self.max_step_m}")
+        _check(0.1 <= value < 90, "cost.max_slope_deg", f"must be in [0.1, 90), got {value}")
+        _check(self.max_step_m >= 0.001, "cost.max_step_m", f"must be >= 0.001, got {self.max_step_m}")
         _check(self.clearance_m >= 0, "cost.clearance_m", f"must be >= 0, got {self.clearance_m}")
 
 

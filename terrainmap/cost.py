@@ -16,9 +16,9 @@ For every grid cell (arrays ``(m0, m1)``, indexed ``[ix, iy]``)::
   ``cost.max_step_m``; the term is 0 where the step is NaN (cells filled from neighbours
   hold no sample of their own) and everywhere when no ``step`` array is given;
 * ``occ`` is 1 where a **confirmed** obstacle's footprint, grown by ``cost.clearance_m``,
-  reaches the cell: the distance from the cell centre to the oriented footprint rectangle
-  ``≤ clearance_m + cell_size_m / 2`` (so a footprint touching a cell occupies it even with no
-  clearance), and 0 elsewhere;
+  reaches the cell: the distance between the oriented footprint rectangle and the cell's square
+  is at most ``clearance_m`` (so a footprint touching a cell, at a corner too, occupies it even
+  with no clearance), and 0 elsewhere;
 * "has data" is the ``valid`` mask where slope and elevation are finite.
 
 Each term lies in [0, 1], so the cost does too; it never decreases when the slope, the step
@@ -97,11 +97,10 @@ def traversability_cost(
 def occupancy(obstacles: list[Obstacle], grid_config: GridConfig, clearance_m: float) -> np.ndarray:
     """Cells reached by a confirmed obstacle's footprint grown by ``clearance_m``, (m0, m1) bool.
 
-    A cell is reached when the distance from its centre to the obstacle's oriented footprint
-    rectangle (``center_m[:2]``, ``size_m[:2]``, ``yaw_rad``) is at most
-    ``clearance_m + cell_size_m / 2``. Only the cells in each obstacle's bounding window are
-    tested (all obstacles at once), so the cost grows with the obstacles' area, not their number
-    times the grid size.
+    A cell is reached when the distance between the obstacle's oriented footprint rectangle
+    (``center_m[:2]``, ``size_m[:2]``, ``yaw_rad``) and the cell's square is at most
+    ``clearance_m``. Only the cells in each obstacle's bounding window are tested (all obstacles
+    at once), so the cost grows with the obstacles' area, not their number times the grid size.
     """
     m0, m1 = grid_config.shape
     c = grid_config.cell_size_m
@@ -110,8 +109,8 @@ def occupancy(obstacles: list[Obstacle], grid_config: GridConfig, clearance_m: f
     if not len(boxes):
         return occupied.reshape(m0, m1)
     cx, cy, length, width, yaw = boxes.T
-    reach = clearance_m + c / 2
-    radius = np.hypot(length, width) / 2 + reach
+    h = c / 2
+    radius = np.hypot(length, width) / 2 + clearance_m + h * np.sqrt(2)
     # Window of cell indices whose centres lie within ``radius`` of the centre along each axis.
     fx, fy = (cx - grid_config.x_min_m) / c - 0.5, (cy - grid_config.y_min_m) / c - 0.5
     ix0 = np.clip(np.ceil(fx - radius / c), 0, m0).astype(np.intp)
@@ -126,10 +125,38 @@ def occupancy(obstacles: list[Obstacle], grid_config: GridConfig, clearance_m: f
     dx = grid_config.x_min_m + (ix + 0.5) * c - cx[k]
     dy = grid_config.y_min_m + (iy + 0.5) * c - cy[k]
     cos, sin = np.cos(yaw[k]), np.sin(yaw[k])
-    u = np.maximum(np.abs(dx * cos + dy * sin) - length[k] / 2, 0.0)
-    v = np.maximum(np.abs(-dx * sin + dy * cos) - width[k] / 2, 0.0)
-    occupied[(ix * m1 + iy)[u * u + v * v <= reach * reach]] = True
+    a, b = length[k] / 2, width[k] / 2
+    centre = np.hypot(np.maximum(np.abs(dx * cos + dy * sin) - a, 0.0), np.maximum(np.abs(dy * cos - dx * sin) - b, 0.0))
+    # The square holds the disc of radius h about its centre and lies in the one of radius h·√2:
+    # only the pairs in between need the exact test.
+    reached = centre <= clearance_m + h
+    ring = np.flatnonzero(~reached & (centre <= clearance_m + h * np.sqrt(2)))
+    reached[ring] = _square_reaches(dx[ring], dy[ring], cos[ring], sin[ring], a[ring], b[ring], h, clearance_m)
+    occupied[(ix * m1 + iy)[reached]] = True
     return occupied.reshape(m0, m1)
+
+
+def _square_reaches(dx, dy, cos, sin, a, b, h, clearance_m) -> np.ndarray:
+    """Whether the axis-aligned square of half-size ``h`` centred at (dx, dy) lies within
+    ``clearance_m`` of the rectangle of half-sizes (a, b) at the origin, turned by yaw (cos, sin).
+    Two convex polygons overlap when no axis of either separates them; otherwise their distance is
+    that of a vertex of one to the other."""
+    ac, as_ = np.abs(cos), np.abs(sin)
+    separated = (
+        (np.abs(dx) > h + a * ac + b * as_)
+        | (np.abs(dy) > h + a * as_ + b * ac)
+        | (np.abs(dx * cos + dy * sin) > a + h * (ac + as_))
+        | (np.abs(dy * cos - dx * sin) > b + h * (ac + as_))
+    )
+    nearest = np.full(dx.shape, np.inf)
+    for sx, sy in ((-1, -1), (-1, 1), (1, -1), (1, 1)):
+        px, py = dx + sx * h, dy + sy * h  # the square's corner, to the rectangle
+        u = np.maximum(np.abs(px * cos + py * sin) - a, 0.0)
+        v = np.maximum(np.abs(py * cos - px * sin) - b, 0.0)
+        nearest = np.minimum(nearest, np.hypot(u, v))
+        qx, qy = sx * a * cos - sy * b * sin, sx * a * sin + sy * b * cos  # the rectangle's corner, to the square
+        nearest = np.minimum(nearest, np.hypot(np.maximum(np.abs(qx - dx) - h, 0.0), np.maximum(np.abs(qy - dy) - h, 0.0)))
+    return ~separated | (nearest <= clearance_m)
 
 
 def step_height(samples: np.ndarray, elevation: np.ndarray, observed: np.ndarray) -> np.ndarray:

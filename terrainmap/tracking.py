@@ -132,7 +132,8 @@ class ObstacleTracker:
         obstacles : list of Obstacle
             Detections of this frame, vehicle frame (``extract_obstacles``).
         stamp_ns : int
-            Frame stamp, nanoseconds. A stamp older than the previous one resets the tracker.
+            Frame stamp, nanoseconds. A stamp older than the previous one resets the tracker; the
+            previous stamp again (a frame logged twice) changes no track.
         vehicle_pose : (4, 4) array, optional
             ``world_from_vehicle`` (odometry / tf); tracks then live in that world frame. Give
             one with every frame or with none: switching between the two resets the tracks.
@@ -150,13 +151,16 @@ class ObstacleTracker:
         if self._world is not None and self._world != (vehicle_pose is not None):
             logger.warning("tracking: vehicle poses started or stopped; tracks reset")
             self.reset()
+        yaw_v = float(np.arctan2(rot[1, 0], rot[0, 0]))
+        if self._stamp_ns is not None and int(stamp_ns) == self._stamp_ns:
+            # A frame logged twice (its stamp again) is no new evidence: the tracks stay as they are.
+            return self._report(rot, trans, yaw_v)
         dt = self._advance(int(stamp_ns))  # may reset the tracks, and with them _world
         self._world = vehicle_pose is not None
         self._predict(dt)
         self._drop(self._outside(rot, trans))
 
         centers_t = centers @ rot.T + trans  # tracking frame
-        yaw_v = float(np.arctan2(rot[1, 0], rot[0, 0]))
         rows, cols = self._associate(centers_t[:, :2], [o.kind for o in obstacles])
 
         self._correct(rows, centers_t[cols, :2], self._measurement_noise(centers[cols], rot, camera))
@@ -293,6 +297,9 @@ class ObstacleTracker:
             winner, loser = (a, b) if order[a] < order[b] else (b, a)
             if gone[winner] or gone[loser]:
                 continue
+            # One obstacle: confirmed if either track was (a track back from a long gap merging
+            # with the confirmed one that followed it meanwhile must not drop out of the cost).
+            self._suspect[winner] &= ~confirmed[loser]
             if self._misses[loser] == 0 and self._misses[winner] > 0:  # the detection was the loser's
                 self._x[winner], self._P[winner], self._shape[winner] = self._x[loser], self._P[loser], self._shape[loser]
                 self._mark_matched(np.array([winner]))
@@ -325,7 +332,11 @@ class ObstacleTracker:
         K = P[:, :, :2] @ np.linalg.inv(S)  # (k, 4, 2)
         innovation = z - self._x[rows, :2]
         self._x[rows] += (K @ innovation[:, :, None])[:, :, 0]
-        self._P[rows] = (np.eye(4) - K @ _H) @ P
+        # Joseph form, symmetrised: stays a covariance even when P is huge after a long gap
+        # (the short form (I − KH)P cancels catastrophically there).
+        A = np.eye(4) - K @ _H
+        P = A @ P @ A.transpose(0, 2, 1) + K @ noise @ K.transpose(0, 2, 1)
+        self._P[rows] = (P + P.transpose(0, 2, 1)) / 2
 
     def _spawn(self, obstacles: list[Obstacle], centers_t: np.ndarray, yaw_v: float) -> None:
         k = len(obstacles)

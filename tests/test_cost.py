@@ -82,18 +82,26 @@ def test_unconfirmed_obstacles_do_not_occupy():
     assert np.all(cost == 0)
 
 
-def test_rotated_footprint_occupies_the_diagonal():
+def test_rotated_footprint_occupies_the_cells_it_touches():
     grid = GridConfig(x_min_m=0.0, length_m=5.0, width_m=5.0, cell_size_m=0.5)  # y ∈ [−2.5, 2.5]
     diagonal = obstacle(2.5, 0.0, length=4.0, width=0.1, yaw=np.pi / 4)
     occupied = occupancy([diagonal], grid, clearance_m=0.0)
     ix, iy = np.nonzero(occupied)
-    # Cell centres lie on the line; the 4 m footprint spans 2.83 m along x, six of them; the cells
-    # beside the line are 0.35 m from it (> ½ cell + ½ width).
-    assert len(ix) == 6 and np.all(ix - iy == ix[0] - iy[0])
-    # All occupied cell centres lie within half a cell of the diagonal line y = x − 2.5.
-    xc, yc = (ix + 0.5) * 0.5, -2.5 + (iy + 0.5) * 0.5
-    assert np.all(np.abs(yc - (xc - 2.5)) / np.sqrt(2) <= 0.25 + 0.05 + 1e-9)
+    # The footprint's centre line y = x − 2.5 runs through cell centres and the corners they
+    # share: the 4 m footprint spans 2.83 m along x, six cells on the line, and it touches the
+    # cells beside at those corners (five on each side), so no farther than one cell off the line.
+    assert np.sum(ix == iy) == 6 and np.all(np.abs(ix - iy) <= 1) and len(ix) == 16
     assert not occupied[0, -1] and not occupied[-1, 0]  # far corners off the diagonal
+
+
+def test_a_footprint_near_a_cell_corner_reaches_the_cells_within_the_clearance():
+    """A 2 cm footprint 1 cm from the corner its cell [1, 2] shares with three others (at x 1.0,
+    y 0.5): the clearance reaches a cell once it reaches its square, not its centre's disc."""
+    small = obstacle(0.98, 0.48, length=0.02, width=0.02)
+    assert np.argwhere(occupancy([small], SMALL, clearance_m=0.0)).tolist() == [[1, 2]]
+    # 1 cm to the two neighbours' edges, 1.4 cm to the diagonal one's corner
+    assert np.argwhere(occupancy([small], SMALL, clearance_m=0.012)).tolist() == [[1, 2], [1, 3], [2, 2]]
+    assert np.argwhere(occupancy([small], SMALL, clearance_m=0.015)).tolist() == [[1, 2], [1, 3], [2, 2], [2, 3]]
 
 
 def test_occupied_unknown_cell_is_one_and_unknown_elsewhere_is_nan():
@@ -102,19 +110,46 @@ def test_occupied_unknown_cell_is_one_and_unknown_elsewhere_is_nan():
     assert cost[0, 0] == 1 and np.isnan(cost).sum() == cost.size - 1
 
 
+def _segment_distance(p1, p2, q1, q2):
+    """Distance between segments p1p2 and q1q2 ((n, 2) arrays of endpoints): 0 where they cross,
+    else the least distance of an endpoint to the other segment."""
+    def cross(o, a, b):
+        return (a[:, 0] - o[:, 0]) * (b[:, 1] - o[:, 1]) - (a[:, 1] - o[:, 1]) * (b[:, 0] - o[:, 0])
+
+    def to_segment(p, a, b):
+        ab = b - a
+        t = np.clip(((p - a) * ab).sum(1) / np.maximum((ab * ab).sum(1), 1e-300), 0, 1)
+        return np.hypot(*(a + t[:, None] * ab - p).T)
+
+    crossing = (cross(p1, p2, q1) * cross(p1, p2, q2) < 0) & (cross(q1, q2, p1) * cross(q1, q2, p2) < 0)
+    d = np.minimum.reduce([to_segment(p1, q1, q2), to_segment(p2, q1, q2), to_segment(q1, p1, p2), to_segment(q2, p1, p2)])
+    return np.where(crossing, 0.0, d)
+
+
 def brute_force_occupancy(obstacles, grid, clearance_m):
-    """Reference: every cell centre against every confirmed footprint."""
+    """Reference: every cell's square against every confirmed footprint, as polygons: reached
+    where one holds a corner of the other or their edges come within ``clearance_m``."""
     xs, ys = cell_centers(grid)
-    x, y = np.meshgrid(xs, ys, indexing="ij")
-    occupied = np.zeros(grid.shape, bool)
-    reach = clearance_m + grid.cell_size_m / 2
+    x, y = (a.ravel() for a in np.meshgrid(xs, ys, indexing="ij"))
+    h = grid.cell_size_m / 2
+    square = [np.column_stack([x + sx * h, y + sy * h]) for sx, sy in ((-1, -1), (1, -1), (1, 1), (-1, 1))]
+    occupied = np.zeros(x.size, bool)
     for o in (o for o in obstacles if o.confirmed):
-        dx, dy = x - o.center_m[0], y - o.center_m[1]
         c, s = np.cos(o.yaw_rad), np.sin(o.yaw_rad)
-        u = np.maximum(np.abs(dx * c + dy * s) - o.size_m[0] / 2, 0)
-        v = np.maximum(np.abs(-dx * s + dy * c) - o.size_m[1] / 2, 0)
-        occupied |= np.hypot(u, v) <= reach
-    return occupied
+        a, b = o.size_m[0] / 2, o.size_m[1] / 2
+        # cells whose centre is farther from the footprint's centre than its corners are, plus the
+        # clearance and the cell's half diagonal, are out of reach
+        near = np.flatnonzero(np.hypot(x - o.center_m[0], y - o.center_m[1]) <= np.hypot(a, b) + clearance_m + h * 2**0.5)
+        sq = [p[near] for p in square]
+        rect = [np.broadcast_to(o.center_m[:2] + np.array([u * c - v * s, u * s + v * c]), (near.size, 2))
+                for u, v in ((-a, -b), (a, -b), (a, b), (-a, b))]
+        inside_rect = [(np.abs((p - o.center_m[:2]) @ [c, s]) <= a) & (np.abs((p - o.center_m[:2]) @ [-s, c]) <= b)
+                       for p in sq]
+        inside_square = [(np.abs(q[:, 0] - x[near]) <= h) & (np.abs(q[:, 1] - y[near]) <= h) for q in rect]
+        edges = np.minimum.reduce([_segment_distance(sq[i], sq[(i + 1) % 4], rect[j], rect[(j + 1) % 4])
+                                   for i in range(4) for j in range(4)])
+        occupied[near] |= np.logical_or.reduce(inside_rect + inside_square) | (edges <= clearance_m)
+    return occupied.reshape(grid.shape)
 
 
 @pytest.mark.parametrize("clearance", [0.0, 0.5, 1.3])
@@ -149,7 +184,9 @@ def test_shape_mismatch_raises_input_error():
 
 
 @pytest.mark.parametrize(
-    ("field", "value"), [("max_slope_deg", 0), ("max_slope_deg", 90), ("max_step_m", 0), ("clearance_m", -1)]
+    ("field", "value"),
+    [("max_slope_deg", 0), ("max_slope_deg", 1e-300), ("max_slope_deg", 90), ("max_step_m", 0), ("max_step_m", 1e-9),
+     ("clearance_m", -1)],
 )
 def test_config_rejects_nonsense(field, value):
     with pytest.raises(ConfigError, match=f"cost.{field}"):
@@ -197,7 +234,7 @@ def test_stage_on_a_scene_marks_the_box_once_confirmed_and_never_before():
     box = box_points(plane, (12.0, 0.0), 1.0, 1.0, 1.0)
     points, labels = labelled(plane, terrain_points(plane, spacing=0.2), box)
     config = Config()
-    config.cost.clearance_m = 0.4  # reaches cell centres up to 0.65 m from the footprint
+    config.cost.clearance_m = 0.4  # reaches the squares of cells up to 0.4 m from the footprint
     grid = quantize(points, GRID)
     elevation = plane.on_grid(*cell_centers(GRID))
     layers = {
@@ -214,7 +251,8 @@ def test_stage_on_a_scene_marks_the_box_once_confirmed_and_never_before():
     (box,), cost = run_obstacle_stage(points, labels, grid, layers, 10**8, tracker, config)
     assert box.confirmed
     occupied = cost == 1
-    # The box's own 2×2 cells and one ring of neighbours (centres 0.25–0.35 m from the footprint).
+    # The box's own 2×2 cells and one ring of neighbours (their squares within 0.4 m of the footprint;
+    # the next ring's about 0.5 m away).
     assert occupied[ix - 2 : ix + 2, iy - 2 : iy + 2].all() and occupied.sum() == 16
     np.testing.assert_allclose(cost[~occupied], slope_cost, atol=0.02)
 

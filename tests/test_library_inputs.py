@@ -60,7 +60,7 @@ def test_sections_built_in_code_are_checked_where_they_are_used():
     with pytest.raises(ConfigError, match="grid.length_m"):
         ObstacleTracker(C.tracking, area=GridConfig(length_m=-34.0))
     zeros = np.zeros(C.grid.shape)
-    with pytest.raises(ConfigError, match="cost.max_step_m: must be > 0"):  # NaN cost everywhere before
+    with pytest.raises(ConfigError, match="cost.max_step_m: must be >= 0.001"):  # NaN cost everywhere before
         traversability_cost(zeros, zeros, zeros > -1, C.grid, [], dataclasses.replace(C.cost, max_step_m=0.0), step=zeros)
     calibration = StereoCalibration(64, 48, 100.0, 100.0, 32.0, 24.0, 0.5)
     with pytest.raises(ConfigError, match="stereo.mode"):

@@ -396,3 +396,35 @@ def test_a_merged_track_takes_over_the_detection_it_had_alone():
     assert out.track_id == first.track_id and out.confirmed  # merged on confirmation
     assert out.center_m[0] == pytest.approx(20.1, abs=0.1)
     assert tracker.track_count == 1
+
+
+def test_a_merge_with_a_track_back_from_a_long_gap_keeps_the_obstacle_confirmed():
+    """A track back after more than ``reconfirm_misses`` misses is not confirmed until seen again
+    in a row; merged with the confirmed track that followed the obstacle meanwhile, the obstacle
+    stays confirmed (and in the cost layer) under the older track's id."""
+    tracker = ObstacleTracker(TrackingConfig())
+    for k in range(10):
+        (old,) = tracker.update([detection(10.0, 0.0, footprint=(0.5, 0.5))], k * DT_NS)
+    for k in range(10, 15):  # the old track unseen; the obstacle seen 2.3 m on (beyond the gate)
+        (new,) = tracker.update([detection(12.3, 0.0, footprint=(0.5, 0.5))], k * DT_NS)
+        assert new.confirmed or k == 10
+    out = tracker.update([detection(10.0, 0.0, footprint=(0.5, 0.5)), detection(10.6, 0.0, footprint=(0.5, 0.5))],
+                         15 * DT_NS)
+    assert [(o.track_id, o.confirmed) for o in out] == [(old.track_id, True)]
+
+
+def test_a_frame_logged_twice_is_no_second_sighting():
+    """A log that holds one frame twice (the same stamp again): a one-frame detection seen in both
+    copies is still a single-frame false positive, and no track counts a miss."""
+    tracker = ObstacleTracker(TrackingConfig(confirm_hits=2, max_misses=1))
+    for _ in range(2):
+        (out,) = tracker.update([detection(20.0, -5.0)], DT_NS)
+        assert not out.confirmed
+    assert tracker.update([], 2 * DT_NS) == []  # unconfirmed and missed: dropped
+    for k in range(3, 5):
+        (out,) = tracker.update([detection(10.0, 0.0)], k * DT_NS)
+    assert out.confirmed
+    for _ in range(2):  # the same frame twice, without the obstacle: one miss (of max_misses 1), not two
+        tracker.update([], 5 * DT_NS)
+    (back,) = tracker.update([detection(10.0, 0.0)], 6 * DT_NS)
+    assert back.track_id == out.track_id and back.confirmed
