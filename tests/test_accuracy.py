@@ -396,6 +396,27 @@ def test_truth_arrays_that_do_not_fit_are_named(tmp_path, change, message):
             list(truth.frames())
 
 
+@pytest.mark.parametrize("command", ["accuracy", "stereo"])
+def test_truth_images_of_another_size_than_the_stereo_images_are_named(tmp_path, capsys, command):
+    """Truth whose depth, label and instance images agree with each other but not with the
+    stereo pair: one line naming the frame and both sizes, not an IndexError from the scoring."""
+    from terrainmap.cli.main import main
+    from terrainmap.sim import SimConfig, simulate
+
+    log = tmp_path / "log"
+    simulate(log, SimConfig(scene="flat", frames=1, seed=1, width=64, height=48, format="folder"))
+    frame = log / "truth" / "000000.npz"
+    with np.load(frame) as data:
+        arrays = dict(data)
+    np.savez(frame, **{**arrays, **{k: arrays[k][:10] for k in ("depth", "label", "instance")}})
+    with pytest.raises(SystemExit) as exc:
+        main(["eval", command, str(log)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert exc.value.code == 2 and len(err) == 1
+    assert err[0].startswith(f"Error: {log}: the ground truth of the stereo frame at stamp ")
+    assert err[0].endswith(" is 64×10 pixels, its images 64×48")
+
+
 def test_a_truth_grid_that_is_no_grid_is_named():
     from types import SimpleNamespace
 

@@ -306,7 +306,7 @@ def evaluate(
         state = PipelineState(config)
         truth_frames = truth.frames()
         for done, frame in enumerate(source.frames(max_frames=max_frames), 1):
-            truth_frame = truth_at(truth_frames, frame.stamp_ns, log_path)
+            truth_frame = truth_at(truth_frames, frame.stamp_ns, log_path, frame.left.shape[:2])
             t0 = time.perf_counter()
             try:
                 result = process_frame(frame, config, state)

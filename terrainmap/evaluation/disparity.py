@@ -229,7 +229,7 @@ def _truth_reader(path: Path, source, stack: ExitStack) -> Callable[[StereoFrame
     frames = truth.frames()
 
     def simulated(frame: StereoFrame) -> np.ndarray:
-        depth = truth_at(frames, frame.stamp_ns, path).depth  # along the optical axis, inf: sky
+        depth = truth_at(frames, frame.stamp_ns, path, frame.left.shape[:2]).depth  # along the optical axis, inf: sky
         calib = frame.calibration
         with np.errstate(divide="ignore"):
             return _unknown_as_nan((calib.fx * calib.baseline_m / depth - calib.doffs).astype(np.float32))

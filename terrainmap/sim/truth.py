@@ -99,11 +99,16 @@ class Truth:
         return None
 
 
-def truth_at(frames: Iterator[TruthFrame], stamp_ns: int, log: Path) -> TruthFrame:
-    """Advance the (stamp-ordered) truth ``frames`` of ``log`` to the one of ``stamp_ns``, or
-    :class:`InputError` when it has none."""
+def truth_at(frames: Iterator[TruthFrame], stamp_ns: int, log: Path, shape: tuple[int, int]) -> TruthFrame:
+    """Advance the (stamp-ordered) truth ``frames`` of ``log`` to the one of ``stamp_ns``, whose
+    per-pixel images must have the stereo images' ``shape`` (rows, columns), or
+    :class:`InputError` when it has none or another size."""
     for truth_frame in frames:
         if truth_frame.stamp_ns == stamp_ns:
+            if truth_frame.depth.shape != tuple(shape):
+                (h, w), (height, width) = truth_frame.depth.shape, shape
+                raise InputError(f"{log}: the ground truth of the stereo frame at stamp {stamp_ns} is {w}×{h} "
+                                 f"pixels, its images {width}×{height}")
             return truth_frame
         if truth_frame.stamp_ns > stamp_ns:
             break
