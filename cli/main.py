@@ -122,6 +122,12 @@ def main(argv: list[str] | None = None) -> None:
     except KeyboardInterrupt:
         click.echo("Interrupted.", err=True)
         sys.exit(_signal_exit_code())
+    except MemoryError as exc:  # settings past what the machine holds (a huge grid or net)
+        if options.get("verbose"):
+            traceback.print_exc()
+        click.echo(f"Error: out of memory{f' ({exc})' if str(exc) else ''}; a smaller grid, terrain net or image "
+                   "may fit", err=True)
+        sys.exit(2)
     except OSError as exc:  # a report or plot that cannot be written (disk full, permissions)
         if options.get("verbose"):
             traceback.print_exc()

@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from .errors import ConfigError
+from .errors import ConfigError, brief
 
 
 def _check(ok: bool, name: str, message: str) -> None:
@@ -113,6 +113,10 @@ class GridConfig:
         return self.y_center_m - self.width_m / 2
 
 
+MAX_CONTROL_POINTS = 4096
+"""The most control points a terrain net may have in all (``control_points_x × control_points_y``)."""
+
+
 @dataclass
 class TerrainConfig:
     """Rational B-spline terrain estimation (paper Sec. V, Algorithm V-B.1)."""
@@ -178,6 +182,13 @@ class TerrainConfig:
                 f"terrain.{name}",
                 f"must be at least degree + 1 = {self.degree + 1}, got {value}",
             )
+        # The fit's normal equations and penalty grow with the square of the net's size: 64×64 takes
+        # about 0.5 GB and 2 s a frame, the paper's 25×25 10 MB and 5 ms.
+        _check(
+            self.control_points_x * self.control_points_y <= MAX_CONTROL_POINTS,
+            "terrain.control_points_x × control_points_y",
+            f"must be at most {MAX_CONTROL_POINTS} (64×64), got {self.control_points_x}×{self.control_points_y}",
+        )
         _check(
             1.0 <= self.control_point_growth <= 10,
             "terrain.control_point_growth",
@@ -475,7 +486,7 @@ class StereoConfig:
         _check(
             self.mode in ("sgbm", "hh", "sgbm_3way", "hh4"),
             "stereo.mode",
-            f"must be one of sgbm, hh, sgbm_3way, hh4, got {self.mode!r}",
+            f"must be one of sgbm, hh, sgbm_3way, hh4, got {brief(self.mode)}",
         )
         _check(0.01 <= self.min_range_m < self.max_range_m, "stereo.min_range_m", "must be in [0.01 m, max_range_m)")
         _check(self.max_range_m <= MAX_OFFSET_M, "stereo.max_range_m", f"must be at most {MAX_OFFSET_M:g} m")
@@ -488,7 +499,7 @@ class StereoConfig:
         _check(
             self.texture_measure in ("variance", "x_gradient"),
             "stereo.texture_measure",
-            f"must be variance or x_gradient, got {self.texture_measure!r}",
+            f"must be variance or x_gradient, got {brief(self.texture_measure)}",
         )
         _check(0 <= self.texture_margin_px <= 100, "stereo.texture_margin_px", "must be in 0..100")
         _check(0 <= self.left_margin_px <= 1024, "stereo.left_margin_px", "must be in 0..1024")
@@ -778,9 +789,9 @@ def check_section(section: Any, grid: GridConfig | None = None) -> None:
     for f in fields(section):
         value, kind = getattr(section, f.name), str(f.type)
         if kind == "float" and abs(value) > MAX_NUMBER:
-            raise ConfigError(f"{name}.{f.name}: must be at most {MAX_NUMBER:g} in magnitude, got {value!r}")
+            raise ConfigError(f"{name}.{f.name}: must be at most {MAX_NUMBER:g} in magnitude, got {brief(value)}")
         if kind == "int" and not INT_RANGE[0] <= value <= INT_RANGE[1]:
-            raise ConfigError(f"{name}.{f.name}: must be within {INT_RANGE[0]}..{INT_RANGE[1]}, got {value!r}")
+            raise ConfigError(f"{name}.{f.name}: must be within {INT_RANGE[0]}..{INT_RANGE[1]}, got {brief(value)}")
     _PASSED[type(section)] = (dataclasses.replace(section), grid and dataclasses.replace(grid))
 
 
@@ -813,9 +824,9 @@ def _check_kinds(name: str, section: Any) -> None:
             setattr(section, f.name, value)
         types, what = _KINDS[kind]
         if not isinstance(value, types) or (kind != "bool" and isinstance(value, bool)):
-            raise ConfigError(f"{name}.{f.name}: must be {what}, got {value!r}")
+            raise ConfigError(f"{name}.{f.name}: must be {what}, got {brief(value)}")
         if kind == "float" and not math.isfinite(value):
-            raise ConfigError(f"{name}.{f.name}: must be finite, got {value!r}")
+            raise ConfigError(f"{name}.{f.name}: must be finite, got {brief(value)}")
 
 
 def _toml_value(value: Any) -> str:
@@ -875,7 +886,7 @@ def _coerce(section: str, name: str, current: Any, value: Any, text: bool) -> An
         return str(value)
     except (TypeError, ValueError, OverflowError):
         kind = _KINDS[type(current).__name__][1]
-        raise ConfigError(f"{key}: cannot use {given!r}, expected {kind}") from None
+        raise ConfigError(f"{key}: cannot use {brief(given)}, expected {kind}") from None
 
 
 def apply_values(config: Config, values: dict[str, Any], source: str = "config", *, text: bool = False) -> Config:

@@ -7,6 +7,18 @@ skips, while the other errors end the run (after the outputs are finalised).
 
 from __future__ import annotations
 
+import reprlib
+
+_BRIEF = reprlib.Repr()  # (keyword arguments only from Python 3.12)
+_BRIEF.maxlevel, _BRIEF.maxlist, _BRIEF.maxtuple, _BRIEF.maxdict, _BRIEF.maxset = 2, 4, 4, 4, 4
+_BRIEF.maxstring = _BRIEF.maxother = 60
+
+
+def brief(value) -> str:
+    """``repr(value)`` cut short (nesting, items, characters), for a message naming a value read
+    from a file: a YAML alias bomb or a huge list stays one short line (``[[...], [...], ...]``)."""
+    return _BRIEF.repr(value)
+
 
 class TerrainmapError(Exception):
     """Base class: every error the library raises on purpose."""

@@ -72,3 +72,15 @@ def rewrite_mcap(src: Path, dst: Path, edit) -> Path:
             writer.add_message(channels[channel.id], message.log_time, data, message.publish_time)
         writer.finish()
     return dst
+
+
+def _alias_bomb() -> str:
+    lines = ["bomb:", "  a: &a [l, l, l, l, l, l, l, l, l]"]
+    for prev, name in zip("abcdefgh", "bcdefghi"):
+        lines.append(f"  {name}: &{name} [{', '.join(['*' + prev] * 9)}]")
+    return "\n".join(lines) + "\n"
+
+
+YAML_BOMB = _alias_bomb()
+"""A YAML block ``bomb:`` whose anchor ``*i`` reads as 9⁹ items (nested lists of 'l'): a value a
+message must not print in full (about 2 GB)."""

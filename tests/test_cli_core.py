@@ -63,6 +63,9 @@ def test_opencv_and_rerun_log_lines_are_silenced_unless_verbose(monkeypatch, fla
     [
         (KeyboardInterrupt(), 130, "Interrupted."),
         (PermissionError(13, "Permission denied", "/reports/x.json"), 2, "Error: /reports/x.json: Permission denied"),
+        (MemoryError("Unable to allocate 26.0 GiB for an array with shape (243, 243, 243, 243)"), 2,
+         "Error: out of memory (Unable to allocate 26.0 GiB for an array with shape (243, 243, 243, 243)); "
+         "a smaller grid, terrain net or image may fit"),
     ],
 )
 def test_interruptions_and_os_errors_end_with_one_line(monkeypatch, capsys, error, code, line):

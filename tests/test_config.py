@@ -42,6 +42,7 @@ def test_toml_round_trip_and_overrides(tmp_path):
         ("grid.length_m=33.3", "whole number of cells"),
         ("terrain.start_control_points=0", "terrain.start_control_points: must be >= 1"),
         ("terrain.control_points_x=3", r"at least degree \+ 1"),
+        ("terrain.control_points_x=200", r"control_points_x × control_points_y: must be at most 4096 \(64×64\), got 200×25"),
         ("grid.x_min_m=1e30", r"grid.x_min_m: must be within ±10000 m"),
         ("stereo.max_range_m=1e300", "stereo.max_range_m: must be at most 10000 m"),
         ("terrain.weight_max=1e308", r"terrain.weight_max: must be in \(1, 1e6\]"),

@@ -8,6 +8,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from log_copies import YAML_BOMB
 
 from terrainmap.errors import CalibrationError, ConfigError, DamagedImageError, InputError
 from terrainmap.sources import open_source, source_class
@@ -174,6 +175,14 @@ def test_nonsense_in_a_calibration_file_is_named(tmp_path, old, new, message):
     path.write_text(path.read_text().replace(old, new))
     with pytest.raises(CalibrationError, match=message):
         next(open_source(path.parent).frames())
+
+
+def test_a_calibration_value_that_is_a_yaml_alias_bomb_is_named_in_one_short_line(tmp_path):
+    """A YAML anchor that expands to 9⁹ items (2 GB printed in full) where a number belongs."""
+    root = generic_folder(tmp_path, n=1, calib=YAML_BOMB + CALIB_YAML.replace("fx: 500.0", "fx: *i"))
+    with pytest.raises(CalibrationError, match=r"calibration.yaml: fx must be a number, got \[\[\[\.\.\.\], ") as exc:
+        next(open_source(root).frames())
+    assert len(str(exc.value)) < 300
 
 
 @pytest.mark.parametrize(

@@ -11,7 +11,7 @@ from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
 from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
 from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
-from log_copies import rewrite_rosbag2, ros1_bag, ros1_mcap
+from log_copies import YAML_BOMB, rewrite_rosbag2, ros1_bag, ros1_mcap
 from mcap.reader import make_reader
 from mcap_protobuf.writer import Writer as ProtobufWriter
 from mcap_ros2.writer import Writer as Ros2Writer
@@ -780,14 +780,15 @@ def test_a_log_of_binned_images_uses_the_binned_camera(tmp_path):
         assert getattr(frame.calibration, field) == pytest.approx(getattr(expected.calibration, field)), field
 
 
-def test_a_rosbag2_whose_metadata_lists_no_files_is_read_from_its_mcap_files(tmp_path, caplog):
+@pytest.mark.parametrize("paths", ["5", "[[bag_0.mcap]]", "*i"])
+def test_a_rosbag2_whose_metadata_lists_no_files_is_read_from_its_mcap_files(tmp_path, caplog, paths):
     bag = tmp_path / "bag"
     bag.mkdir()
     write_ros2_log(bag / "bag_0.mcap", n=2)
-    (bag / "metadata.yaml").write_text("rosbag2_bagfile_information:\n  relative_file_paths: 5\n")
+    (bag / "metadata.yaml").write_text(f"{YAML_BOMB}rosbag2_bagfile_information:\n  relative_file_paths: {paths}\n")
     with open_source(bag) as source:
         assert len(list(source.frames())) == 2
-    assert "relative_file_paths is no list" in caplog.text
+    assert "relative_file_paths is no list of file names" in caplog.text
 
 
 def test_a_sqlite3_rosbag2_whose_metadata_lists_no_files_is_refused_naming_the_key(tmp_path):

@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from ..errors import CalibrationError
+from ..errors import CalibrationError, brief
 from ..extrinsics import MAX_MOUNT_M, is_rotation
 from ..stereo import check_calibration as stereo_check
 from ..types import Extrinsics, StereoCalibration
@@ -167,7 +167,7 @@ def _number(data: dict, key: str, path: Path) -> float:
             raise TypeError
         return float(value)  # a text too: PyYAML reads 1e3 (no dot) as one
     except (TypeError, ValueError, OverflowError):
-        raise CalibrationError(f"{path}: {key} must be a number, got {value!r}") from None
+        raise CalibrationError(f"{path}: {key} must be a number, got {brief(value)}") from None
 
 
 def _whole(text) -> int:
@@ -239,12 +239,12 @@ def terrainmap_calibration(path: Path) -> tuple[StereoCalibration, Extrinsics | 
     numbers = {key: _number(data, key, path) for key in (*_REQUIRED, "doffs", "cx_right") if data.get(key) is not None}
     for key in ("width", "height"):
         if not numbers[key].is_integer():
-            raise CalibrationError(f"{path}: {key} must be a whole number of pixels, got {data[key]!r}")
+            raise CalibrationError(f"{path}: {key} must be a whole number of pixels, got {brief(data[key])}")
         numbers[key] = int(numbers[key])
     cx_right = numbers.pop("cx_right", None)
     rectified = data.get("rectified", True)
     if not isinstance(rectified, bool):
-        raise CalibrationError(f"{path}: rectified must be true or false, got {rectified!r}")
+        raise CalibrationError(f"{path}: rectified must be true or false, got {brief(rectified)}")
     extra = {} if rectified else {
         key: _array(data, key, (3, 3) if key in ("K_left", "K_right", "R") else (3,) if key == "T" else None, path,
                     "as rectified is false")

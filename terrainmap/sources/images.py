@@ -13,7 +13,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ..errors import DamagedImageError, InputError
+from ..errors import DamagedImageError, InputError, brief
 
 # ROS / Foxglove raw encodings (lower case) -> (dtype, channels on the wire, conversion to RGB or None).
 # Bayer names give the colours of the first two pixels of the first two rows (rggb: R G / G B);
@@ -156,7 +156,7 @@ def decode_raw(
     spec = _RAW_ENCODINGS.get(encoding.lower())
     if spec is None:
         supported = ", ".join(sorted([*_RAW_ENCODINGS, *_YUV420_ENCODINGS]))
-        raise InputError(f"{name}: unsupported image encoding {encoding!r} (supported: {supported})")
+        raise InputError(f"{name}: unsupported image encoding {brief(encoding)} (supported: {supported})")
     dtype, channels, conversion = spec
     if width <= 0 or height <= 0:
         raise InputError(f"{name}: {encoding} image of size {width}×{height} (no pixel)")

@@ -18,7 +18,7 @@ from __future__ import annotations
 from datetime import UTC, datetime
 from pathlib import Path
 
-from ..errors import InputError
+from ..errors import InputError, brief
 from . import calibration as calib_io
 from .folder import FolderSource, ImagePair, matching_pairs, read_lines
 
@@ -91,7 +91,7 @@ def _parse_kitti_time(text: str, path: Path) -> int:
         seconds = datetime.strptime(whole, "%Y-%m-%d %H:%M:%S").replace(tzinfo=UTC).timestamp()
         return int(seconds) * 1_000_000_000 + int((fraction + "000000000")[:9])
     except ValueError:
-        raise InputError(f"{path}: cannot parse timestamp {text!r}") from None
+        raise InputError(f"{path}: cannot parse timestamp {brief(text)}") from None
 
 
 class KittiOdometryFolder(FolderSource):

@@ -11,7 +11,7 @@ from collections.abc import Iterator
 
 import numpy as np
 
-from ..errors import CalibrationError
+from ..errors import CalibrationError, brief
 from ..types import StereoCalibration
 from . import calibration as calib_io
 from .images import decode_compressed, decode_raw
@@ -163,7 +163,7 @@ def calibration_from_infos(
             )
         if not rectified and np.any(info["D"]) and info["model"] not in PINHOLE_DISTORTION_MODELS:
             raise CalibrationError(
-                f"{source}: the {side} camera's distortion model {info['model']!r} is not supported for "
+                f"{source}: the {side} camera's distortion model {brief(info['model'])} is not supported for "
                 f"rectifying raw images (only {', '.join(sorted(PINHOLE_DISTORTION_MODELS - {''}))}); "
                 "use rectified image topics or --calibration"
             )

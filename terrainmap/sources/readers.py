@@ -354,7 +354,7 @@ def _metadata_info(metadata: Path, mtime_ns: int, size: int) -> dict:
 
 _WARNED: set[Path] = set()
 """The unreadable ``metadata.yaml`` files (:func:`bag_metadata`) and the folders whose
-``relative_file_paths`` is no list (:func:`_listed`) warned about so far."""
+``relative_file_paths`` is no list of file names (:func:`_listed`) warned about so far."""
 
 
 def bag_files(path: Path) -> list[Path]:
@@ -371,12 +371,18 @@ def missing_bag_files(path: Path) -> list[str]:
 
 def _listed(path: Path) -> list[str]:
     names = bag_metadata(path).get("relative_file_paths") or []
-    if not isinstance(names, list):
+    if not _file_names(names):
         if path not in _WARNED:
             _WARNED.add(path)
-            logger.warning("%s: relative_file_paths is no list; using the files in the folder", path / "metadata.yaml")
+            logger.warning("%s: relative_file_paths is no list of file names; using the files in the folder",
+                           path / "metadata.yaml")
         names = []
-    return list(dict.fromkeys(str(name) for name in names))
+    return list(dict.fromkeys(names))
+
+
+def _file_names(names) -> bool:
+    """Whether ``relative_file_paths`` is what rosbag2 writes: a list of file names."""
+    return isinstance(names, list) and all(isinstance(name, str) for name in names)
 
 
 def mcap_files(path: Path) -> list[Path]:
@@ -509,7 +515,7 @@ class Rosbag2Bag(_RosbagsLog):
 
         self.path = path
         self.skipped_parts: dict[tuple, str] = {}
-        if not isinstance(bag_metadata(path).get("relative_file_paths", []), list):  # rosbags would read its letters
+        if not _file_names(bag_metadata(path).get("relative_file_paths", [])):  # rosbags would read a text's letters
             raise InputError(f"{path / 'metadata.yaml'}: relative_file_paths must be a list of file names")
         self.paths = bag_files(path)
         self._typestore = get_typestore(Stores.LATEST)
