@@ -150,10 +150,12 @@ def first_frame(path, **open_kwargs) -> StereoFrame:
     ``open_kwargs``: topics, calibration and pairing tolerance, as for
     :func:`~terrainmap.sources.open_source`."""
     from .errors import InputError
+    from .runner import check_stamp
     from .sources import open_source
 
     with open_source(path, **open_kwargs) as source:
         for frame in source.frames():
+            check_stamp(frame)  # as process does: the benchmark's MCAP stage would refuse it, naming its own file
             return frame
     raise InputError(f"{path}: holds no stereo pair to time")
 

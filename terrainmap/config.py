@@ -124,7 +124,8 @@ class TerrainConfig:
     degree: int = 3
     """Spline degree d0 = d1 (paper: "order 3", i.e. cubic)."""
     control_points_x: int = 25
-    """Final number of control points along x, n_max,0 + 1. Paper: 25."""
+    """Final number of control points along x, n_max,0 + 1. Paper: 25. The net holds at most
+    :data:`MAX_CONTROL_POINTS` (4096) in all."""
     control_points_y: int = 25
     """Final number of control points along y, n_max,1 + 1. Paper: 25."""
     start_control_points: int = 4

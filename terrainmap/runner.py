@@ -119,6 +119,14 @@ def run(
     return summary
 
 
+def check_stamp(frame: StereoFrame) -> None:
+    """:class:`InputError` naming the frame's source when its stamp is no time an MCAP or ROS
+    stamp (unsigned 64-bit) can hold, before an output refuses it mid-write."""
+    if not 0 <= frame.stamp_ns <= _MAX_STAMP_NS:
+        raise InputError(f"{frame.source or 'input'}: frame {frame.index} has stamp {frame.stamp_ns} ns, "
+                         "outside 1970–2262 (0 to 2^63 − 1 ns)")
+
+
 def _matched_ahead(
     frames: Iterable[StereoFrame], config: Config, state: PipelineState
 ) -> Iterator[tuple[StereoFrame, Matched | FrameError]]:
@@ -130,9 +138,7 @@ def _matched_ahead(
         frame = next(source, None)
         if frame is None:
             return None
-        if not 0 <= frame.stamp_ns <= _MAX_STAMP_NS:  # MCAP and ROS stamps are unsigned 64-bit
-            raise InputError(f"{frame.source or 'input'}: frame {frame.index} has stamp {frame.stamp_ns} ns, "
-                             "outside 1970–2262 (0 to 2^63 − 1 ns)")
+        check_stamp(frame)
         try:
             return frame, match_frame(frame, config, state)
         except FrameError as exc:

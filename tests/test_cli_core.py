@@ -159,6 +159,21 @@ def test_bench_times_the_first_pair_of_a_log(tmp_path):
     assert "left topic '/stereo/left/raw' is not an image topic of this log" in str(topic.exception)
 
 
+def test_bench_names_the_log_whose_first_stamp_no_mcap_can_hold(tmp_path, capsys):
+    """As process does, not the benchmark's temporary MCAP that would refuse the stamp."""
+    from terrainmap.cli.main import main
+    from terrainmap.sim import SimConfig, simulate
+
+    log = tmp_path / "log"
+    simulate(log, SimConfig(scene="flat", frames=2, seed=1, width=64, height=48, format="folder"))
+    (log / "timestamps.txt").write_text("-1\n-2\n")
+    with pytest.raises(SystemExit) as exc:
+        main(["bench", "--log", str(log), "--runs", "1"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert exc.value.code == 2 and err[-1].startswith(f"Error: {log / 'left'}")
+    assert err[-1].endswith("frame 0 has stamp -1 ns, outside 1970–2262 (0 to 2^63 − 1 ns)")
+
+
 def test_bench_refuses_a_log_without_stereo(tmp_path, capsys):
     from terrainmap.cli.main import main
 
