@@ -428,6 +428,31 @@ def test_a_truth_grid_that_is_no_grid_is_named():
                            outer_start_index=0, inner_start_index=0)
     with pytest.raises(InputError, match=r"/truth/terrain: GridMap of 10×8 m at 0 m resolution is no grid"):
         heightfield_from_grid_map(grid, "/truth/terrain")
+    grid.data = []  # a layer without its data array
+    with pytest.raises(InputError, match=r"/truth/terrain: GridMap has 1 layers but 0 data arrays"):
+        heightfield_from_grid_map(grid, "/truth/terrain")
+
+
+@pytest.mark.parametrize(
+    "field, value, message",
+    [("baseline_m", "x", "TypeError"), ("focal_px", 0, "ConfigError: --focal-px: must be > 0, got 0"),
+     ("frames", None, "TypeError"), ("nonsense", 1, "TypeError")],
+)
+def test_a_damaged_scene_description_is_named_not_scored(tmp_path, field, value, message):
+    """The simulator's settings stored with the truth (the rig the scoring rebuilds): a value of
+    the wrong type or out of range is damaged truth, not warnings and empty scores."""
+    import json
+
+    from terrainmap.sim import SimConfig, open_truth, simulate
+
+    log = tmp_path / "log"
+    simulate(log, SimConfig(scene="flat", frames=1, seed=1, width=64, height=48, format="folder"))
+    scene = log / "truth" / "scene.json"
+    description = json.loads(scene.read_text())
+    description["config"][field] = value
+    scene.write_text(json.dumps(description))
+    with pytest.raises(InputError, match=f"scene.json: damaged ground truth \\({message}"):
+        open_truth(log)
 
 
 @pytest.mark.parametrize("where", ["chunk", "summary"])

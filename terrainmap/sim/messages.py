@@ -102,6 +102,8 @@ def heightfield_from_grid_map(msg, topic: str) -> Heightfield:
     """The terrain of a decoded GridMap written by :func:`grid_map_message`."""
     if "elevation" not in msg.layers:
         raise InputError(f"{topic}: GridMap has no 'elevation' layer (layers: {', '.join(msg.layers)})")
+    if len(msg.data) != len(msg.layers):
+        raise InputError(f"{topic}: GridMap has {len(msg.layers)} layers but {len(msg.data)} data arrays")
     info = msg.info
     res = info.resolution
     numbers = (res, info.length_x, info.length_y, info.pose.position.x, info.pose.position.y)

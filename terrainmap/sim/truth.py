@@ -79,6 +79,7 @@ class Truth:
         self.terrain = terrain
         self.description = description
         self.config = SimConfig(**description["config"])
+        self.config.validate()  # a damaged description (a text or 0 for the focal length) is named, not scored
         rig = self.config.rig()
         self.calibration: StereoCalibration = rig.calibration(source=str(path))
         self.extrinsics: Extrinsics = rig.extrinsics()
@@ -225,7 +226,7 @@ def _damaged(path: Path | str):
     """Turn the errors of reading a damaged truth file into one InputError naming it (or its part)."""
     try:
         yield
-    except (OSError, ValueError, KeyError, TypeError, EOFError, zipfile.BadZipFile) as exc:  # npz, json on garbage
+    except (OSError, ValueError, KeyError, IndexError, TypeError, EOFError, zipfile.BadZipFile) as exc:  # npz, json on garbage
         raise InputError(f"{path}: damaged ground truth ({type(exc).__name__}: {exc})") from exc
 
 
