@@ -44,5 +44,8 @@ def stereo(path, calibration, max_frames, json_path, config_path, overrides):
     if report["pairs"] == 0:  # nothing to write: every metric would be null
         why = failures(report["failed_frames"]) or f"{counted(report['pairs_without_truth'], 'pair')} without ground truth"
         raise Failed(f"no stereo pair of {path} could be scored ({why})")
+    if not report["bands"]["all"]["truth_pixels"]:
+        raise Failed(f"no stereo pair of {path} could be scored (the ground truth of its "
+                     f"{counted(report['pairs'], 'pair')} holds no valid disparity)")
     if json_path:
         write_text(json_path, json.dumps(report, indent=2) + "\n")

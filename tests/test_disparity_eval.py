@@ -191,6 +191,24 @@ def test_a_folder_no_pair_of_which_can_be_scored_is_an_error(tmp_path, kitti_fol
     assert not out_json.exists()
 
 
+def test_a_folder_whose_ground_truth_holds_no_disparity_is_an_error(tmp_path, kitti_folder):
+    """A ground-truth file of zeros (KITTI's "no disparity here") scores no pixel: an error, not
+    exit 0 with a table of empty bands."""
+    import shutil
+
+    from click.testing import CliRunner
+
+    from terrainmap.cli.eval_stereo import stereo
+
+    empty = tmp_path / "empty"
+    shutil.copytree(kitti_folder, empty)
+    cv2.imwrite(str(empty / "disp_occ_0/000000_10.png"), np.zeros((240, 320), np.uint16))
+    result = CliRunner().invoke(stereo, [str(empty)])
+    assert result.exit_code == 2
+    assert result.output.strip().splitlines()[-1] == (
+        f"Error: no stereo pair of {empty} could be scored (the ground truth of its 1 pair holds no valid disparity)")
+
+
 def test_folders_and_logs_without_ground_truth_are_named(tmp_path, kitti_folder, tiny_mcap):
     import shutil
 
