@@ -107,9 +107,9 @@ def truth_at(frames: Iterator[TruthFrame], stamp_ns: int, log: Path, shape: tupl
     for truth_frame in frames:
         if truth_frame.stamp_ns == stamp_ns:
             if truth_frame.depth.shape != tuple(shape):
-                (h, w), (height, width) = truth_frame.depth.shape, shape
-                raise InputError(f"{log}: the ground truth of the stereo frame at stamp {stamp_ns} is {w}×{h} "
-                                 f"pixels, its images {width}×{height}")
+                size = ["×".join(map(str, s[::-1])) for s in (truth_frame.depth.shape, shape)]  # width × height
+                raise InputError(f"{log}: the ground truth of the stereo frame at stamp {stamp_ns} is {size[0]} "
+                                 f"pixels, its images {size[1]}")
             return truth_frame
         if truth_frame.stamp_ns > stamp_ns:
             break
