@@ -412,17 +412,42 @@ def test_a_second_signal_waits_while_outputs_are_open():
 
     from terrainmap.cli.options import GracefulStop
 
-    # raise_signal delivers to this thread and runs the handler before it returns; os.kill may hand
-    # the signal to another thread of the process (OpenCV's, an executor's), its handler a moment later.
-    with GracefulStop() as stop:
-        signal.raise_signal(signal.SIGINT)
-        assert stop.requested
-        with stop.outputs_open():
-            signal.raise_signal(signal.SIGTERM)  # ignored: outputs are being written
-            with pytest.raises(KeyboardInterrupt):
-                stop.check()  # between frames: the run stops there
-        with pytest.raises(KeyboardInterrupt):
+    # As in a terminal: a test run started in the background (`cmd &` in a script) inherits SIGINT
+    # ignored, which GracefulStop leaves so (tested below).
+    foreground = {signal.SIGINT: signal.default_int_handler, signal.SIGTERM: signal.SIG_DFL}
+    previous = {s: signal.signal(s, handler) for s, handler in foreground.items()}
+    try:
+        # raise_signal delivers to this thread and runs the handler before it returns; os.kill may hand
+        # the signal to another thread of the process (OpenCV's, an executor's), its handler a moment later.
+        with GracefulStop() as stop:
             signal.raise_signal(signal.SIGINT)
+            assert stop.requested
+            with stop.outputs_open():
+                signal.raise_signal(signal.SIGTERM)  # ignored: outputs are being written
+                with pytest.raises(KeyboardInterrupt):
+                    stop.check()  # between frames: the run stops there
+            with pytest.raises(KeyboardInterrupt):
+                signal.raise_signal(signal.SIGINT)
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, handler)
+
+
+def test_a_signal_the_process_was_started_ignoring_stays_ignored():
+    """A run started as `cmd &` from a script ignores SIGINT, as the shell asked; GracefulStop
+    does not take it over (nor give it back changed)."""
+    import signal
+
+    from terrainmap.cli.options import GracefulStop
+
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        with GracefulStop() as stop:
+            signal.raise_signal(signal.SIGINT)
+            assert not stop.requested
+        assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 def test_an_output_that_is_no_regular_file_is_refused(small_log, tmp_path):
