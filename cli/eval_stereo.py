@@ -42,8 +42,11 @@ def stereo(path, calibration, max_frames, json_path, config_path, overrides):
     report = evaluate_disparity(path, config, max_frames=max_frames, calibration=calibration)
     click.echo(format_table(report))
     if report["pairs"] == 0:  # nothing to write: every metric would be null
-        why = failures(report["failed_frames"]) or f"{counted(report['pairs_without_truth'], 'pair')} without ground truth"
-        raise Failed(f"no stereo pair of {path} could be scored ({why})")
+        why = [w for w in (failures(report["failed_frames"]),
+                           report["skipped"] and f"{counted(len(report['skipped']), 'pair')} damaged and skipped") if w]
+        if report["pairs_without_truth"] or not why:
+            why.append(f"{counted(report['pairs_without_truth'], 'pair')} without ground truth")
+        raise Failed(f"no stereo pair of {path} could be scored ({', '.join(why)})")
     if not report["bands"]["all"]["truth_pixels"]:
         raise Failed(f"no stereo pair of {path} could be scored (the ground truth of its "
                      f"{counted(report['pairs'], 'pair')} holds no valid disparity)")

@@ -84,6 +84,10 @@ def test_truth_files_round_trip_with_unknown_pixels(tmp_path):
     cv2.imwrite(str(tmp_path / "rgb.png"), np.zeros((2, 2, 3), np.uint8))
     with pytest.raises(InputError, match=r"rgb\.png: not a 16-bit single-channel PNG"):
         ev.read_truth(tmp_path / "rgb.png", (2, 2))
+    cut = png.read_bytes()
+    (tmp_path / "cut.png").write_bytes(cut[: len(cut) // 2])  # libpng would print "Read Error" of its own
+    with pytest.raises(InputError, match=r"cut\.png: cannot decode the image file"):
+        ev.read_truth(tmp_path / "cut.png", (2, 2))
 
 
 def test_truth_files_are_found_beside_kitti_and_middlebury_images(tmp_path):
@@ -189,6 +193,22 @@ def test_a_folder_no_pair_of_which_can_be_scored_is_an_error(tmp_path, kitti_fol
     result = CliRunner().invoke(stereo, [str(kitti_folder), "--json", str(out_json), "--set", "extrinsics.min_points=10000000"])
     assert result.exit_code == 2 and f"no stereo pair of {kitti_folder} could be scored (" in result.output
     assert not out_json.exists()
+
+
+def test_a_folder_whose_only_pair_with_ground_truth_is_damaged_says_so(tmp_path, kitti_folder):
+    import shutil
+
+    from click.testing import CliRunner
+
+    from terrainmap.cli.eval_stereo import stereo
+
+    damaged = tmp_path / "damaged"
+    shutil.copytree(kitti_folder, damaged)
+    left = damaged / "image_2/000000_10.png"
+    left.write_bytes(left.read_bytes()[:-100])
+    result = CliRunner().invoke(stereo, [str(damaged)])
+    assert result.exit_code == 2 and result.output.strip().splitlines()[-1] == (
+        f"Error: no stereo pair of {damaged} could be scored (1 pair damaged and skipped, 1 pair without ground truth)")
 
 
 def test_a_folder_whose_ground_truth_holds_no_disparity_is_an_error(tmp_path, kitti_folder):

@@ -381,6 +381,7 @@ DAMAGED_PNGS = {
     "empty": b"",
     "without its end (IEND)": PNG[:-30],
     "cut short, IEND kept": PNG[: len(PNG) // 2] + PNG[-12:],  # its data chunk runs past IEND
+    "bytes changed in its image data": PNG[:100] + bytes(b ^ 0xFF for b in PNG[100:200]) + PNG[200:],  # libpng: "IDAT: invalid ..."
     "header claiming 30000² pixels": png_claiming(PNG, 30000, 30000),  # libpng would try to inflate 2.7 GB
     "header claiming 100000² pixels": png_claiming(PNG, 100000, 100000),  # beyond OpenCV's limit (cv2.error)
 }
@@ -418,7 +419,7 @@ def test_a_pair_with_an_image_file_that_cannot_be_decoded_is_skipped(tmp_path, c
     bad.write_bytes(DAMAGED_PNGS[damage])
     source = open_source(root)
     assert [frame.index for frame in source.frames()] == [0, 2]
-    assert source.skipped() == [f"{root}: stereo pair 1 ({bad}: cannot decode the image file (not an image, or cut short))"]
+    assert source.skipped() == [f"{root}: stereo pair 1 ({bad}: cannot decode the image file (not an image, damaged or cut short))"]
     with pytest.raises(DamagedImageError):  # the same from the decoder of log messages
         decode_compressed(DAMAGED_PNGS[damage], "/cam")
     assert "libpng" not in capfd.readouterr().err  # nothing from libpng on stderr

@@ -44,7 +44,6 @@ from contextlib import ExitStack
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from ..config import Config
@@ -52,6 +51,7 @@ from ..errors import FrameError, InputError
 from ..pipeline import PipelineState, match_frame
 from ..sim.truth import NoTruthError, open_truth, truth_at
 from ..sources import open_source
+from ..sources.images import read_image
 from ..types import StereoFrame
 from .scores import BANDS, Histogram, ratio
 
@@ -82,8 +82,8 @@ def read_truth(path: Path, shape: tuple[int, int]) -> np.ndarray:
     if path.suffix.lower() == ".pfm":
         disparity = _read_pfm(path)
     else:
-        raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-        if raw is None or raw.dtype != np.uint16 or raw.ndim != 2:
+        raw = read_image(path)  # a damaged file is named, libpng says nothing of its own
+        if raw.dtype != np.uint16 or raw.ndim != 2:
             raise InputError(f"{path}: not a 16-bit single-channel PNG (KITTI disparity × 256)")
         disparity = raw.astype(np.float32) / 256
     if disparity.shape != tuple(shape):

@@ -8,6 +8,7 @@ until :func:`stereo_pair` scales the left and right image of a pair with one com
 from __future__ import annotations
 
 import struct
+import zlib
 from pathlib import Path
 
 import cv2
@@ -83,7 +84,7 @@ def read_image(path: str, name: str | None = None) -> np.ndarray:
         data = Path(path).read_bytes()
     except OSError as exc:
         raise InputError(f"{name}: cannot read the image file ({exc.strerror or exc})") from None
-    return _decode(data, name, "cannot decode the image file (not an image, or cut short)")
+    return _decode(data, name, "cannot decode the image file (not an image, damaged or cut short)")
 
 
 def decode_compressed(data: bytes, name: str) -> np.ndarray:
@@ -93,7 +94,7 @@ def decode_compressed(data: bytes, name: str) -> np.ndarray:
 
 
 def _decode(data: bytes, name: str, failure: str) -> np.ndarray:
-    # A PNG or JPEG cut short is refused before libpng/libjpeg see it: they would print their own
+    # A PNG or JPEG cut short (or a PNG with bytes changed) is refused before libpng/libjpeg see it: they would print their own
     # lines to stderr (or decode a grey remainder) before OpenCV gives up.
     buffer = np.frombuffer(data, dtype=np.uint8)  # a view of the bytes, no copy
     try:
@@ -111,10 +112,10 @@ _DEFLATE_MAX_RATIO = 1032
 
 
 def _complete(data: bytes) -> bool:
-    """False for a PNG whose chunks run past its end, that ends before IEND, or whose image data
-    is too short to inflate to the size its header claims, and for a JPEG without an end-of-image
-    marker (searched in the whole file, so that data a camera appends after the end never fails
-    a good image)."""
+    """False for a PNG whose chunks run past its end, whose critical chunks fail their CRC (bytes
+    changed), that ends before IEND, or whose image data is too short to inflate to the size its
+    header claims, and for a JPEG without an end-of-image marker (searched in the whole file, so
+    that data a camera appends after the end never fails a good image)."""
     if data.startswith(_PNG):
         return _png_complete(data)
     if data.startswith(b"\xff\xd8"):
@@ -128,6 +129,9 @@ def _png_complete(data: bytes) -> bool:
         length, kind = struct.unpack_from(">I4s", data, pos)
         end = pos + 12 + length  # length, type, data, CRC
         if end > len(data):
+            return False
+        critical = not kind[0] & 0x20  # IHDR, PLTE, IDAT, IEND: libpng fails on their CRC (and prints why)
+        if critical and zlib.crc32(data[pos + 4 : end - 4]) != struct.unpack_from(">I", data, end - 4)[0]:
             return False
         if kind == b"IHDR" and length >= 13:
             width, height, depth, colour = struct.unpack_from(">IIBB", data, pos + 8)
