@@ -8,7 +8,7 @@ from terrainmap.errors import InputError
 from terrainmap.sources.images import decode_raw
 from terrainmap.sources.pairing import StereoPairer
 from terrainmap.sources.tf import TransformTree, VehiclePoses, quaternion_to_matrix
-from terrainmap.sources.topics import calibration_topic, side_tokens, stereo_topics
+from terrainmap.sources.topics import calibration_topic, rectified_name, side_tokens, stereo_topics
 
 IMAGE = "sensor_msgs/msg/Image"
 COMPRESSED = "sensor_msgs/msg/CompressedImage"
@@ -80,6 +80,26 @@ def test_pairer_matches_within_tolerance_and_stays_bounded():
         pairer.push(0, 1000 + 100 * i, i)
     assert all(len(buffer) <= 4 for buffer in pairer._waiting) and pairer.dropped >= 96
     assert pairer.push(1, 1000 + 100 * 99 + 2, "R") == (1000 + 100 * 99, 99, "R")
+
+
+@pytest.mark.parametrize(
+    "period_ms, right_late_ms, tolerance_ms",
+    [(10, 0, 10), (33, 15, 20)],  # 100 Hz synchronised at the default tolerance; 30 Hz, right 15 ms late, widened
+)
+def test_after_a_dropped_image_the_pairs_are_not_made_one_frame_apart(period_ms, right_late_ms, tolerance_ms):
+    """A tolerance of about a period or more: after left image 5 is lost, left 6 is closer to
+    right 6 than to the right 5 that waits unpaired, and so on; every later pair stays whole."""
+    ms = 1_000_000
+    pairer = StereoPairer(tolerance_ns=tolerance_ms * ms)
+    messages = sorted([(i * period_ms * ms, 0, i) for i in range(20) if i != 5]
+                      + [((i * period_ms + right_late_ms) * ms, 1, i) for i in range(20)])
+    pairs = [p for t, side, i in messages if (p := pairer.push(side, t, i)) is not None]
+    assert [(left, right) for _, left, right in pairs] == [(i, i) for i in range(20) if i != 5]
+
+
+def test_a_topic_is_taken_for_rectified_by_a_word_of_its_name():
+    assert rectified_name("/stereo/left/image_rect_color") and rectified_name("/cam/left/rectified/compressed")
+    assert not rectified_name("/directional/left/image_raw") and not rectified_name("/correction/left/image")
 
 
 def test_pairer_keeps_every_pair_of_a_camera_logged_a_third_of_a_second_late():

@@ -36,7 +36,7 @@ from .images import stereo_pair
 from .pairing import StereoPairer
 from .readers import McapLog, Ros1Bag, Rosbag2Bag, bag_metadata
 from .tf import TransformTree, VehiclePoses
-from .topics import calibration_topic, side_tokens, stereo_topics
+from .topics import calibration_topic, rectified_name, side_tokens, stereo_topics
 
 logger = logging.getLogger(__name__)
 
@@ -161,7 +161,7 @@ class LogSource(Source):
         return msgs.calibration_from_infos(
             left_info,
             right_info,
-            rectified_images="rect" in self.left_topic.lower(),
+            rectified_images=rectified_name(self.left_topic),
             source=f"{left} + {right}",
             right_in_left=self._tree.relative(left_info["frame_id"], right_info["frame_id"]),
         )

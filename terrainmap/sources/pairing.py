@@ -3,10 +3,14 @@
 from __future__ import annotations
 
 import logging
+import statistics
 from collections import deque
 from typing import Any
 
 logger = logging.getLogger(__name__)
+
+PERIOD_GAPS = 5
+"""Stamp gaps per camera whose median is taken for its frame period (a dropped image doubles one)."""
 
 
 class StereoPairer:
@@ -17,11 +21,19 @@ class StereoPairer:
     holds a second of a 30 Hz camera whose messages are logged late).
     A new message pairs with the closest-stamped waiting message of the other side; messages of
     either side older than the matched ones can no longer pair and are dropped.
+
+    Once both cameras' frame periods are known (the median of each one's last
+    :data:`PERIOD_GAPS` stamp gaps), a pair's stamps must also differ by less than half the
+    shorter period: only then is each message the other's nearest, whatever comes later. With
+    a tolerance of a period or more (100 Hz cameras at the default 10 ms), one dropped image
+    would otherwise pair every later image with its neighbour's partner, one frame apart.
     """
 
     def __init__(self, tolerance_ns: int, max_buffer: int = 32):
         self.tolerance_ns, self.max_buffer = int(tolerance_ns), max_buffer
         self._waiting: tuple[deque, deque] = (deque(maxlen=max_buffer), deque(maxlen=max_buffer))
+        self._gaps: tuple[deque, deque] = (deque(maxlen=PERIOD_GAPS), deque(maxlen=PERIOD_GAPS))
+        self._last: list[int | None] = [None, None]
         self.pushed = 0
         self.dropped = 0
         self.overflowed = 0
@@ -31,9 +43,14 @@ class StereoPairer:
         """Add a message of ``side`` (0 left, 1 right); return ``(left_stamp_ns, left, right)``
         when it completes a pair, else None."""
         self.pushed += 1
+        last = self._last[side]
+        if last is None or stamp_ns > last:
+            if last is not None:
+                self._gaps[side].append(stamp_ns - last)
+            self._last[side] = stamp_ns
         other = self._waiting[1 - side]
         best = min(range(len(other)), key=lambda i: abs(other[i][0] - stamp_ns), default=None)
-        if best is None or abs(other[best][0] - stamp_ns) > self.tolerance_ns:
+        if best is None or not self._close(abs(other[best][0] - stamp_ns)):
             own = self._waiting[side]
             if len(own) == own.maxlen:
                 self.dropped += 1
@@ -47,6 +64,13 @@ class StereoPairer:
             other.popleft()
         self._waiting[side].clear()
         return (stamp_ns, item, match) if side == 0 else (match_stamp, match, item)
+
+    def _close(self, difference_ns: int) -> bool:
+        if difference_ns > self.tolerance_ns:
+            return False
+        if not all(self._gaps):
+            return True
+        return 2 * difference_ns < min(statistics.median_low(gaps) for gaps in self._gaps)
 
     def finish(self) -> None:
         """The log has ended: the messages still waiting have no partner (counted in ``dropped``)."""

@@ -25,6 +25,12 @@ def _tokens(topic: str) -> list[str]:
     return _TOKEN.findall(topic)
 
 
+def rectified_name(topic: str) -> bool:
+    """Whether the topic's name says its images are rectified: a word ``rect`` or ``rectified``
+    (``image_rect``, ``/left/rectified``), not those letters inside another word (``/directional``)."""
+    return any(token.lower() in ("rect", "rectified") for token in _tokens(topic))
+
+
 def side_tokens(left: str, right: str) -> tuple[str, str] | None:
     """The (left, right) side token pair that turns topic ``left`` into ``right``, if any."""
     a, b = _tokens(left), _tokens(right)
@@ -35,7 +41,7 @@ def side_tokens(left: str, right: str) -> tuple[str, str] | None:
 
 
 def _preference(left: str, right: str, types: dict[str, str]) -> tuple:
-    return ("rect" not in left.lower(), types[left] in COMPRESSED_IMAGE_TYPES,
+    return (not rectified_name(left), types[left] in COMPRESSED_IMAGE_TYPES,
             SIDE_PAIRS.index(side_tokens(left, right)), left)
 
 
