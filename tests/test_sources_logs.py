@@ -968,6 +968,42 @@ def test_a_calibration_that_changes_part_way_applies_to_the_pairs_after_it(tmp_p
            "8×6, was fx 400 px, baseline 0.25 m, 8×6); the frames after use it" in caplog.text
 
 
+def _write_resized(path: Path, sizes: list[tuple[int, int]], infos: int) -> Path:
+    """A ROS 2 MCAP whose camera infos are logged right after their images (image_transport's
+    order), the images of pair i of ``sizes[i]`` (rows, columns), the infos of the first
+    ``infos`` pairs' sizes only (then the last of those again)."""
+    with open(path, "wb") as f, Ros2Writer(f) as writer:
+        image_schema = writer.register_msgdef("sensor_msgs/msg/Image", IMAGE_DEF + HEADER)
+        info_schema = writer.register_msgdef("sensor_msgs/msg/CameraInfo", INFO_DEF + HEADER)
+        for i, (rows, cols) in enumerate(sizes):
+            stamp = T0 + i * 100_000_000
+            info_rows, info_cols = sizes[min(i, infos - 1)]
+            for side, tx, image in zip(("left", "right"), (0.0, -100.0), pair_images(i, (rows, cols, 3)), strict=True):
+                writer.write_message(f"/cam/{side}/image_rect", image_schema,
+                                     ros_image(stamp, f"{side}_optical", image, "rgb8"), stamp)
+                writer.write_message(f"/cam/{side}/camera_info", info_schema,
+                                     ros_info(stamp, f"{side}_optical", info_cols, info_rows, tx), stamp + 1)
+    return path
+
+
+def test_images_that_change_size_part_way_skip_the_one_pair_logged_before_its_infos(tmp_path, caplog):
+    """The driver switches from 8×6 to 16×12 at pair 3: that pair still holds the old calibration
+    (its infos come after it) and is skipped with a warning; the run goes on with the new one."""
+    path = _write_resized(tmp_path / "resized.mcap", [(6, 8)] * 3 + [(12, 16)] * 3, infos=6)
+    with open_source(path) as source:
+        frames = list(source.frames())
+        assert len(source.skipped()) == 1
+    assert [(f.index, f.calibration.width) for f in frames] == [(0, 8), (1, 8), (2, 8), (4, 16), (5, 16)]
+    assert caplog.text.count("images of a new size before their camera infos, skipped") == 1
+
+
+def test_images_whose_new_size_never_gets_its_calibration_end_the_run_naming_both_sizes(tmp_path):
+    path = _write_resized(tmp_path / "resized.mcap", [(6, 8)] * 3 + [(12, 16)] * 3, infos=3)
+    with open_source(path) as source, pytest.raises(CalibrationError, match="calibration is for 8×6 images but "
+                                                                                 "/cam/left/image_rect is 16×12"):
+        list(source.frames())
+
+
 def test_unusable_camera_infos_part_way_keep_the_calibration_before_with_one_warning(tmp_path, caplog):
     path = _write_with_infos(tmp_path / "broken.mcap", [400.0] * 2 + [0.0] * 4)
     with open_source(path) as source:

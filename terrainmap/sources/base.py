@@ -10,7 +10,7 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
-from ..errors import ConfigError, DamagedImageError
+from ..errors import ConfigError
 from ..types import Extrinsics, StereoFrame
 
 logger = logging.getLogger(__name__)
@@ -145,11 +145,11 @@ class Source(ABC):
         MCAP, the stereo pairs whose images cannot be decoded)."""
         return list(self._damaged)
 
-    def _skip_damaged(self, pair: str, exc: DamagedImageError) -> None:
-        """Record a stereo pair lost to an image that cannot be decoded (the run goes on); a
-        :meth:`PairRef.load` then returns None."""
+    def _skip_damaged(self, pair: str, exc: Exception, why: str = "damaged") -> None:
+        """Record a stereo pair lost to an image that cannot be decoded, or ``why`` else (the run
+        goes on); a :meth:`PairRef.load` then returns None."""
         self._damaged.append(f"{pair} ({exc})")
-        logger.warning("%s: damaged, skipped", self._damaged[-1])
+        logger.warning("%s: %s, skipped", self._damaged[-1], why)
 
     def close(self) -> None:
         self._closed = True

@@ -75,6 +75,7 @@ class LogSource(Source):
         pair_tolerance_ns: int = 10_000_000,
     ):
         super().__init__(path)
+        self._fitted_shape = self._stale_shape = None  # image shapes: the last that fitted its calibration, the last skipped
         self.reader = self._open_reader()
         try:
             self._read_log(left_topic, right_topic, calibration, pair_tolerance_ns)
@@ -279,12 +280,25 @@ class LogSource(Source):
             self._skip_damaged(f"{self.path}: stereo pair at {stamp_ns / 1e9:.3f} s", exc)
             return None
         left, right = stereo_pair(left, right, self.left_topic, self.right_topic)
+        try:
+            calibration = calib_io.fit_to_image(calibration, left.shape, self.left_topic)
+        except CalibrationError as exc:
+            # Drivers log a camera's info after its image: the first pair of images of a new size
+            # still holds the old calibration. One such pair is skipped; a second, or a size that
+            # never fitted, means the calibration does not follow the images.
+            if self._fitted_shape in (None, left.shape) or self._stale_shape == left.shape:
+                raise
+            self._stale_shape = left.shape
+            self._skip_damaged(f"{self.path}: stereo pair at {stamp_ns / 1e9:.3f} s", exc, "images of a new size "
+                               "before their camera infos")
+            return None
+        self._fitted_shape = left.shape
         return StereoFrame(
             index=index,
             stamp_ns=stamp_ns,
             left=left,
             right=right,
-            calibration=calib_io.fit_to_image(calibration, left.shape, self.left_topic),
+            calibration=calibration,
             extrinsics=self.extrinsics,
             frame_id=msgs.frame_id(left_msg),
             source=f"{self.path} {self.left_topic} + {self.right_topic}",
