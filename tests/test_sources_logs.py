@@ -562,6 +562,32 @@ def test_damaged_or_incomplete_sqlite3_bags_are_named(tmp_path):
         open_source(bag)
 
 
+def test_odometry_of_base_footprint_gives_the_pose_of_base_link_the_camera_is_mounted_on(tmp_path):
+    """The common tree odom → base_footprint (moving), base_footprint → base_link 0.3 m up
+    (fixed), camera under base_link: a frame's vehicle pose is base_link's, as its extrinsics are."""
+    path = tmp_path / "footprint.mcap"
+    with open(path, "wb") as f, Ros2Writer(f) as writer:
+        image_schema = writer.register_msgdef("sensor_msgs/msg/Image", IMAGE_DEF + HEADER)
+        info_schema = writer.register_msgdef("sensor_msgs/msg/CameraInfo", INFO_DEF + HEADER)
+        tf_schema = writer.register_msgdef("tf2_msgs/msg/TFMessage", TF_DEF + HEADER)
+        for parent, child, xyz, q in (("base_footprint", "base_link", (0, 0, 0.3), (0, 0, 0, 1)),
+                                      ("base_link", "left_optical", (0.5, 0, 1.0), OPTICAL_Q)):
+            writer.write_message("/tf_static", tf_schema, tf_message(T0, parent, child, xyz, q), T0)
+        for side, tx in (("left", 0.0), ("right", -100.0)):
+            writer.write_message(f"/cam/{side}/camera_info", info_schema, ros_info(T0, f"{side}_optical", 8, 6, tx), T0)
+        for i in range(3):
+            stamp = T0 + i * 100_000_000
+            writer.write_message("/tf", tf_schema, tf_message(stamp, "odom", "base_footprint", (10.0 + i, 0, 0),
+                                                              (0, 0, 0, 1)), stamp)
+            for side, image in zip(("left", "right"), pair_images(i), strict=True):
+                writer.write_message(f"/cam/{side}/image_rect", image_schema,
+                                     ros_image(stamp, f"{side}_optical", image, "rgb8"), stamp + 1)
+    with open_source(path) as source:
+        frame = next(iter(source.frames()))
+    assert frame.extrinsics.vehicle_frame_id == "base_link"
+    np.testing.assert_allclose(frame.vehicle_pose[:3, 3], [10.0, 0.0, 0.3])
+
+
 def test_copies_of_a_simulated_drive_keep_its_vehicle_poses(tmp_path):
     """A drive (dynamic /tf odom → base_link) as rosbag2 in sqlite3 storage, ROS 1 bag and ROS 1 MCAP."""
     from terrainmap.sim import SimConfig, simulate

@@ -265,7 +265,12 @@ class LogSource(Source):
 
     def _pair_ref(self, pair: tuple, poses: VehiclePoses) -> PairRef:
         index, stamp_ns = pair[:2]
-        load = partial(self._load, *pair, vehicle_pose=poses.at(stamp_ns), odometry_frame_id=poses.parent or "odom")
+        pose = poses.at(stamp_ns)
+        if pose is not None and self.extrinsics is not None and poses.child != self.extrinsics.vehicle_frame_id:
+            # odom → base_footprint poses, the camera mounted on base_link: the pose of base_link
+            mount = self._tree.relative(poses.child, self.extrinsics.vehicle_frame_id)
+            pose = pose if mount is None else pose @ mount
+        load = partial(self._load, *pair, vehicle_pose=pose, odometry_frame_id=poses.parent or "odom")
         return PairRef(index, stamp_ns, load)
 
     def _load(

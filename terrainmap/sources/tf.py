@@ -139,6 +139,8 @@ class VehiclePoses:
     def __init__(self, tolerance_ns: int = 100_000_000, horizon_ns: int = 2_000_000_000):
         self.tolerance_ns, self.horizon_ns = tolerance_ns, horizon_ns
         self.parent: str | None = None
+        self.child: str | None = None
+        """The vehicle frame the poses are of: the first one seen (``base_link`` or ``base_footprint``)."""
         self._stamps: list[int] = []
         self._poses: list[np.ndarray] = []
         self._back: int | None = None  # the stamp of a pose just before, far before the newest
@@ -151,7 +153,8 @@ class VehiclePoses:
     def add(self, stamp_ns: int, parent: str, child: str, translation, quaternion_xyzw) -> None:
         """Record one transform; only ``odometry frame → vehicle frame`` ones are kept."""
         parent, child = parent.lstrip("/"), child.lstrip("/")
-        if child not in VEHICLE_FRAMES or parent in VEHICLE_FRAMES or parent != (self.parent or parent):
+        if (child not in VEHICLE_FRAMES or parent in VEHICLE_FRAMES or parent != (self.parent or parent)
+                or child != (self.child or child)):
             return
         if not usable(translation, quaternion_xyzw) or stamp_ns == 0:  # broken, or never stamped
             if not self._warned_broken:
@@ -170,7 +173,7 @@ class VehiclePoses:
             self._stamps.clear()
             self._poses.clear()
         self._back = None
-        self.parent = parent
+        self.parent, self.child = parent, child
         self._stamps.append(int(stamp_ns))
         self._poses.append(homogeneous(quaternion_to_matrix(quaternion_xyzw), translation))
         old = bisect_left(self._stamps, stamp_ns - self.horizon_ns)
