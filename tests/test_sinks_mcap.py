@@ -429,12 +429,21 @@ def test_bad_arguments(tmp_path):
         open_mcap_sink(tmp_path / "no_such_dir" / "x.mcap", config=Config())
 
 
-def test_layer_shape_mismatch_is_reported(tmp_path):
-    frame, result = make_frame(0)
-    result.layers["slope"] = np.zeros((3, 3), np.float32)
-    with open_mcap_sink(tmp_path / "bad.mcap", config=Config()) as sink:
+@pytest.mark.parametrize("flavor", ["foxglove", "ros2"])
+def test_layer_shape_mismatch_is_reported_before_any_message_of_the_frame(tmp_path, flavor):
+    """The refused frame leaves nothing (not its /tf) in the file, whose frame count it matches."""
+    path = tmp_path / "bad.mcap"
+    with open_mcap_sink(path, flavor, config=Config()) as sink:
+        frame, result = make_frame(0)
+        sink.write(dataclasses.replace(frame, vehicle_pose=np.eye(4)), result)  # with odometry: a /tf each frame
+        frame, result = make_frame(1)
+        frame = dataclasses.replace(frame, vehicle_pose=np.eye(4))
+        result.layers["slope"] = np.zeros((3, 3), np.float32)
         with pytest.raises(TerrainmapError, match="layer 'slope' has shape"):
             sink.write(frame, result)
+    with open(path, "rb") as f:
+        stamps = {message.log_time for _, _, message in make_reader(f).iter_messages()}
+    assert frame.stamp_ns not in stamps and read_metadata(path)["frames"] == "1"
 
 
 def test_foxglove_layout_names_written_topics_and_fields(fox_file):

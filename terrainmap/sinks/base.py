@@ -115,6 +115,7 @@ class McapSink:
         if np.shape(result.point_labels) != (len(result.points_vehicle),):
             raise TerrainmapError(f"frame {result.index}: {len(result.points_vehicle)} points but point labels "
                                   f"of shape {np.shape(result.point_labels)}")
+        check_layers(result)  # before the frame's first message (its /tf) is written
         camera = camera_transform(result.extrinsics)
         if self._extrinsics is None:
             self._extrinsics = result.extrinsics
@@ -191,6 +192,15 @@ def vehicle_transform(frame: StereoFrame, extrinsics: Extrinsics) -> tuple[str, 
     return frame.odometry_frame_id, extrinsics.vehicle_frame_id, translation, quaternion_from_matrix(T[:3, :3])
 
 
+def check_layers(result: FrameResult) -> None:
+    """:class:`TerrainmapError` when a layer to write has another shape than the grid."""
+    shape = tuple(result.grid.config.shape)
+    for name in GRID_LAYERS:
+        if name in result.layers and np.shape(result.layers[name]) != shape:
+            raise TerrainmapError(f"frame {result.index}: layer '{name}' has shape {np.shape(result.layers[name])}, "
+                                  f"grid is {shape}")
+
+
 def grid_layers(result: FrameResult) -> dict[str, np.ndarray]:
     """The grid layers to write, in :data:`GRID_LAYERS` order, as (m0, m1) float32 / uint8 arrays.
 
@@ -202,15 +212,9 @@ def grid_layers(result: FrameResult) -> dict[str, np.ndarray]:
     TerrainmapError
         A layer's shape differs from the grid's.
     """
-    shape = tuple(result.grid.config.shape)
-    layers = {}
-    for name in GRID_LAYERS:
-        if name not in result.layers:
-            continue
-        array = np.asarray(result.layers[name])
-        if array.shape != shape:
-            raise TerrainmapError(f"frame {result.index}: layer '{name}' has shape {array.shape}, grid is {shape}")
-        layers[name] = array.astype(np.float32 if name in FLOAT_LAYERS else np.uint8, copy=False)
+    check_layers(result)
+    layers = {name: np.asarray(result.layers[name]).astype(np.float32 if name in FLOAT_LAYERS else np.uint8, copy=False)
+              for name in GRID_LAYERS if name in result.layers}
     if "valid" in layers:
         for name in ("elevation", "slope"):
             if name in layers:
