@@ -146,8 +146,8 @@ class Source(ABC):
         return list(self._damaged)
 
     def _skip_damaged(self, pair: str, exc: Exception, why: str = "damaged") -> None:
-        """Record a stereo pair lost to an image that cannot be decoded, or ``why`` else (the run
-        goes on); a :meth:`PairRef.load` then returns None."""
+        """Record a stereo pair lost (the run goes on), to an image that cannot be decoded or as
+        ``why`` says; a :meth:`PairRef.load` then returns None."""
         self._damaged.append(f"{pair} ({exc})")
         logger.warning("%s: %s, skipped", self._damaged[-1], why)
 

@@ -128,8 +128,8 @@ class VehiclePoses:
     ``at(stamp)`` interpolates the translation linearly between the two poses around the stamp
     and takes the rotation of the nearer one (at 10 Hz a vehicle turns a degree or two between
     poses); a stamp outside the known poses gets the nearest one if it lies within
-    ``tolerance_ns``, else None. The first odometry frame seen is kept (later parents are
-    ignored), and poses older than ``horizon_ns`` before the newest are forgotten, so memory
+    ``tolerance_ns``, else None. The first odometry frame and vehicle frame seen are kept (poses
+    between others are ignored), and poses older than ``horizon_ns`` before the newest are forgotten, so memory
     stays bounded. Two poses in a row stamped more than ``horizon_ns`` before the newest, the
     second later than the first, are a clock that went back and runs again (a reset): the poses
     before them are dropped, with a warning. One such pose alone, or repeated, is a stale message
