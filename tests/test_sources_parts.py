@@ -162,8 +162,12 @@ def test_vehicle_poses_interpolate_and_keep_to_one_odometry_frame(caplog):
     assert poses.parent == "odom" and poses.newest_ns == 200
     early, late = poses.at(125), poses.at(175)
     np.testing.assert_allclose(early[:3, 3], [0.25, 0.5, 0])
-    np.testing.assert_allclose(early[:3, :3], np.eye(3))  # the nearer pose's rotation
-    np.testing.assert_allclose(late[:3, :3], quaternion_to_matrix(yaw90), atol=1e-12)
+    # the rotation along the shortest arc: 22.5° and 67.5° of the 90° turn
+    yaw = [np.degrees(np.arctan2(pose[1, 0], pose[0, 0])) for pose in (early, late, poses.at(200))]
+    np.testing.assert_allclose(yaw, [22.5, 67.5, 90.0])
+    np.testing.assert_allclose(poses.at(200)[:3, :3], quaternion_to_matrix(yaw90), atol=1e-12)
+    for pose in (early, late):
+        np.testing.assert_allclose(pose[:3, :3] @ pose[:3, :3].T, np.eye(3), atol=1e-12)  # a rotation
     np.testing.assert_allclose(poses.at(250)[:3, 3], [1, 2, 0])  # within the tolerance of the last
     np.testing.assert_allclose(poses.at(50)[:3, 3], [0, 0, 0])
     assert poses.at(251) is None and poses.at(49) is None
