@@ -779,6 +779,8 @@ def check_section(section: Any, grid: GridConfig | None = None) -> None:
     own names it. :class:`ConfigError` naming the first bad field. A section equal to the last one
     of its kind that passed (values and their types, and ``grid``) is not checked again: the
     stages check theirs every frame."""
+    if not isinstance(section, TerrainConfig):
+        grid = None  # only the terrain's ranges depend on it: so the stages' checks find what validate() passed
     if _passed_before(section, grid):
         return
     name = _SECTION_NAMES[type(section)]

@@ -126,7 +126,7 @@ def occupancy(obstacles: list[Obstacle], grid_config: GridConfig, clearance_m: f
     dy = grid_config.y_min_m + (iy + 0.5) * c - cy[k]
     cos, sin = np.cos(yaw[k]), np.sin(yaw[k])
     a, b = length[k] / 2, width[k] / 2
-    centre = np.hypot(np.maximum(np.abs(dx * cos + dy * sin) - a, 0.0), np.maximum(np.abs(dy * cos - dx * sin) - b, 0.0))
+    centre = _to_rectangle(dx, dy, cos, sin, a, b)
     # The square holds the disc of radius h about its centre and lies in the one of radius h·√2:
     # only the pairs in between need the exact test.
     reached = centre <= clearance_m + h
@@ -150,13 +150,18 @@ def _square_reaches(dx, dy, cos, sin, a, b, h, clearance_m) -> np.ndarray:
     )
     nearest = np.full(dx.shape, np.inf)
     for sx, sy in ((-1, -1), (-1, 1), (1, -1), (1, 1)):
-        px, py = dx + sx * h, dy + sy * h  # the square's corner, to the rectangle
-        u = np.maximum(np.abs(px * cos + py * sin) - a, 0.0)
-        v = np.maximum(np.abs(py * cos - px * sin) - b, 0.0)
-        nearest = np.minimum(nearest, np.hypot(u, v))
+        corner = _to_rectangle(dx + sx * h, dy + sy * h, cos, sin, a, b)  # the square's corner, to the rectangle
         qx, qy = sx * a * cos - sy * b * sin, sx * a * sin + sy * b * cos  # the rectangle's corner, to the square
-        nearest = np.minimum(nearest, np.hypot(np.maximum(np.abs(qx - dx) - h, 0.0), np.maximum(np.abs(qy - dy) - h, 0.0)))
+        nearest = np.minimum(nearest, np.minimum(corner, _to_rectangle(qx - dx, qy - dy, 1.0, 0.0, h, h)))
     return ~separated | (nearest <= clearance_m)
+
+
+def _to_rectangle(px, py, cos, sin, a, b) -> np.ndarray:
+    """Distance of the points (px, py) to the rectangle of half-sizes (a, b) at the origin, turned
+    by yaw (cos, sin); 0 inside."""
+    u = np.maximum(np.abs(px * cos + py * sin) - a, 0.0)
+    v = np.maximum(np.abs(py * cos - px * sin) - b, 0.0)
+    return np.hypot(u, v)
 
 
 def step_height(samples: np.ndarray, elevation: np.ndarray, observed: np.ndarray) -> np.ndarray:

@@ -94,8 +94,8 @@ def decode_compressed(data: bytes, name: str) -> np.ndarray:
 
 
 def _decode(data: bytes, name: str, failure: str) -> np.ndarray:
-    # A PNG or JPEG cut short (or a PNG with bytes changed) is refused before libpng/libjpeg see it: they would print their own
-    # lines to stderr (or decode a grey remainder) before OpenCV gives up.
+    # A PNG or JPEG cut short (or a PNG with bytes changed) is refused before libpng/libjpeg see
+    # it: they would print their own lines to stderr (or decode a grey remainder) before OpenCV gives up.
     buffer = np.frombuffer(data, dtype=np.uint8)  # a view of the bytes, no copy
     try:
         image = cv2.imdecode(buffer, cv2.IMREAD_UNCHANGED) if data and _complete(data) else None
@@ -131,7 +131,7 @@ def _png_complete(data: bytes) -> bool:
         if end > len(data):
             return False
         critical = not kind[0] & 0x20  # IHDR, PLTE, IDAT, IEND: libpng fails on their CRC (and prints why)
-        if critical and zlib.crc32(data[pos + 4 : end - 4]) != struct.unpack_from(">I", data, end - 4)[0]:
+        if critical and zlib.crc32(memoryview(data)[pos + 4 : end - 4]) != struct.unpack_from(">I", data, end - 4)[0]:
             return False
         if kind == b"IHDR" and length >= 13:
             width, height, depth, colour = struct.unpack_from(">IIBB", data, pos + 8)

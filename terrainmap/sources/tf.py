@@ -12,8 +12,8 @@ import itertools
 import logging
 from bisect import bisect_left
 
+import cv2
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from ..types import Extrinsics
 
@@ -189,8 +189,8 @@ class VehiclePoses:
             a = (stamp_ns - t0) / (t1 - t0)
             before, after = self._poses[k - 1], self._poses[k]
             pose = before.copy()
-            turn = Rotation.from_matrix(before[:3, :3].T @ after[:3, :3]).as_rotvec()
-            pose[:3, :3] = before[:3, :3] @ Rotation.from_rotvec(a * turn).as_matrix()
+            turn, _ = cv2.Rodrigues(before[:3, :3].T @ after[:3, :3])  # axis × angle
+            pose[:3, :3] = before[:3, :3] @ cv2.Rodrigues(a * turn)[0]
             pose[:3, 3] = (1 - a) * before[:3, 3] + a * after[:3, 3]
             return pose
         near = [i for i in (k - 1, k) if 0 <= i < len(stamps) and abs(stamps[i] - stamp_ns) <= self.tolerance_ns]
