@@ -350,11 +350,44 @@ def test_a_log_no_frame_of_which_can_be_scored_is_an_error_and_writes_no_report(
     assert not out_json.exists()  # a report of nulls only would read as a result
 
 
-def test_credited_track_keeps_a_matching_track_and_switches_only_when_it_is_lost():
+def test_match_tracks_keeps_a_matching_track_and_switches_only_when_it_is_lost():
     """CLEAR MOT: two tracks on one obstacle do not make switches while the credited one matches."""
-    assert acc.credited_track(None, [7, 9], np.array([1.0, 0.2])) == 9  # first match: the nearest
-    assert acc.credited_track(9, [7, 9], np.array([0.1, 0.8])) == 9  # still matching: kept
-    assert acc.credited_track(9, [7, 4], np.array([0.5, 0.3])) == 4  # lost: the nearest takes over
+    both = np.array([[True, True]])
+    assert acc.match_tracks(both, np.array([[1.0, 0.2]]), [None], [7, 9]).tolist() == [1]  # first: the nearest
+    assert acc.match_tracks(both, np.array([[0.1, 0.8]]), [9], [7, 9]).tolist() == [1]  # still matching: kept
+    assert acc.match_tracks(both, np.array([[0.5, 0.3]]), [9], [7, 4]).tolist() == [1]  # lost: the nearest
+    assert acc.match_tracks(np.zeros((1, 2), bool), np.ones((1, 2)), [7], [7, 4]).tolist() == [-1]
+    assert acc.match_tracks(np.zeros((0, 0), bool), np.zeros((0, 0)), [], []).tolist() == []
+
+
+def test_match_tracks_is_one_to_one():
+    """One cluster over a car and the rock beside it finds the nearer of the two, not both; a
+    second track takes the other; a track kept by continuity is not given to another truth."""
+    hits = np.array([[True], [True]])
+    assert acc.match_tracks(hits, np.array([[1.2], [0.9]]), [None, None], [4]).tolist() == [-1, 0]
+    hits = np.array([[True, True], [True, False]])
+    assert acc.match_tracks(hits, np.array([[0.2, 0.5], [0.3, np.inf]]), [None, None], [4, 5]).tolist() == [0, -1]
+    assert acc.match_tracks(hits, np.array([[0.2, 0.5], [0.3, np.inf]]), [5, None], [4, 5]).tolist() == [1, 0]
+    assert acc.match_tracks(hits, np.array([[0.2, 0.5], [0.3, np.inf]]), [4, 4], [4, 5]).tolist() == [0, -1]
+
+
+def test_one_track_between_two_obstacles_finds_one_of_them(tiny_log, monkeypatch):
+    """The oracle's obstacles merged into one confirmed track at the pedestrian's centre with a
+    footprint over every truth: it is the pedestrian's, and every other eligible obstacle is missed."""
+    import dataclasses
+
+    oracle = _oracle(tiny_log, Config())
+
+    def merged(frame, cfg, state):
+        result = oracle(frame, cfg, state)
+        pedestrian = next(o for o in result.obstacles if o.height_m == pytest.approx(1.8, abs=0.05))
+        return dataclasses.replace(result, obstacles=[dataclasses.replace(pedestrian, track_id=3)])
+
+    monkeypatch.setattr(acc, "process_frame", merged)
+    report = acc.evaluate(tiny_log, Config(), methods=["terrainmap"], obstacle_margin_m=40.0)
+    others = dict(report["obstacles"]["frames_to_confirmation"])
+    assert others.pop("2 pedestrian") == 0 and others and set(others.values()) == {None}
+    assert report["methods"]["terrainmap"]["all"]["obstacle_recall"] < 1
 
 
 @pytest.mark.parametrize(

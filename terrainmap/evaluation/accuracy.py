@@ -18,7 +18,8 @@ layers, point labels and tracked obstacles) and every other method of
   (:mod:`.truth_grid`), over the cells where the method gives a finite value **and** the
   terrain is observed in this frame (the cell holds truth terrain pixels of the left camera).
 - ``slope_error_median_deg``: ``|slope − true slope|`` over the same cells, the true slope being
-  that of the cell-mean gradient of the truth in the vehicle frame; null for a method without slope.
+  that of the cell-mean gradient of the truth in the vehicle frame; null for a method without slope
+  (a baseline's finite differences give none only in a cell with no neighbour along an axis).
 - ``coverage``: fraction of the observed terrain cells where the method gives a finite elevation.
 - ``terrain_precision`` / ``_recall`` / ``_f1``: per point, "predicted TERRAIN" against "truth
   label at the point's pixel is terrain". Points on sky pixels and points the method leaves
@@ -29,7 +30,8 @@ layers, point labels and tracked obstacles) and every other method of
   pixels that both cameras see (:func:`.truth_grid.truth_obstacles`), centre within
   ``obstacle_range_m`` and inside the grid area, that are matched by a *confirmed* positive
   terrainmap obstacle whose centre lies in the truth footprint dilated by ``obstacle_margin_m``
-  (vehicle frame); summed over frames. Bands by the truth centre's range.
+  (vehicle frame), one to one (:func:`match_tracks`: one obstacle cannot find two); summed over
+  frames. Bands by the truth centre's range.
 - ``false_obstacles_per_frame`` (terrainmap only): confirmed positive obstacles matching no truth
   footprint (of any height), plus confirmed negative obstacles where the truth shows no
   depression (:func:`.truth_grid.depression_depth` below half of ``obstacles.min_depth_m``,
@@ -38,11 +40,11 @@ layers, point labels and tracked obstacles) and every other method of
 ``obstacles`` (extra key) holds, per truth obstacle, ``frames_to_confirmation`` (frames from
 first being eligible to first being matched, None if never) and ``id_switches``: how often the
 track credited with it changed between frames where it was eligible and matched
-(:func:`credited_track`: an obstacle seen as two tracked clusters does not switch while the
+(:func:`match_tracks`: an obstacle seen as two tracked clusters does not switch while the
 credited one keeps matching; the credit follows the obstacle from its first match in view, beyond
 ``obstacle_range_m`` too, so the track that brings it into range keeps it there);
-``duplicate_frames``: the frames where it was eligible and matched by more than one track (one
-obstacle reported twice);
+``duplicate_frames``: the frames where it was eligible and matched, with more than one track's
+centre in its footprint (one obstacle reported twice);
 and ``false_on_steep_ground_per_frame``: the false positive obstacles within
 ``obstacle_range_m`` whose footprint covers true terrain steeper than ``cost.max_slope_deg``
 (berms, walls: ground the vehicle cannot drive on, which the paper counts out of the
@@ -104,12 +106,30 @@ def select_methods(methods: list[str] | None) -> list[str]:
     return list(dict.fromkeys(methods))
 
 
-def credited_track(previous: int | None, ids: list[int], distances: np.ndarray) -> int:
-    """The track credited with a truth obstacle in this frame, among the matching tracks ``ids``
-    at ``distances`` (m) from its centre. As in the CLEAR MOT metrics, the track credited in the
-    last matched frame (``previous``) keeps it while it still matches; otherwise the nearest one
-    takes it over (a new id there is an id switch)."""
-    return previous if previous in ids else ids[int(np.argmin(distances))]
+def match_tracks(hits: np.ndarray, distances: np.ndarray, previous: list[int | None], ids: list[int]) -> np.ndarray:
+    """One-to-one matching of truth obstacles to tracks, as in the CLEAR MOT metrics.
+
+    ``hits`` (T, D) bool: track d's centre lies in truth t's dilated footprint; ``distances`` (T, D),
+    m: between their centres; ``previous`` (T,): the track id credited with each truth in its last
+    matched frame (None if never); ``ids`` (D,): the tracks' ids. A truth whose credited track
+    still hits it keeps that track (an obstacle seen as two tracked clusters does not switch while
+    the credited one matches); the other pairs are taken nearest first, each track and each
+    truth used once (one cluster over a car and the rock beside it finds one of them, not both).
+    Returns (T,) the matched track's index, -1 for none."""
+    match = np.full(len(hits), -1)
+    used = np.zeros(len(ids), bool)
+    column = {track: d for d, track in enumerate(ids)}
+    for t, track in enumerate(previous):
+        d = column.get(track, -1)
+        if d >= 0 and hits[t, d] and not used[d]:
+            match[t], used[d] = d, True
+    for t, d in zip(*np.unravel_index(np.argsort(np.where(hits, distances, np.inf), axis=None, kind="stable"),
+                                      hits.shape), strict=True):
+        if not hits[t, d]:
+            break  # the rest are misses (inf)
+        if match[t] < 0 and not used[d]:
+            match[t], used[d] = d, True
+    return match
 
 
 class _Evaluation:
@@ -173,26 +193,26 @@ class _Evaluation:
         in_view = [t for t in gt.obstacles if t.height_m >= opt["obstacle_min_height_m"]
                    and t.pixels >= opt["min_visible_pixels"]
                    and grid.x_min_m <= t.center_m[0] < x_max and y_min <= t.center_m[1] < y_min + grid.width_m]
+        hits = np.array([t.contains_xy(positive, opt["obstacle_margin_m"]) for t in in_view]).reshape(len(in_view), -1)
+        centers = np.array([t.center_m[:2] for t in in_view]).reshape(-1, 2)
+        distances = np.linalg.norm(positive[None, :, :] - centers[:, None, :], axis=2)
+        keys = [f"{t.id} {t.kind}" for t in in_view]
+        assigned = match_tracks(hits, distances, [self.last_track.get(k) for k in keys], [o.track_id for o in tracks])
         eligible, matched = [], []
-        for t in in_view:
-            key, hits = f"{t.id} {t.kind}", t.contains_xy(positive, opt["obstacle_margin_m"])
+        for t, key, d, covering in zip(in_view, keys, assigned, hits.sum(axis=1), strict=True):
             is_eligible = t.range_m <= opt["obstacle_range_m"]
             if is_eligible:
                 eligible.append(t)
-                matched.append(hits.any())
+                matched.append(d >= 0)
                 self.first_eligible.setdefault(key, self.frames)
-            if hits.any():
+            if d >= 0:
                 # The credit follows the obstacle from its first match in view, in range or not, so
                 # that the track that has carried it since beyond the range keeps it within range.
-                matching = np.flatnonzero(hits)
-                previous = self.last_track.get(key)
-                track = credited_track(
-                    previous, [tracks[i].track_id for i in matching], np.hypot(*(positive[matching] - t.center_m[:2]).T)
-                )
+                previous, track = self.last_track.get(key), tracks[d].track_id
                 if is_eligible:
                     self.first_matched.setdefault(key, self.frames)
                     self.id_switches[key] += previous not in (None, track)
-                    self.duplicate_frames[key] += matching.size > 1
+                    self.duplicate_frames[key] += int(covering > 1)
                 self.last_track[key] = track
         matched = np.array(matched, bool)
         false = [o for o in confirmed if self._is_false(o, gt, truth_frame)]
