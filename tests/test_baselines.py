@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from terrainmap.config import Config
-from terrainmap.evaluation.baselines import METHODS, available_methods
+from terrainmap.evaluation.baselines import METHODS, available_methods, gradient
 from terrainmap.extrinsics import extrinsics_from_pose
 from terrainmap.grid import cell_centers
 from terrainmap.synthetic import cloud, rolling_terrain
@@ -40,6 +40,26 @@ def test_terrainmap_beats_the_flat_and_single_fit_baselines_on_rolling_terrain(s
     assert covered.mean() > 0.9
     assert rmse("terrainmap") < 0.06
     assert rmse("terrainmap") < rmse("ransac_plane") / 5
+
+
+def test_gradient_of_a_grid_with_empty_cells_has_a_slope_wherever_a_neighbour_has_a_value():
+    """A plane with holes: exact wherever a neighbour along the axis has a value (np.gradient gives
+    NaN beside every hole), equal to np.gradient on a full grid, NaN with no neighbour."""
+    x, y = np.meshgrid(np.arange(6.0), np.arange(5.0), indexing="ij")
+    plane = 0.5 * (0.2 * x - 0.3 * y)  # cells of 0.5 m: 0.1 and -0.15 m per m
+    np.testing.assert_allclose(gradient(plane, 0.5), np.gradient(plane, 0.5))
+    holes = plane.copy()
+    holes[2, 2] = holes[0, 4] = np.nan
+    gx, gy = gradient(holes, 0.5)
+    has = np.isfinite(holes)
+    np.testing.assert_allclose(gx[has], 0.2)  # one-sided beside the holes
+    np.testing.assert_allclose(gy[has], -0.3)
+    holes[4, :] = np.nan  # row 5's only x neighbour: no x slope there
+    gx, gy = gradient(holes, 0.5)
+    assert np.isnan(gx[5]).all() and np.isfinite(gy[5]).all() and np.isfinite(gx[3, :2]).all()
+    lone = np.full((3, 3), np.nan)
+    lone[1, 1] = 1.0
+    assert np.isnan(gradient(lone, 0.5)).all()
 
 
 @pytest.mark.parametrize("how", ["missing", "broken"])

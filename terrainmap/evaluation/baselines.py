@@ -15,9 +15,9 @@ of σ): what then differs from terrainmap is only how the surface is estimated.
 - ``bspline_single``: one unweighted, non-rational fit of the same net (the paper's Fig. 5a), on
   the same cells.
 - ``ransac_plane``: a RANSAC plane through the points (the flat-ground assumption).
-- ``lowest_point``: the lowest point of each cell, slope by finite differences.
+- ``lowest_point``: the lowest point of each cell, slope by finite differences (:func:`gradient`).
 - ``patchworkpp``: Patchwork++ ground segmentation (``pip install pypatchworkpp``); elevation is
-  the mean height of its ground points per cell.
+  the mean height of its ground points per cell, slope by finite differences.
 - ``csf``: Cloth Simulation Filter (``pip install cloth-simulation-filter``), likewise.
 """
 
@@ -127,10 +127,28 @@ def lowest_point(points, config: Config, extrinsics=None, camera=None) -> Method
     zmin = np.full(m0 * m1 + 1, np.inf)
     np.minimum.at(zmin, idx, np.asarray(points[:, 2], float))
     elevation = np.where(np.isfinite(zmin[:-1]), zmin[:-1], np.nan).reshape(m0, m1)
-    gx, gy = np.gradient(elevation, config.grid.cell_size_m)
+    gx, gy = gradient(elevation, config.grid.cell_size_m)
     labels = _labels(points, *(np.nan_to_num(a) for a in (elevation, gx, gy)), config, camera, index=idx)
     labels[np.isnan(np.append(elevation.ravel(), np.nan)[idx])] = Label.UNKNOWN
     return MethodOutput(elevation, slope_angle(gx, gy), labels)
+
+
+def gradient(elevation: np.ndarray, step_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """d elevation / dx and / dy ((m0, m1) each, m/m) of a grid with empty (NaN) cells: central
+    differences where both neighbours along the axis have a value, one-sided where one has, NaN
+    where neither has (``np.gradient`` gives NaN beside every empty cell, which would leave the
+    cells at the edges of the data without slope while they count for the elevation)."""
+    result = []
+    for axis in (0, 1):
+        e = np.moveaxis(np.asarray(elevation, float), axis, 0)
+        ahead = np.full_like(e, np.nan)
+        ahead[:-1] = (e[1:] - e[:-1]) / step_m
+        behind = np.full_like(e, np.nan)
+        behind[1:] = ahead[:-1]
+        both = (ahead + behind) / 2
+        g = np.where(np.isnan(both), np.where(np.isnan(ahead), behind, ahead), both)
+        result.append(np.moveaxis(g, 0, axis))
+    return result[0], result[1]
 
 
 def _ground_to_output(points, ground: np.ndarray, config: Config) -> MethodOutput:
@@ -141,7 +159,7 @@ def _ground_to_output(points, ground: np.ndarray, config: Config) -> MethodOutpu
     count = np.bincount(idx[g], minlength=m0 * m1 + 1)[:-1]
     total = np.bincount(idx[g], weights=np.asarray(points[g, 2], float), minlength=m0 * m1 + 1)[:-1]
     elevation = np.where(count > 0, total / np.maximum(count, 1), np.nan).reshape(m0, m1)
-    gx, gy = np.gradient(elevation, config.grid.cell_size_m)
+    gx, gy = gradient(elevation, config.grid.cell_size_m)
     labels = np.where(ground, Label.TERRAIN, Label.OBSTACLE).astype(np.uint8)
     labels[idx >= m0 * m1] = Label.UNKNOWN
     return MethodOutput(elevation, slope_angle(gx, gy), labels)
