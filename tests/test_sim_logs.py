@@ -328,3 +328,16 @@ def test_a_folder_output_replaces_only_a_simulated_drive(tmp_path):
         simulate(data, small)
     assert (data / "left" / "000001.png").read_bytes() == b"mine" and sorted(data.rglob("*")) == [
         data / "left", data / "left" / "000001.png"]
+
+
+def test_a_walker_that_stops_at_the_roadside_stands_still_in_the_truth(tmp_path):
+    """The mounds pedestrian walks at (0, -1.2) m/s until 2.5 s, then stands (ObstacleSpec.turns);
+    at 1 frame/s frame 3 is after the stop: both truth readers give its velocity then (the MCAP
+    one from the scene description) and the images show it where the truth has it."""
+    options = dict(SMALL, frames=4, fps=1.0)
+    for path in (tmp_path / "drive.mcap", tmp_path / "drive"):
+        simulate(path, SimConfig(**options, format="folder" if path.suffix == "" else "mcap"))
+        walker = [next(o for o in f.obstacles if o.kind == "pedestrian") for f in open_truth(path).frames()]
+        assert [list(w.velocity_mps) for w in walker] == [[0, -1.2, 0]] * 3 + [[0, 0, 0]]
+        assert walker[3].center_m[:2] == pytest.approx([13.0, 5.0 - 1.2 * 2.5])
+        assert {round(w.yaw_rad, 6) for w in walker} == {round(-np.pi / 2, 6)}  # it keeps facing its way

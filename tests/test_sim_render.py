@@ -68,6 +68,18 @@ def test_truth_depth_lands_on_the_terrain_or_an_obstacle(scene):
         assert np.allclose(surface, 1.0, atol=0.01), (box.kind, surface.min(), surface.max())
 
 
+def test_ground_nearer_than_the_first_step_is_ground_not_sky():
+    """A camera 0.15 m up, pitched 40° down, sees ground from 0.16 m (nearer than the marcher's
+    first step, raycast.T_NEAR_M): the lower half of the image is terrain at the true depth."""
+    rig = CameraRig(width=160, height=120, focal_px=125.0, camera_height_m=0.15, pitch_rad=np.radians(40))
+    frame = Renderer(build_scene("flat", 1, length_m=10.0), rig, seed=1).frame(0)
+    assert (frame.label[60:] == 1).all()
+    world = _world_points(frame, rig)[60:]
+    np.testing.assert_allclose(world[..., 2], build_scene("flat", 1, length_m=10.0).terrain.height(world[..., 0], world[..., 1]),
+                               atol=2e-3)
+    assert np.nanmin(frame.depth) < 0.17
+
+
 def test_right_image_matches_the_left_through_the_true_disparity():
     renderer = _renderer("mounds", noise_dn=0.0, vignetting=0.0)
     frame = renderer.frame(2)
@@ -132,6 +144,43 @@ def test_moving_pedestrian_crosses_and_static_obstacles_stay():
         expected = np.linalg.norm(box.velocity_mps[:2]) * 10 / renderer.fps
         assert moved == pytest.approx(expected, abs=1e-9)
     assert any(np.linalg.norm(b.velocity_mps) > 0.5 for b in walker.values())
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_no_obstacle_enters_the_vehicle_in_a_drive_of_the_default_length(seed):
+    """A real log holds no obstacle inside the vehicle: over the default 50 frames of every scene,
+    no obstacle's footprint (rectangle or ellipse) overlaps the wheel rectangle (walkers stop at the roadside or step
+    off the track, ObstacleSpec.turns)."""
+    from terrainmap.sim.rig import TRACK_M, WHEELBASE_M
+    from terrainmap.sim.simulate import SimConfig
+
+    s = np.linspace(-0.5, 0.5, 11)
+    body = np.column_stack([np.repeat(s, s.size) * WHEELBASE_M, np.tile(s, s.size) * TRACK_M, np.zeros(s.size**2)])
+    for name in SCENES:
+        config = SimConfig(scene=name, seed=seed)
+        scene = build_scene(name, seed, length_m=config.length_m)
+        for i in range(config.frames):
+            time_s = i / config.fps
+            rotation, position = vehicle_pose(scene.terrain, config.speed_mps * time_s, 0.0, 0.0)
+            for spec in scene.obstacles:
+                box = spec.at(scene.terrain, time_s)
+                u, v = (box.to_local(body @ rotation.T + position)[:, :2] / (box.size_m[:2] / 2)).T
+                inside = np.hypot(u, v) <= 1 if box.shape == "ellipsoid" else (np.abs(u) <= 1) & (np.abs(v) <= 1)
+                assert not inside.any(), f"{name} frame {i}: {box.kind} {box.id} inside the vehicle"
+
+
+def test_an_obstacle_turns_and_stops_where_its_spec_says():
+    from terrainmap.sim.obstacles import ObstacleSpec
+
+    spec = ObstacleSpec(1, "pedestrian", (26.0, 1.0), velocity_mps=(-1.0, 0.0),
+                        turns=((2.0, (0.0, 1.0)), (3.5, (0.0, 0.0))))
+    for time_s, xy, velocity, yaw in [(1.0, (25, 1), (-1, 0), np.pi), (2.0, (24, 1), (0, 1), np.pi / 2),
+                                      (3.0, (24, 2), (0, 1), np.pi / 2), (9.0, (24, 2.5), (0, 0), np.pi / 2)]:
+        at_xy, at_velocity, at_yaw = spec.motion(time_s)
+        np.testing.assert_allclose(at_xy, xy, atol=1e-12)
+        np.testing.assert_array_equal(at_velocity, velocity)
+        assert at_yaw == pytest.approx(yaw)
+    assert ObstacleSpec(2, "rock", (5.0, 1.0), yaw_rad=0.7).motion(4.0)[2] == 0.7  # static: its own yaw
 
 
 def test_truth_height_is_the_top_above_the_ground_at_the_centre():

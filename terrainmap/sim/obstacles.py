@@ -10,7 +10,7 @@ top ``height_m`` above the terrain at its centre; an ellipsoid is centred on the
 terrain heights at its centre and at its four axis ends, with vertical semi-axis the nominal
 height (so about its upper half shows, less on sloping ground). The truth height of either is
 that of its top above the terrain at its centre. Moving obstacles keep their heading along
-their velocity.
+their velocity (and the last one while they stand).
 """
 
 from __future__ import annotations
@@ -119,8 +119,10 @@ def _ellipsoid(o: np.ndarray, d: np.ndarray, semi: np.ndarray) -> tuple[np.ndarr
 @dataclass(frozen=True)
 class ObstacleSpec:
     """An obstacle of a scene: ``kind`` (a key of :data:`KINDS`), start ``xy_m`` (world, at
-    time 0), ``size_m`` (length, width, height above ground; default the kind's), ``yaw_rad``
-    and ``velocity_mps`` (vx, vy; zero for a static obstacle)."""
+    time 0), ``size_m`` (length, width, height above ground; default the kind's), ``yaw_rad``,
+    ``velocity_mps`` (vx, vy; zero for a static obstacle) and ``turns``: later changes of
+    velocity, ``(time_s, (vx, vy))`` in time order (a walker that stops at the roadside or steps
+    off the vehicle's track as it comes near: a real log holds no obstacle inside the vehicle)."""
 
     id: int
     kind: str
@@ -128,6 +130,7 @@ class ObstacleSpec:
     size_m: tuple[float, float, float] | None = None
     yaw_rad: float = 0.0
     velocity_mps: tuple[float, float] = (0.0, 0.0)
+    turns: tuple[tuple[float, tuple[float, float]], ...] = ()
 
     @property
     def shape(self) -> str:
@@ -137,13 +140,23 @@ class ObstacleSpec:
     def color(self) -> tuple[float, float, float]:
         return KINDS[self.kind][2]
 
+    def motion(self, time_s: float) -> tuple[np.ndarray, np.ndarray, float]:
+        """World position (x, y) m, velocity (vx, vy) m/s and heading (rad) at ``time_s``: the
+        heading of the latest motion (``yaw_rad`` before any), kept while standing."""
+        xy, velocity, start, yaw = np.array(self.xy_m, float), np.array(self.velocity_mps, float), 0.0, self.yaw_rad
+        for turn_s, next_velocity in ((0.0, self.velocity_mps), *self.turns):
+            if turn_s > time_s:
+                break
+            xy += velocity * (turn_s - start)
+            start, velocity = turn_s, np.array(next_velocity, float)
+            if velocity.any():
+                yaw = float(np.arctan2(velocity[1], velocity[0]))
+        return xy + velocity * (time_s - start), velocity, yaw
+
     def at(self, terrain: Heightfield, time_s: float) -> ObstacleBox:
         """The obstacle placed on ``terrain`` at ``time_s`` (module docstring)."""
         length, width, height = self.size_m or KINDS[self.kind][1]
-        velocity = np.array(self.velocity_mps, float)
-        x, y = np.array(self.xy_m, float) + velocity * time_s
-        speed = float(np.hypot(*velocity))
-        yaw = float(np.arctan2(velocity[1], velocity[0])) if speed > 0 else self.yaw_rad
+        (x, y), velocity, yaw = self.motion(time_s)
         c, s = np.cos(yaw), np.sin(yaw)
         if self.shape == "box":
             dx = np.array([-1, -1, 1, 1, 0]) * length / 2

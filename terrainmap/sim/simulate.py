@@ -128,7 +128,8 @@ def describe(config: SimConfig, scene) -> dict:
         },
         "obstacles": [
             {"id": s.id, "kind": s.kind, "shape": s.shape, "xy_m": list(s.xy_m), "size_m": s.size_m,
-             "yaw_rad": s.yaw_rad, "velocity_mps": list(s.velocity_mps)}
+             "yaw_rad": s.yaw_rad, "velocity_mps": list(s.velocity_mps),
+             "turns": [[t, list(v)] for t, v in s.turns]}
             for s in scene.obstacles
         ],
     }

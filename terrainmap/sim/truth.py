@@ -32,7 +32,7 @@ from ..types import Extrinsics, StereoCalibration
 from .heightfield import Heightfield
 from .mcap_log import METADATA_NAME, TRUTH_TOPICS
 from .messages import heightfield_from_grid_map, image_array, obstacles_from_markers
-from .obstacles import ObstacleBox
+from .obstacles import ObstacleBox, ObstacleSpec
 from .simulate import SimConfig
 
 FRAME_TOPICS = tuple(t for t in TRUTH_TOPICS if t != "/truth/terrain")
@@ -83,8 +83,16 @@ class Truth:
         rig = self.config.rig()
         self.calibration: StereoCalibration = rig.calibration(source=str(path))
         self.extrinsics: Extrinsics = rig.extrinsics()
-        self._velocities = {o["id"]: np.array([*o["velocity_mps"], 0.0]) for o in description["obstacles"]}
+        self._motions = [
+            ObstacleSpec(o["id"], o["kind"], tuple(o["xy_m"]), velocity_mps=tuple(o["velocity_mps"]),
+                         turns=tuple((t, tuple(v)) for t, v in o.get("turns", ())))  # (none in logs before turns)
+            for o in description["obstacles"]
+        ]
         self._frames_fn = frames_fn
+
+    def velocities(self, index: int) -> dict[int, np.ndarray]:
+        """Each obstacle's world velocity (vx, vy, 0) m/s in frame ``index``, by id."""
+        return {m.id: np.array([*m.motion(index / self.config.fps)[1], 0.0]) for m in self._motions}
 
     def height(self, x, y) -> np.ndarray:
         """Terrain height (m, float32) at world (odom) points, obstacles excluded."""
@@ -276,7 +284,7 @@ def _mcap_frame(truth: Truth, index: int, stamp_ns: int, parts: dict) -> TruthFr
         stamp_ns=int(stamp_ns),
         rotation_world_base=quaternion_to_matrix((q.x, q.y, q.z, q.w)),
         position_world_base=np.array([p.position.x, p.position.y, p.position.z]),
-        obstacles=obstacles_from_markers(parts["/truth/obstacles"], truth.terrain, truth._velocities),
+        obstacles=obstacles_from_markers(parts["/truth/obstacles"], truth.terrain, truth.velocities(index)),
         depth=image_array(parts["/truth/left/depth"], "/truth/left/depth"),
         label=image_array(parts["/truth/left/label"], "/truth/left/label"),
         instance=image_array(parts["/truth/left/instance"], "/truth/left/instance"),
