@@ -10,7 +10,8 @@ the ray is so high above the ground that the steepest slope of the terrain canno
 8th pixel is marched from the camera; each full-resolution ray starts at 0.9 × the nearest hit of
 the 3×3 coarse rays around it, so most rays need two or three steps. A ray that starts below the
 surface (a near bump the coarse rays missed) is marched again from the camera. Rays leave as sky
-when they go past ``t_max_m`` or climb above the highest node.
+when they go past ``t_max_m`` (a crossing found by the step that passes it is kept: up to 3 %
+beyond) or climb above the highest node.
 
 Obstacles (:func:`intersect_solids`): exact ray–box (slab) and ray–ellipsoid intersection in each
 solid's own frame, only for the pixels inside the solid's projected bounding rectangle.
@@ -32,6 +33,9 @@ logger = logging.getLogger(__name__)
 COARSE = 8
 """Pixel spacing of the coarse pass."""
 T_NEAR_M = 0.2
+"""Rays start this far from the camera; those that start below the terrain there (ground nearer
+than this, under a camera a hand's width above it) march again from ``T_CLOSEST_M``."""
+T_CLOSEST_M = 0.001
 STEP_REL = 0.03
 STEP_MIN_M = 0.02
 REFINE_STEPS = 5
@@ -137,7 +141,7 @@ def terrain_depth(terrain: Heightfield, origin: np.ndarray, dirs: np.ndarray, t_
     coarse_dirs = dirs[COARSE // 2 :: COARSE, COARSE // 2 :: COARSE]
     ch, cw, _ = coarse_dirs.shape
     flat = np.ascontiguousarray(coarse_dirs.reshape(-1, 3).T)
-    coarse, _ = march_terrain(terrain, origin, flat, np.full(flat.shape[1], near), t_max_m)
+    coarse = _march_from_camera(terrain, origin, flat, t_max_m)
     start = minimum_filter(coarse.reshape(ch, cw), size=3, mode="nearest") * np.float32(START_FRACTION)
     start = np.repeat(np.repeat(start, COARSE, axis=0), COARSE, axis=1)
     start = np.pad(start, ((0, max(0, h - start.shape[0])), (0, max(0, w - start.shape[1]))), mode="edge")
@@ -147,8 +151,18 @@ def terrain_depth(terrain: Heightfield, origin: np.ndarray, dirs: np.ndarray, t_
     if below.any():
         again = np.flatnonzero(below)
         logger.debug("%d rays started below the terrain; marched again from the camera", again.size)
-        t_hit[again], _ = march_terrain(terrain, origin, flat[:, again], np.full(again.size, near), t_max_m)
+        t_hit[again] = _march_from_camera(terrain, origin, flat[:, again], t_max_m)
     return t_hit.reshape(h, w)
+
+
+def _march_from_camera(terrain: Heightfield, origin: np.ndarray, dirs: np.ndarray, t_max_m: float) -> np.ndarray:
+    """:func:`march_terrain` of ``dirs`` (3, N) from ``T_NEAR_M``, and from ``T_CLOSEST_M`` for the
+    rays that start below the terrain there; (N,) float32 depths."""
+    t_hit, below = march_terrain(terrain, origin, dirs, np.full(dirs.shape[1], T_NEAR_M, np.float32), t_max_m)
+    if below.any():
+        again = np.flatnonzero(below)
+        t_hit[again], _ = march_terrain(terrain, origin, dirs[:, again], np.full(again.size, T_CLOSEST_M), t_max_m)
+    return t_hit
 
 
 def _rectangle(box: ObstacleBox, origin, rotation_world_cam, fx, fy, cx, cy, h, w):

@@ -1,8 +1,8 @@
 """The simulated vehicle and its stereo camera: intrinsics, mounting, and a pose that follows the terrain.
 
-Frames (REP-103/105): world ``odom`` (z up, the vehicle starts at its origin heading along +x),
-vehicle ``base_link`` (x forward, y left, z up; origin on the ground plane under the camera),
-cameras ``left_camera_optical`` / ``right_camera_optical`` (x right, y down, z forward). The
+Frames (REP-103/105): world ``odom`` (z up, z = 0 the terrain's datum; the vehicle starts on the
+terrain at x = y = 0 heading along +x), vehicle ``base_link`` (x forward, y left, z up; origin on
+the ground plane under the camera), cameras ``left_camera_optical`` / ``right_camera_optical`` (x right, y down, z forward). The
 left camera sits ``camera_height_m`` above ``base_link``'s origin, pitched down by
 ``pitch_rad``; the right camera is ``baseline_m`` along the left camera's x axis, same rotation
 (an ideal rectified pair).
