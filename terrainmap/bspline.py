@@ -148,9 +148,10 @@ class TensorFit:
 
     Minimises ``Σ_ab W_ab (S(x_a, y_b) − Z_ab)² + λ (‖Δ²_x Q‖² + ‖Δ²_y Q‖²)`` for given sample
     weights W (m0×m1, ≥ 0) and control weights R (n0×n1, > 0). The second-difference penalty
-    (λ = ``smoothness`` × the mean diagonal of the data term) keeps the problem well-posed where
-    whole knot spans hold no sample, without pulling the surface towards zero; its null space
-    (bilinear surfaces) is fixed by the data.
+    (λ = ``smoothness`` × the mean diagonal of the data term; over the Greville abscissae, so
+    planes cost nothing, see :func:`_penalty_band`) keeps the problem well-posed where whole knot
+    spans hold no sample, without pulling the surface towards zero; its null space (bilinear
+    surfaces) is fixed by the data.
 
     The normal matrix of the tensor-product basis is banded (bandwidth d·n1 + d with the
     control points ordered ``i·n1 + j``). It is assembled from (d+1)·(2d+1) small matrix products
@@ -172,7 +173,7 @@ class TensorFit:
         self.BBy = np.stack([_shifted_product(self.By, q) for q in range(-d, d + 1)])  # (2d+1, m1, n1)
         self.band = max(d, 2) * n1 + d
         self._dest, self._src, self._rows, self._cols = _band_layout(n0, n1, d, self.band)
-        self._penalty = _penalty_band(n0, n1, self.band)
+        self._penalty = _penalty_band(greville(knots_x, d), greville(knots_y, d), self.band)
 
     def fit(self, Z: np.ndarray, W: np.ndarray, R: np.ndarray, smoothness: float) -> np.ndarray:
         """Control heights Q (n0×n1) for samples Z (m0×m1), weights W (m0×m1) and R (n0×n1).
@@ -212,8 +213,9 @@ class TensorFit:
 
     def remap(self, W: np.ndarray) -> np.ndarray:
         """Down-sample lattice values W (m0×m1) to the control net: the basis-weighted mean of W
-        over each control point's support, (n0, n1). Control points whose support holds no
-        weight get the overall mean."""
+        over each control point's support, (n0, n1); 0 where W is 0 over the whole support (the
+        caller bounds it: R in :mod:`terrainmap.terrain`), the overall mean of W where the support
+        holds no lattice node (a net finer than the lattice)."""
         num = self.Bx.T @ W @ self.By
         den = self.Bx.sum(0)[:, None] * self.By.sum(0)[None, :]
         mean = W.mean() if W.size else 1.0
@@ -260,19 +262,34 @@ def _band_layout(n0: int, n1: int, d: int, band: int):
 
 
 @lru_cache(maxsize=64)
-def _penalty_band(n0: int, n1: int, band: int) -> np.ndarray:
-    """Second-difference penalty (Δ²_x ⊗ I + I ⊗ Δ²_y)ᵀ(…) in upper banded storage."""
+def _penalty_band(greville_x: tuple[float, ...], greville_y: tuple[float, ...], band: int) -> np.ndarray:
+    """Second-difference penalty (Δ²_x ⊗ I + I ⊗ Δ²_y)ᵀ(…) in upper banded storage, over the
+    control points' Greville abscissae (the mean of their d inner knots): divided differences,
+    scaled by the median spacing, so that a linear function of x or y (a plane: control heights
+    linear in the abscissae) costs nothing, also near the clamped ends, where the abscissae
+    crowd together; where they are evenly spaced, the plain second difference of the heights."""
 
-    def second_diff_gram(n: int) -> np.ndarray:
+    def second_diff_gram(greville: tuple[float, ...]) -> np.ndarray:
+        n = len(greville)
         if n < 3:
             return np.zeros((n, n))
-        D = np.diff(np.eye(n), 2, axis=0)
+        spacing = np.diff(greville)
+        slopes = np.diff(np.eye(n), axis=0) / spacing[:, None]  # (n-1, n): first divided differences
+        D = np.diff(slopes, axis=0) * np.median(spacing)
         return D.T @ D
 
-    P = np.kron(second_diff_gram(n0), np.eye(n1)) + np.kron(np.eye(n0), second_diff_gram(n1))
+    n0, n1 = len(greville_x), len(greville_y)
+    P = np.kron(second_diff_gram(greville_x), np.eye(n1)) + np.kron(np.eye(n0), second_diff_gram(greville_y))
     n = n0 * n1
     ab = np.zeros((band + 1, n))
     for k in range(min(band, n - 1) + 1):
         ab[band - k, k:] = np.diagonal(P, k)
     ab.setflags(write=False)
     return ab
+
+
+def greville(knots: np.ndarray, degree: int) -> tuple[float, ...]:
+    """The Greville abscissae of the control points of ``knots`` (clamped), m: the mean of each
+    one's ``degree`` inner knots; a spline whose control heights are a + b·ξ is a + b·x."""
+    n = len(knots) - degree - 1
+    return tuple(float(np.mean(knots[i + 1 : i + degree + 1])) for i in range(n))
