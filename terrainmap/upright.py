@@ -75,7 +75,9 @@ def label_upright(
     config: SegmentationConfig,
 ) -> np.ndarray:
     """``labels`` (N,) uint8 with the TERRAIN points that are upright (module docstring) and stand at
-    least ``config.upright_above_m`` above the surface made OBSTACLE (a new array).
+    least ``config.upright_above_m`` above the surface made OBSTACLE (a new array). The vertical
+    runs are of all upright points, whatever their label: a face whose top already stands above
+    the height threshold still has the run of its whole height.
 
     ``points_vehicle`` (N, 3) metres, vehicle frame; ``index`` their flat cell index
     (:func:`terrainmap.grid.cell_index`); ``pixels`` (N, 2) their (u, v) in ``disparity``, the H×W
@@ -89,7 +91,7 @@ def label_upright(
     near = focal_baseline / config.upright_min_range_m - pinhole.doffs if config.upright_min_range_m else np.inf
     with np.errstate(invalid="ignore"):  # near points: the height cue is enough there
         far = disparities <= np.float32(near)
-    chosen = np.flatnonzero(far & (labels == Label.TERRAIN))
+    chosen = np.flatnonzero(far & (labels != Label.UNKNOWN))  # a face's run counts its obstacle points too
     at = flat_pixel.take(chosen)
     table = np.append(ground_gradient(surface, grid, pinhole, extrinsics), np.nan).astype(np.float32)
     expected = table.take(index.take(chosen))
@@ -100,6 +102,7 @@ def label_upright(
     depth = focal_baseline / (disparities.take(chosen) + pinhole.doffs)
     with np.errstate(invalid="ignore"):
         chosen = chosen[vertical_runs(at, (height, width)) * depth >= config.upright_min_height_m * pinhole.fy]
+    chosen = chosen[labels.take(chosen) == Label.TERRAIN]
     points = points_vehicle[chosen]
     planes = cell_planes(surface.elevation, surface.dz_dx, surface.dz_dy, grid)
     above = points[:, 2] - surface_under_points(points, planes, index.take(chosen)) >= config.upright_above_m
