@@ -164,8 +164,9 @@ def quantize(
         raise FrameError("no_points_in_area", "no finite point lies in the grid area between its height limits "
                          f"(grid.z_min_m {config.z_min_m:g} m, z_max_m {config.z_max_m:g} m)")
     n = np.maximum(count, 1)
-    mean = cells.sum(z)[:ncell] / n
-    variance = np.maximum(cells.sum(z * z)[:ncell] / n - mean * mean, 0.0)
+    with np.errstate(over="ignore"):  # a huge z overflows only in the trash bin (outside z limits)
+        mean = cells.sum(z)[:ncell] / n
+        variance = np.maximum(cells.sum(z * z)[:ncell] / n - mean * mean, 0.0)
     zmin = mean
     if config.sigma_factor > 0:  # the mean never lies below the minimum: skip the costly ufunc.at
         with np.errstate(invalid="ignore"):  # NaN z (non-finite points) only reach the trash bin

@@ -116,7 +116,8 @@ def label_points(
     limits : (above, below) of (m0, m1) arrays, optional
         Per-cell thresholds from :func:`thresholds` (the fixed ones of ``config`` if omitted).
     """
-    pts = np.asarray(as_points(points_vehicle), dtype=np.float32)
+    with np.errstate(over="ignore"):  # coordinates past float32 become inf: outside the area, UNKNOWN
+        pts = np.asarray(as_points(points_vehicle), dtype=np.float32)
     check_shapes("label_points", grid.shape, elevation=elevation, dz_dx=dz_dx, dz_dy=dz_dy)
     check_shapes("label_points", (len(pts),), index=index)
     if index is None:

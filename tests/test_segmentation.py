@@ -228,3 +228,16 @@ def test_tolerances_grow_towards_the_image_sides():
     assert sided[0][ix, iy] > 2.5 * plain[0][ix, iy]
     off = SegmentationConfig(side_gain=0.0)
     assert all(np.array_equal(a, b) for a, b in zip(thresholds(grid, off, camera, flat, rising, flat), plain))
+
+
+def test_huge_coordinates_are_outside_the_area_without_numpy_warnings():
+    """z = 1e300 (its square overflows in the grid's trash bin) and float64 coordinates past
+    float32 are points outside the area: UNKNOWN, and no overflow warning on the way."""
+    import warnings
+
+    points = np.vstack([cloud(20_000, seed=3).astype(np.float64),
+                        [[5, 0, 1e300], [1e300, 0, 0], [5, 1e39, 0], [-1e300, -1e300, -1e300]]])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        result = map_points(points, Config())
+    assert (result.point_labels[-4:] == Label.UNKNOWN).all()
