@@ -15,9 +15,9 @@ A point is *upright* when the disparity gradient down the image at its pixel,
 ``(d(v + k) − d(v − k)) / 2k`` (``k = upright_rows``), is below ``upright_ratio`` times that of the
 terrain's tangent plane at its cell, where the latter is at least ``upright_min_ground_gradient``
 (on ground that slopes towards the camera the two look alike through stereo noise), and its
-pixel lies in a vertical run of upright points at least ``upright_min_height_m`` tall at its
-depth (``run ≥ h·fy/Z`` rows, :func:`vertical_runs`): stereo's horizontal streaks, where a few
-rows share one disparity, are lower. Upright points standing at least ``upright_above_m`` above
+pixel lies in a vertical run of upright points (of those the height threshold left TERRAIN) at
+least ``upright_min_height_m`` tall at its depth (``run ≥ h·fy/Z`` rows, :func:`vertical_runs`):
+stereo's horizontal streaks, where a few rows share one disparity, are lower. Upright points standing at least ``upright_above_m`` above
 the surface are obstacles (:func:`label_upright`), however far under the height threshold of
 :mod:`terrainmap.segmentation`. Points nearer than ``upright_min_range_m`` are left to that
 threshold, which separates obstacles there alone. On the twelve simulated drives the cue
@@ -76,8 +76,10 @@ def label_upright(
 ) -> np.ndarray:
     """``labels`` (N,) uint8 with the TERRAIN points that are upright (module docstring) and stand at
     least ``config.upright_above_m`` above the surface made OBSTACLE (a new array). The vertical
-    runs are of all upright points, whatever their label: a face whose top already stands above
-    the height threshold still has the run of its whole height.
+    runs are of the upright TERRAIN points: a face whose top the height threshold took already
+    keeps only the run of its lower part (counting the whole face, in a trial on the twelve
+    simulated drives, added hills 1 two false obstacles, an id switch and a late rock, and
+    changed terrain F1 by at most 0.001).
 
     ``points_vehicle`` (N, 3) metres, vehicle frame; ``index`` their flat cell index
     (:func:`terrainmap.grid.cell_index`); ``pixels`` (N, 2) their (u, v) in ``disparity``, the H×W
@@ -91,7 +93,7 @@ def label_upright(
     near = focal_baseline / config.upright_min_range_m - pinhole.doffs if config.upright_min_range_m else np.inf
     with np.errstate(invalid="ignore"):  # near points: the height cue is enough there
         far = disparities <= np.float32(near)
-    chosen = np.flatnonzero(far & (labels != Label.UNKNOWN))  # a face's run counts its obstacle points too
+    chosen = np.flatnonzero(far & (labels == Label.TERRAIN))
     at = flat_pixel.take(chosen)
     table = np.append(ground_gradient(surface, grid, pinhole, extrinsics), np.nan).astype(np.float32)
     expected = table.take(index.take(chosen))
@@ -102,7 +104,6 @@ def label_upright(
     depth = focal_baseline / (disparities.take(chosen) + pinhole.doffs)
     with np.errstate(invalid="ignore"):
         chosen = chosen[vertical_runs(at, (height, width)) * depth >= config.upright_min_height_m * pinhole.fy]
-    chosen = chosen[labels.take(chosen) == Label.TERRAIN]
     points = points_vehicle[chosen]
     planes = cell_planes(surface.elevation, surface.dz_dx, surface.dz_dy, grid)
     above = points[:, 2] - surface_under_points(points, planes, index.take(chosen)) >= config.upright_above_m

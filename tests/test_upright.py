@@ -95,16 +95,14 @@ def _scene(bottom_m=0.0, top_m=0.5):
     return disparity, points.astype(np.float32), np.column_stack([u, v]).astype(np.int32), on_face, inside
 
 
-def _label(scene, config=None, obstacle_above_m=np.inf):
-    """The points made OBSTACLE, the points higher than ``obstacle_above_m`` being OBSTACLE already
-    (by the height threshold) and the rest TERRAIN."""
+def _label(scene, config=None):
     from terrainmap.grid import cell_index
 
     disparity, points, pixels, _, _ = scene
-    labels = np.where(points[:, 2] > obstacle_above_m, Label.OBSTACLE, Label.TERRAIN).astype(np.uint8)
+    labels = np.full(len(points), Label.TERRAIN, np.uint8)
     out = label_upright(labels, points, cell_index(points, GRID), disparity, pixels, _surface(np.zeros(GRID.shape)),
                         GRID, PINHOLE, CAMERA, config or SegmentationConfig())
-    assert (labels == np.where(points[:, 2] > obstacle_above_m, Label.OBSTACLE, Label.TERRAIN)).all()  # left alone
+    assert (labels == Label.TERRAIN).all()  # the input is left alone
     return out == Label.OBSTACLE
 
 
@@ -117,16 +115,6 @@ def test_a_face_standing_up_is_labelled_obstacle_from_upright_above_m():
     assert not obstacle[~on_face].any()  # the ground
     assert not obstacle[points[:, 2] < 0.15].any()  # the foot of the face: not far enough above the surface
     assert not _label(scene, SegmentationConfig(upright_above_m=0.6)).any()  # a face lower than that
-
-
-def test_a_face_whose_top_is_already_an_obstacle_keeps_the_run_of_its_whole_height():
-    """The top of a 0.5 m face at 18 m stands above the height threshold (OBSTACLE already): its
-    lower part, 0.15–0.25 m up, alone shorter than upright_min_height_m, is still upright and
-    taken, as it is when the height threshold has taken none of the face."""
-    scene = _scene(0.0, 0.5)
-    _, points, _, _, inside = scene
-    lower = inside & (points[:, 2] >= 0.15) & (points[:, 2] <= 0.25)
-    assert lower.sum() > 20 and _label(scene, obstacle_above_m=0.25)[lower].all()
 
 
 def test_an_upright_stretch_lower_than_upright_min_height_m_is_not_taken():
