@@ -361,14 +361,17 @@ def test_match_tracks_keeps_a_matching_track_and_switches_only_when_it_is_lost()
 
 
 def test_match_tracks_is_one_to_one():
-    """One cluster over a car and the rock beside it finds the nearer of the two, not both; a
-    second track takes the other; a track kept by continuity is not given to another truth."""
+    """One cluster over a car and the rock beside it finds the nearer of the two, not both; two
+    tracks find two truths wherever a one-to-one pairing allows it (the Hungarian method, not
+    the nearest pair first); a track kept by continuity is not given to another truth."""
     hits = np.array([[True], [True]])
     assert acc.match_tracks(hits, np.array([[1.2], [0.9]]), [None, None], [4]).tolist() == [-1, 0]
-    hits = np.array([[True, True], [True, False]])
-    assert acc.match_tracks(hits, np.array([[0.2, 0.5], [0.3, np.inf]]), [None, None], [4, 5]).tolist() == [0, -1]
-    assert acc.match_tracks(hits, np.array([[0.2, 0.5], [0.3, np.inf]]), [5, None], [4, 5]).tolist() == [1, 0]
-    assert acc.match_tracks(hits, np.array([[0.2, 0.5], [0.3, np.inf]]), [4, 4], [4, 5]).tolist() == [0, -1]
+    hits, distances = np.array([[True, True], [True, False]]), np.array([[0.2, 0.5], [0.3, np.inf]])
+    assert acc.match_tracks(hits, distances, [None, None], [4, 5]).tolist() == [1, 0]
+    assert acc.match_tracks(hits, distances, [5, None], [4, 5]).tolist() == [1, 0]
+    assert acc.match_tracks(hits, distances, [4, 4], [4, 5]).tolist() == [0, -1]  # truth 0 keeps track 4
+    hits, distances = np.array([[True, True], [True, True]]), np.array([[0.2, 0.9], [0.3, 0.4]])
+    assert acc.match_tracks(hits, distances, [None, None], [4, 5]).tolist() == [0, 1]  # 0.6 m in all, not 1.2
 
 
 def test_one_track_between_two_obstacles_finds_one_of_them(tiny_log, monkeypatch):

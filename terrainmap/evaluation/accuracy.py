@@ -30,7 +30,7 @@ layers, point labels and tracked obstacles) and every other method of
   pixels that both cameras see (:func:`.truth_grid.truth_obstacles`), centre within
   ``obstacle_range_m`` and inside the grid area, that are matched by a *confirmed* positive
   terrainmap obstacle whose centre lies in the truth footprint dilated by ``obstacle_margin_m``
-  (vehicle frame), one to one (:func:`match_tracks`: one obstacle cannot find two); summed over
+  (vehicle frame), one to one (:func:`match_tracks`: one track cannot find two obstacles); summed over
   frames. Bands by the truth centre's range.
 - ``false_obstacles_per_frame`` (terrainmap only): confirmed positive obstacles matching no truth
   footprint (of any height), plus confirmed negative obstacles where the truth shows no
@@ -66,6 +66,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
+from scipy.optimize import linear_sum_assignment
 
 from ..config import Config
 from ..errors import ConfigError, FrameError
@@ -113,9 +114,10 @@ def match_tracks(hits: np.ndarray, distances: np.ndarray, previous: list[int | N
     m: between their centres; ``previous`` (T,): the track id credited with each truth in its last
     matched frame (None if never); ``ids`` (D,): the tracks' ids. A truth whose credited track
     still hits it keeps that track (an obstacle seen as two tracked clusters does not switch while
-    the credited one matches); the other pairs are taken nearest first, each track and each
-    truth used once (one cluster over a car and the rock beside it finds one of them, not both).
-    Returns (T,) the matched track's index, -1 for none."""
+    the credited one matches); the others are assigned by the Hungarian method, as many pairs
+    as the hits allow and of those the nearest, each track and each truth used once (one cluster
+    over a car and the rock beside it finds one of them, not both). Returns (T,) the matched
+    track's index, -1 for none."""
     match = np.full(len(hits), -1)
     used = np.zeros(len(ids), bool)
     column = {track: d for d, track in enumerate(ids)}
@@ -123,12 +125,13 @@ def match_tracks(hits: np.ndarray, distances: np.ndarray, previous: list[int | N
         d = column.get(track, -1)
         if d >= 0 and hits[t, d] and not used[d]:
             match[t], used[d] = d, True
-    for t, d in zip(*np.unravel_index(np.argsort(np.where(hits, distances, np.inf), axis=None, kind="stable"),
-                                      hits.shape), strict=True):
-        if not hits[t, d]:
-            break  # the rest are misses (inf)
-        if match[t] < 0 and not used[d]:
-            match[t], used[d] = d, True
+    rows, cols = np.flatnonzero(match < 0), np.flatnonzero(~used)
+    free = hits[np.ix_(rows, cols)]
+    if free.any():  # a miss costs more than any set of hits: the most pairs first, then the nearest
+        cost = np.where(free, distances[np.ix_(rows, cols)], 1.0 + 2 * np.nanmax(distances[np.ix_(rows, cols)][free]) * free.size)
+        for r, c in zip(*linear_sum_assignment(cost), strict=True):
+            if free[r, c]:
+                match[rows[r]] = cols[c]
     return match
 
 
