@@ -365,9 +365,10 @@ class StereoConfig:
     mode: str = "sgbm_3way"
     """One of ``sgbm``, ``hh``, ``sgbm_3way``, ``hh4`` (cv2.STEREO_SGBM_MODE_*); see the table."""
     min_range_m: float = 1.0
-    """Points nearer than this (camera depth) are dropped."""
+    """Points nearer than this (depth along the rectified left camera's axis: the camera's own
+    for a rectified pair) are dropped."""
     max_range_m: float = 40.0
-    """Points farther than this (camera depth) are dropped."""
+    """Points farther than this (depth along the rectified left camera's axis) are dropped."""
     min_texture: float = 2.75
     """Disparities are dropped where the left image's local texture (``texture_measure``, by
     default the standard deviation of the grey levels over ``texture_window`` pixels) is below

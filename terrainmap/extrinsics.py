@@ -120,8 +120,9 @@ def estimate_extrinsics(
     ------
     FrameError
         ``reason="no_ground"`` with a one-line message when too few near points lie below the
-        camera, too few are inliers of any plausible plane, or the best plane is not a plausible
-        ground (normal tilted more than ``max_tilt_deg`` from the camera's −y, camera not above it).
+        camera, too few are inliers of any plausible plane, the inliers lie along a line (less than
+        0.2 m of spread across it), or the best plane is not a plausible ground (normal tilted more
+        than ``max_tilt_deg`` from the camera's −y, camera not above it).
     """
     config = config or ExtrinsicsConfig()
     normal, offset = fit_ground_plane(points_cam, config, np.random.default_rng(rng))
@@ -159,9 +160,15 @@ def fit_ground_plane(
     for _ in range(_REFINE_STEPS):  # re-select inliers and refit until the plane stops moving
         inliers = near[np.abs(near @ normal + offset) < config.inlier_threshold_m]
         previous = np.append(normal, offset)
-        normal, offset = _least_squares_plane(inliers)
+        normal, offset, spread = _least_squares_plane(inliers)
         if np.abs(np.append(normal, offset) - previous).max() < 1e-4:  # 0.006°, 0.1 mm
             break
+    if spread < _MIN_SPREAD_M:  # points along one line: every plane through it fits them as well
+        raise FrameError(
+            "no_ground",
+            f"ground fit: the ground points lie along a line ({spread:.2f} m across it, less than "
+            f"{_MIN_SPREAD_M} m): the plane's tilt about it is unknown",
+        )
     fraction = float(np.mean(np.abs(near @ normal + offset) < config.inlier_threshold_m))
     if fraction < config.min_inlier_fraction:
         raise FrameError(
@@ -177,6 +184,11 @@ def fit_ground_plane(
             f"camera {offset:+.2f} m above it; extrinsics.max_tilt_deg = {config.max_tilt_deg})",
         )
     return normal, float(offset)
+
+
+_MIN_SPREAD_M = 0.2
+"""Least spread (standard deviation, m) of the ground inliers across their narrower direction: a
+strip of ground about 0.7 m wide (a line of points tilts the fitted plane at random about it)."""
 
 
 def _ransac(
@@ -200,16 +212,18 @@ def _ransac(
     return normals[best], float(offsets[best])
 
 
-def _least_squares_plane(points: np.ndarray) -> tuple[np.ndarray, float]:
-    """Total least-squares plane through ``points`` (normal = least-variance direction), normal up."""
+def _least_squares_plane(points: np.ndarray) -> tuple[np.ndarray, float, float]:
+    """Total least-squares plane through ``points`` (normal = least-variance direction), normal up,
+    and the points' spread in the plane's narrower direction (standard deviation, m)."""
     if len(points) < 3:
         raise FrameError("no_ground", f"ground fit: only {len(points)} inliers to refine the plane")
     centroid = points.mean(axis=0)
     centred = points - centroid
-    normal = np.linalg.eigh(centred.T @ centred)[1][:, 0]  # eigenvector of the smallest eigenvalue
+    variances, axes = np.linalg.eigh(centred.T @ centred / len(points))
+    normal = axes[:, 0]  # the eigenvector of the smallest eigenvalue
     if normal[1] > 0:
         normal = -normal
-    return normal, float(-normal @ centroid)
+    return normal, float(-normal @ centroid), float(np.sqrt(max(variances[1], 0.0)))
 
 
 def _rot_x(angle: float) -> np.ndarray:

@@ -233,7 +233,8 @@ def _rectified_pinhole(calibration: StereoCalibration) -> RectifiedPinhole:
 
 
 def disparity_range(config: StereoConfig, width: int) -> int:
-    """``config.num_disparities``, or 15 % of ``width`` rounded up to 16 when it is 0 (auto)."""
+    """``config.num_disparities``, or when it is 0 (auto) 15 % of ``width`` to the nearest pixel,
+    rounded up to a multiple of 16 (at least 16)."""
     return config.num_disparities or max(16, -(-round(0.15 * width) // 16) * 16)
 
 
@@ -401,7 +402,8 @@ class StereoMatcher:
 
         ``Z = fx·B / (d + doffs)``, ``X = (u − cx)·Z/fx``, ``Y = (v − cy)·Z/fy``; NaN disparities and
         depths outside ``[min_range_m, max_range_m]`` are skipped (tested on the disparity, so only
-        the kept pixels pay for a division).
+        the kept pixels pay for a division; the depth is the rectified camera's, before a raw
+        pair's points are turned back into the left camera's frame).
 
         Returns
         -------
