@@ -13,12 +13,13 @@ car's side) keeps one disparity down its height.
 
 A point is *upright* when the disparity gradient down the image at its pixel,
 ``(d(v + k) − d(v − k)) / 2k`` (``k = upright_rows``), is below ``upright_ratio`` times that of the
-terrain's tangent plane at its cell, where the latter is at least ``upright_min_ground_gradient``
-(on ground that slopes towards the camera the two look alike through stereo noise), and its
-pixel lies in a vertical run of upright points (of those the height threshold left TERRAIN) at
-least ``upright_min_height_m`` tall at its depth (``run ≥ h·fy/Z`` rows, :func:`vertical_runs`):
-stereo's horizontal streaks, where a few rows share one disparity, are lower. Upright points standing at least ``upright_above_m`` above
-the surface are obstacles (:func:`label_upright`), however far under the height threshold of
+terrain's tangent plane at its cell, where the latter is at least
+``upright_min_ground_gradient`` (on ground that slopes towards the camera the two look alike
+through stereo noise), and its pixel lies in a vertical run of upright points (of those the
+height threshold left TERRAIN) at least ``upright_min_height_m`` tall at its depth
+(``run ≥ h·fy/Z`` rows, :func:`vertical_runs`): stereo's horizontal streaks, where a few rows
+share one disparity, are lower. Upright points standing at least ``upright_above_m`` above the
+surface are obstacles (:func:`label_upright`), however far under the height threshold of
 :mod:`terrainmap.segmentation`. Points nearer than ``upright_min_range_m`` are left to that
 threshold, which separates obstacles there alone. On the twelve simulated drives the cue
 confirmed the 0.5 m rocks that stereo flattens at 15–20 m sooner (docs/accuracy.md).

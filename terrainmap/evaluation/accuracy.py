@@ -30,8 +30,8 @@ layers, point labels and tracked obstacles) and every other method of
   pixels that both cameras see (:func:`.truth_grid.truth_obstacles`), centre within
   ``obstacle_range_m`` and inside the grid area, that are matched by a *confirmed* positive
   terrainmap obstacle whose centre lies in the truth footprint dilated by ``obstacle_margin_m``
-  (vehicle frame), one to one (:func:`match_tracks`: one track cannot find two obstacles); summed over
-  frames. Bands by the truth centre's range.
+  (vehicle frame), one to one (:func:`match_tracks`: one track cannot find two obstacles);
+  summed over frames. Bands by the truth centre's range.
 - ``false_obstacles_per_frame`` (terrainmap only): confirmed positive obstacles matching no truth
   footprint (of any height), plus confirmed negative obstacles where the truth shows no
   depression (:func:`.truth_grid.depression_depth` below half of ``obstacles.min_depth_m``,
@@ -126,10 +126,9 @@ def match_tracks(hits: np.ndarray, distances: np.ndarray, previous: list[int | N
         if d >= 0 and hits[t, d] and not used[d]:
             match[t], used[d] = d, True
     rows, cols = np.flatnonzero(match < 0), np.flatnonzero(~used)
-    free = hits[np.ix_(rows, cols)]
-    if free.any():  # a miss costs more than any set of hits: the most pairs first, then the nearest
-        cost = np.where(free, distances[np.ix_(rows, cols)], 1.0 + 2 * np.nanmax(distances[np.ix_(rows, cols)][free]) * free.size)
-        for r, c in zip(*linear_sum_assignment(cost), strict=True):
+    free, near = hits[np.ix_(rows, cols)], distances[np.ix_(rows, cols)]
+    if free.any():  # a miss costs more than all the hits together: the most pairs first, then the nearest
+        for r, c in zip(*linear_sum_assignment(np.where(free, near, 1.0 + near[free].sum())), strict=True):
             if free[r, c]:
                 match[rows[r]] = cols[c]
     return match

@@ -19,8 +19,9 @@ exactly like a real robot's, plus the truth the renderer used:
 Conventions: world frame ``odom`` (z up, z = 0 the terrain's datum; the vehicle starts on the
 terrain at x = y = 0 heading along +x), ``base_link`` on the ground under the camera, camera
 optical frames per REP-103; depth is the distance along the left camera's optical axis (REP 118
-``32FC1``, +inf for sky); label 0 sky, 1 terrain, 2 obstacle (the values of :class:`terrainmap.types.Label`). A log is a pure function
-of its :class:`SimConfig` (seed included): same config, same bytes of image and truth data.
+``32FC1``, +inf for sky); label 0 sky, 1 terrain, 2 obstacle (the values of
+:class:`terrainmap.types.Label`). A log is a pure function of its :class:`SimConfig` (seed
+included): same config, same bytes of image and truth data.
 """
 
 from .scenes import SCENES

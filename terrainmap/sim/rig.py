@@ -2,10 +2,10 @@
 
 Frames (REP-103/105): world ``odom`` (z up, z = 0 the terrain's datum; the vehicle starts on the
 terrain at x = y = 0 heading along +x), vehicle ``base_link`` (x forward, y left, z up; origin on
-the ground plane under the camera), cameras ``left_camera_optical`` / ``right_camera_optical`` (x right, y down, z forward). The
-left camera sits ``camera_height_m`` above ``base_link``'s origin, pitched down by
-``pitch_rad``; the right camera is ``baseline_m`` along the left camera's x axis, same rotation
-(an ideal rectified pair).
+the ground plane under the camera), cameras ``left_camera_optical`` / ``right_camera_optical`` (x
+right, y down, z forward). The left camera sits ``camera_height_m`` above ``base_link``'s origin,
+pitched down by ``pitch_rad``; the right camera is ``baseline_m`` along the left camera's x axis,
+same rotation (an ideal rectified pair).
 
 The vehicle's pose at each position is the least-squares plane through the terrain heights
 under its four wheels: z from the plane at the origin, x the heading projected onto the plane,

@@ -109,15 +109,20 @@ def _obstacles(name: str, rng: np.random.Generator) -> list[ObstacleSpec]:
     # it comes near (in a drive of the default 50 frames) stop at the roadside, or step off the
     # track, after 2 s (so the first 20 frames, those of the README's drives, are as before).
     placed = {
-        "flat": [("pedestrian", (14, 4.5), 0.0, (0.0, -1.3), ((2.1, (0.0, 0.0)),)), ("car", (24, -3.5), 0.1, None, ()),
+        "flat": [("pedestrian", (14, 4.5), 0.0, (0.0, -1.3), ((2.1, (0.0, 0.0)),)),
+                 ("car", (24, -3.5), 0.1, None, ()),
                  ("pole", (11, 4.8), 0.0, None, ())],
-        "hills": [("truck", (30, 5.0), 0.3, None, ()), ("pedestrian", (18, -3.0), 0.0, (0.6, 0.9), ()),
+        "hills": [("truck", (30, 5.0), 0.3, None, ()),
+                  ("pedestrian", (18, -3.0), 0.0, (0.6, 0.9), ()),
                   ("pole", (12, -4.0), 0.0, None, ())],
-        "ditch": [("car", (21, 3.6), 0.05, None, ()), ("pedestrian", (15, 3.2), 0.0, (0.0, -0.7), ((2.0, (0.0, 0.0)),)),
+        "ditch": [("car", (21, 3.6), 0.05, None, ()),
+                  ("pedestrian", (15, 3.2), 0.0, (0.0, -0.7), ((2.0, (0.0, 0.0)),)),
                   ("pole", (12, -2.5), 0.0, None, ())],
-        "mounds": [("pedestrian", (13, 5.0), 0.0, (0.0, -1.2), ((2.5, (0.0, 0.0)),)), ("car", (26, -5.0), -0.2, None, ()),
+        "mounds": [("pedestrian", (13, 5.0), 0.0, (0.0, -1.2), ((2.5, (0.0, 0.0)),)),
+                   ("car", (26, -5.0), -0.2, None, ()),
                    ("mound", (20, 3.0), 0.4, None, ())],
-        "canyon": [("truck", (32, 0.5), 0.05, None, ()), ("pedestrian", (18, -2.0), 0.0, None, ())],
+        "canyon": [("truck", (32, 0.5), 0.05, None, ()),
+                   ("pedestrian", (18, -2.0), 0.0, None, ())],
         "climb": [("pedestrian", (26, 1.0), 0.0, (-1.0, 0.0), ((2.0, (0.0, 1.0)), (3.5, (0.0, 0.0)))),
                   ("pole", (16, -3.5), 0.0, None, ())],
     }[name]
