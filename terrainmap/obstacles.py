@@ -243,7 +243,7 @@ def _clusters(
     k, npts, top = int(ok.sum()), npts[ok], top[ok]
 
     per = Segments(cid, k)
-    yaw, u, v = _principal_axes(x, y, per, per.counts)
+    yaw, u, v = _footprint_axes(x, y, per)
     (uc, u_half), (vc, v_half) = (_robust_extent(w, per, per.counts) for w in (u, v))
     cos, sin = np.cos(yaw), np.sin(yaw)
     cx, cy = uc * cos - vc * sin, uc * sin + vc * cos
@@ -393,18 +393,65 @@ def _robust_extent(w: np.ndarray, per: Segments, npts: np.ndarray) -> tuple[np.n
     sigma = np.sqrt(np.maximum(per.sum(w * w) / npts - mean * mean, 0.0))
     lo = np.maximum(per.reduce(np.minimum, w), mean - 2 * sigma)
     hi = np.minimum(per.reduce(np.maximum, w), mean + 2 * sigma)
-    return (lo + hi) / 2, (hi - lo) / 2
+    return (lo + hi) / 2, np.maximum(hi - lo, 0.0) / 2  # (a rounded mean can put lo a hair above hi)
 
 
 def _principal_axes(x: np.ndarray, y: np.ndarray, per: Segments, npts: np.ndarray, minor: bool = True):
     """Per-cluster major-axis angle (k,) and every point's coordinates (u, v) along the axes
     (``per``: the points' clusters, ``npts`` the points per cluster; v is None unless ``minor``)."""
+    yaw, _ = _covariance_yaw(x, y, per, npts)
+    return (yaw, *_along(x, y, per, yaw, minor))
+
+
+def _covariance_yaw(x: np.ndarray, y: np.ndarray, per: Segments, npts: np.ndarray):
+    """Per-cluster major-axis angle of the points' (x, y) covariance, in (−π/2, π/2], and the
+    ratio of its minor to its major variance (k,) each (0 for a line, 1 for a square or a disc)."""
     mx, my = per.sum(x) / npts, per.sum(y) / npts
     sxx = per.sum(x * x) - npts * mx * mx  # float64 sums of coordinates within ~50 m: cancellation
     syy = per.sum(y * y) - npts * my * my  # costs < 1e-10 m² against variances of 1e-4 m² and more
     sxy = per.sum(x * y) - npts * mx * my
-    yaw = 0.5 * np.arctan2(2 * sxy, sxx - syy)  # in (−π/2, π/2]
-    # No major axis (a single point, a square or round cluster): axis-aligned, not set by rounding.
-    yaw[np.abs(2 * sxy) + np.abs(sxx - syy) <= 1e-9 * (sxx + syy)] = 0.0
+    yaw = 0.5 * np.arctan2(2 * sxy, sxx - syy)
+    half_gap = np.hypot((sxx - syy) / 2, sxy)  # half the difference of the two variances (× npts)
+    # No major axis (a single point, points stacked at one spot, a square or round cluster):
+    # axis-aligned, not set by rounding (the cancellation above leaves ~1e-13 m² per point).
+    yaw[half_gap <= 1e-9 * (sxx + syy) + 1e-12 * npts] = 0.0
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ratio = np.where(sxx + syy > 1e-12 * npts, ((sxx + syy) / 2 - half_gap) / ((sxx + syy) / 2 + half_gap), 1.0)
+    return yaw, ratio
+
+
+def _along(x: np.ndarray, y: np.ndarray, per: Segments, yaw: np.ndarray, minor: bool = True):
+    """Every point's coordinates (u, v) along its cluster's axes at ``yaw`` (v None unless ``minor``)."""
     cos, sin = per.spread(np.cos(yaw)), per.spread(np.sin(yaw))
-    return yaw, x * cos + y * sin, (y * cos - x * sin) if minor else None
+    return x * cos + y * sin, (y * cos - x * sin) if minor else None
+
+
+_BOX_ANGLES = np.radians(np.arange(0.0, 90.0, 3.0))
+"""Candidate box orientations of clusters with no clear major axis (3° apart)."""
+
+
+def _footprint_axes(x: np.ndarray, y: np.ndarray, per: Segments):
+    """:func:`_principal_axes` for the footprint rectangle: where the covariance has no clear
+    major axis (the minor variance over half the major: a pedestrian, a pole, a rock, a square
+    box), its axis is set by noise and a rectangle along it cuts off the corners, so the yaw is
+    the one of the least-area rectangle among :data:`_BOX_ANGLES`, turned so that the length lies
+    along it."""
+    yaw, ratio = _covariance_yaw(x, y, per, per.counts)
+    round_ = np.flatnonzero(ratio > 0.5)
+    if round_.size:
+        inside = per.spread(ratio > 0.5)
+        sub = Segments(np.repeat(np.arange(round_.size), per.counts[round_]), round_.size)
+        xs, ys = x[inside, None], y[inside, None]
+        cos, sin = np.cos(_BOX_ANGLES), np.sin(_BOX_ANGLES)
+        length = _spread_of(xs * cos + ys * sin, sub)  # (clusters, angles)
+        width = _spread_of(ys * cos - xs * sin, sub)
+        best = np.argmin(length * width, axis=1)
+        rows = np.arange(round_.size)
+        angle = _BOX_ANGLES[best] + np.where(length[rows, best] < width[rows, best], np.pi / 2, 0.0)
+        yaw[round_] = np.where(angle > np.pi / 2, angle - np.pi, angle)
+    return (yaw, *_along(x, y, per, yaw))
+
+
+def _spread_of(w: np.ndarray, per: Segments) -> np.ndarray:
+    """max − min of each cluster's run of rows of ``w`` (N, K) → (n, K); every cluster non-empty."""
+    return np.maximum.reduceat(w, per.starts) - np.minimum.reduceat(w, per.starts)

@@ -349,6 +349,47 @@ def test_a_square_cluster_gets_an_axis_aligned_box_whatever_the_rounding():
         assert yaw[0] == 0.0
 
 
+@pytest.mark.parametrize("seed", range(6))
+@pytest.mark.parametrize("width", [2.0, 1.8, 1.0])
+def test_a_square_footprint_gets_a_box_that_holds_it_at_any_yaw(seed, width):
+    """Points spread evenly over a 2 m × ``width`` footprint at a random yaw: with no clear major
+    axis the covariance's axis is noise (up to 44° off for a square), and a box along it cut the
+    corners off (up to 7 % of the points outside, by 0.28 m). The box now holds every point of
+    the cluster (those in cells of at least ``min_cell_points``) within 3 cm, and a square or
+    nearly square one lies along the footprint's sides within 3°."""
+    from terrainmap.grid import cell_index
+
+    rng = np.random.default_rng(seed)
+    yaw = rng.uniform(-np.pi / 2, np.pi / 2)
+    u, v = rng.uniform(-1.0, 1.0, 800), rng.uniform(-width / 2, width / 2, 800)
+    c, s = np.cos(yaw), np.sin(yaw)
+    points = np.column_stack([15 + u * c - v * s, 2 + u * s + v * c, rng.uniform(0.05, 1.5, 800)])
+    config = ObstacleConfig()
+    (obstacle,) = extract_obstacles(points, np.full(800, Label.OBSTACLE, np.uint8), GRID, None, config,
+                                    elevation=np.zeros(GRID.shape))
+    index = cell_index(points, GRID)
+    kept = np.bincount(index)[index] >= config.min_cell_points
+    assert obstacle.point_count == kept.sum()
+    c, s = np.cos(obstacle.yaw_rad), np.sin(obstacle.yaw_rad)
+    d = points[kept, :2] - obstacle.center_m[:2]
+    along, across = np.abs(d @ [c, s]), np.abs(d @ [-s, c])
+    assert (along <= obstacle.size_m[0] / 2 + 0.03).all() and (across <= obstacle.size_m[1] / 2 + 0.03).all()
+    assert obstacle.size_m[0] >= obstacle.size_m[1]
+    if width > 1.5:
+        assert np.degrees(abs((obstacle.yaw_rad - yaw + np.pi / 4) % (np.pi / 2) - np.pi / 4)) <= 3.0
+
+
+def test_points_stacked_at_one_spot_give_an_axis_aligned_box_of_no_size():
+    """A pole seen as one column of points: yaw 0 and sizes 0, not an angle and a negative size
+    set by rounding, wherever it stands."""
+    for x, y in ((15.3, 0.7), (33.1, -9.9), (7.77, 3.33)):
+        points = np.column_stack([np.full(12, x), np.full(12, y), np.linspace(0.1, 1.0, 12)])
+        config = ObstacleConfig(min_points=1, min_cells=1, min_cell_points=1)
+        (obstacle,) = extract_obstacles(points, np.full(12, Label.OBSTACLE, np.uint8), GRID, None, config,
+                                        elevation=np.zeros(GRID.shape))
+        assert obstacle.yaw_rad == 0.0 and (obstacle.size_m[:2] == 0).all()
+
+
 def _cell_counts(points: np.ndarray) -> np.ndarray:
     """All points per grid cell, as ``HeightGrid.count`` holds them."""
     from terrainmap.grid import cell_index
