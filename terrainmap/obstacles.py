@@ -19,7 +19,8 @@ Per cluster (vehicle frame, metres):
   footprint centre (a point cluster's oriented bounding rectangle);
 * ``height_m``: the largest point height above the terrain surface (positive) or depth below it
   (negative), the surface taken at each point by bilinear interpolation of its values at the cell
-  centres (exact on planes);
+  centres (exact on planes between the outermost centres; in the grid's outer half cells, the
+  nearest centre's value along that axis: :func:`terrain_at`);
 * the box spans from the terrain at the footprint centre up to the highest point (positive) or
   from the deepest point up to the terrain (negative); ``center_m`` is its centre;
 * ``range_m``: the distance from the vehicle origin to the nearest point of the cluster.
