@@ -15,8 +15,10 @@ that work on dense scenes (a street's house fronts) while small obstacles keep e
 Per cluster (vehicle frame, metres):
 
 * footprint: principal axes of the points' (x, y) covariance give ``yaw_rad`` (major axis,
-  in (−π/2, π/2]); the extents of the points along those axes give length and width and the
-  footprint centre (a point cluster's oriented bounding rectangle);
+  in (−π/2, π/2]), or, for a cluster with no clear major axis (a pedestrian, a pole, a rock),
+  the axes of its least-area rectangle; the extents of the points along those axes (sparse tails
+  trimmed, :func:`_robust_extent`) give length and width and the footprint centre (a point
+  cluster's oriented bounding rectangle);
 * ``height_m``: the largest point height above the terrain surface (positive) or depth below it
   (negative), the surface taken at each point by bilinear interpolation of its values at the cell
   centres (exact on planes between the outermost centres; in the grid's outer half cells, the
