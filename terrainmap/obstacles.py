@@ -431,6 +431,8 @@ def _along(x: np.ndarray, y: np.ndarray, per: Segments, yaw: np.ndarray, minor: 
 
 _BOX_ANGLES = np.radians(np.arange(0.0, 90.0, 3.0))
 """Candidate box orientations of clusters with no clear major axis (3° apart)."""
+_BOX_POINTS = 200
+"""About this many points of each such cluster choose its angle."""
 
 
 def _footprint_axes(x: np.ndarray, y: np.ndarray, per: Segments):
@@ -442,8 +444,13 @@ def _footprint_axes(x: np.ndarray, y: np.ndarray, per: Segments):
     yaw, ratio = _covariance_yaw(x, y, per, per.counts)
     round_ = np.flatnonzero(ratio > 0.5)
     if round_.size:
-        inside = per.spread(ratio > 0.5)
-        sub = Segments(np.repeat(np.arange(round_.size), per.counts[round_]), round_.size)
+        # About _BOX_POINTS points of each such cluster choose its angle (its extents are then
+        # taken over all of them): 0.2 ms for two 800-point clusters instead of 0.8.
+        stride = np.where(ratio > 0.5, -(-per.counts // _BOX_POINTS), 0)  # 0: not such a cluster
+        step = per.spread(stride)
+        rank = np.arange(len(x)) - per.spread(per.bounds[:-1])  # each point's place in its cluster
+        inside = (step > 0) & (rank % np.maximum(step, 1) == 0)
+        sub = Segments(per.spread(np.cumsum(stride > 0) - 1)[inside], round_.size)
         xs, ys = x[inside, None], y[inside, None]
         cos, sin = np.cos(_BOX_ANGLES), np.sin(_BOX_ANGLES)
         length = _spread_of(xs * cos + ys * sin, sub)  # (clusters, angles)
