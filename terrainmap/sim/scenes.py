@@ -1,21 +1,22 @@
 """Procedural off-road scenes after the paper's Fig. 7, deterministic for a seed.
 
 Every scene is a terrain (a :class:`~terrainmap.sim.heightfield.Heightfield` in the world frame
-``odom``, the vehicle starting at the origin heading along +x), its surface colours and the
+``odom``, the vehicle starting at x = y = 0 heading along +x), its surface colours and the
 obstacles placed in view. All have fine relief (a few cm at 1–8 m) on top of their shape:
 
 - ``flat``: a dirt road with a 0.5 % grade, shallow side ditches and grass; a pedestrian
-  crossing the road (moving), a parked car, a pole, rocks.
+  walking towards the road who stops at its edge after 2.1 s, a parked car, a pole, rocks.
 - ``hills``: rolling hills (±2 m over 15–60 m); a truck, a pedestrian walking, rocks, a pole.
 - ``ditch``: a ditch (1.2 m deep) right of the track with a berm beyond it, a berm on the left
-  and a shallow cross ditch ahead; a car and a pedestrian close to the left berm, a pole, rocks.
-- ``mounds``: gravel mounds (1.5–3.5 m high) beside the track; a pedestrian crossing (moving),
-  a car, rocks and a low wide mound.
+  and a shallow cross ditch ahead; a car and a pedestrian close to the left berm (walking
+  towards the track, stopping beside it after 2 s), a pole, rocks.
+- ``mounds``: gravel mounds (1.5–3.5 m high) beside the track; a pedestrian walking towards the
+  track who stops beside it after 2.5 s, a car, rocks and a low wide mound.
 - ``canyon``: a gravel floor between 5 m walls that meander; a truck ahead, a pedestrian, rocks.
 - ``climb``: a 9 m hill rising from 8 to 53 m ahead (slopes to ~17°) that the camera looks up;
   a drive longer than 20 frames at the default 4 m/s reaches it and climbs it, pitching the
   vehicle and camera (20 frames stop at its foot); a pedestrian walking down towards the
-  vehicle (moving), rocks, a pole.
+  vehicle who steps off its track after 2 s, rocks, a pole.
 """
 
 from __future__ import annotations
