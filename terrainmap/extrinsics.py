@@ -166,7 +166,7 @@ def fit_ground_plane(
     if spread < _MIN_SPREAD_M:  # points along one line: every plane through it fits them as well
         raise FrameError(
             "no_ground",
-            f"ground fit: the ground points lie along a line ({spread:.2f} m across it, less than "
+            f"ground fit: the ground points lie along a line (their spread across it is under "
             f"{_MIN_SPREAD_M} m): the plane's tilt about it is unknown",
         )
     fraction = float(np.mean(np.abs(near @ normal + offset) < config.inlier_threshold_m))

@@ -248,6 +248,14 @@ def _clusters(
     per = Segments(cid, k)
     yaw, u, v = _footprint_axes(x, y, per)
     (uc, u_half), (vc, v_half) = (_robust_extent(w, per, per.counts) for w in (u, v))
+    # The length lies along the yaw: where the trimmed extents say otherwise (a nearly square
+    # cluster), the same rectangle is described turned by 90° (yaw + π/2: u, v → v, −u; then
+    # back into (−π/2, π/2] by half a turn, which flips both).
+    turn = u_half < v_half
+    flip = np.where(turn & (yaw > 0), -1.0, 1.0)
+    uc, vc = np.where(turn, flip * vc, uc), np.where(turn, -flip * uc, vc)
+    u_half, v_half = np.maximum(u_half, v_half), np.minimum(u_half, v_half)
+    yaw = np.where(turn, yaw + np.pi / 2 - np.pi * (flip < 0), yaw)
     cos, sin = np.cos(yaw), np.sin(yaw)
     cx, cy = uc * cos - vc * sin, uc * sin + vc * cos
     ground = terrain(cx, cy)

@@ -360,6 +360,14 @@ def test_match_tracks_keeps_a_matching_track_and_switches_only_when_it_is_lost()
     assert acc.match_tracks(np.zeros((0, 0), bool), np.zeros((0, 0)), [], []).tolist() == []
 
 
+def test_a_frame_with_no_true_obstacle_in_view_is_scored(tiny_log):
+    """No truth obstacle counts (none is 100 m tall), as in the last frames of a long drive that
+    has passed them all: the frames are scored all the same (a reshape of no rows failed)."""
+    report = acc.evaluate(tiny_log, Config(), methods=["terrainmap"], max_frames=2, obstacle_min_height_m=100.0)
+    assert report["frames"] == 2 and report["obstacles"]["frames_to_confirmation"] == {}
+    assert report["methods"]["terrainmap"]["all"]["obstacle_recall"] is None
+
+
 def test_match_tracks_is_one_to_one():
     """One cluster over a car and the rock beside it finds the nearer of the two, not both; two
     tracks find two truths wherever a one-to-one pairing allows it (the Hungarian method, not

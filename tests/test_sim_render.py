@@ -181,6 +181,8 @@ def test_an_obstacle_turns_and_stops_where_its_spec_says():
         np.testing.assert_array_equal(at_velocity, velocity)
         assert at_yaw == pytest.approx(yaw)
     assert ObstacleSpec(2, "rock", (5.0, 1.0), yaw_rad=0.7).motion(4.0)[2] == 0.7  # static: its own yaw
+    with pytest.raises(ValueError, match="in time order"):
+        ObstacleSpec(3, "pedestrian", (0.0, 0.0), turns=((5.0, (0.0, 0.0)), (2.0, (0.0, 1.0))))
 
 
 def test_truth_height_is_the_top_above_the_ground_at_the_centre():

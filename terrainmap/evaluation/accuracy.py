@@ -195,7 +195,8 @@ class _Evaluation:
         in_view = [t for t in gt.obstacles if t.height_m >= opt["obstacle_min_height_m"]
                    and t.pixels >= opt["min_visible_pixels"]
                    and grid.x_min_m <= t.center_m[0] < x_max and y_min <= t.center_m[1] < y_min + grid.width_m]
-        hits = np.array([t.contains_xy(positive, opt["obstacle_margin_m"]) for t in in_view]).reshape(len(in_view), -1)
+        hits = np.array([t.contains_xy(positive, opt["obstacle_margin_m"]) for t in in_view], bool).reshape(
+            len(in_view), len(tracks))  # (none in view: a frame with no obstacle within the grid)
         centers = np.array([t.center_m[:2] for t in in_view]).reshape(-1, 2)
         distances = np.linalg.norm(positive[None, :, :] - centers[:, None, :], axis=2)
         keys = [f"{t.id} {t.kind}" for t in in_view]

@@ -132,6 +132,11 @@ class ObstacleSpec:
     velocity_mps: tuple[float, float] = (0.0, 0.0)
     turns: tuple[tuple[float, tuple[float, float]], ...] = ()
 
+    def __post_init__(self):
+        times = [t for t, _ in self.turns]
+        if times != sorted(times) or any(t < 0 for t in times):
+            raise ValueError(f"obstacle {self.id}: turns must come in time order from 0 s, got times {times}")
+
     @property
     def shape(self) -> str:
         return KINDS[self.kind][0]
