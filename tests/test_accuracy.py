@@ -527,3 +527,15 @@ def test_damaged_truth_in_a_log_is_an_input_error_not_wrong_scores(tmp_path, whe
     with pytest.raises(InputError, match=f"{log}: damaged"):
         with open_truth(log) as truth:
             list(truth.frames())
+
+
+def test_bands_take_their_lower_edge_and_precision_is_not_recall():
+    """A point at exactly 10 m is in the 10-20 band (``lo <= r < hi``); predicted terrain 4 points
+    of which 2 are terrain, no terrain point missed: precision 0.5, recall 1."""
+    scores = MethodScores()
+    predicted = np.array([True, True, True, True])
+    actual = np.array([True, True, False, False])
+    scores.add_points(predicted, actual, np.array([10.0, 10.0, 10.0, 10.0]))
+    out = scores.summary(frames=1)
+    assert out["0-10"]["terrain_precision"] is None
+    assert out["10-20"]["terrain_precision"] == 0.5 and out["10-20"]["terrain_recall"] == 1.0

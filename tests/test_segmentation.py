@@ -241,3 +241,15 @@ def test_huge_coordinates_are_outside_the_area_without_numpy_warnings():
         warnings.simplefilter("error")
         result = map_points(points, Config())
     assert (result.point_labels[-4:] == Label.UNKNOWN).all()
+
+
+def test_fixed_thresholds_grow_with_the_horizontal_distance_and_each_has_its_own_base():
+    """Above: ``obstacle_height_m`` + ``threshold_per_m`` · √(x² + y²) at the cell centre; below:
+    ``below_depth_m`` + the same growth (distinct bases, so that one cannot stand for the other)."""
+    grid = GridConfig()
+    config = SegmentationConfig(obstacle_height_m=0.25, below_depth_m=0.5, threshold_per_m=0.01)
+    above, below = thresholds(grid, config)
+    xs, ys = cell_centers(grid)
+    distance = np.hypot(xs[:, None], ys[None, :])
+    np.testing.assert_allclose(above, 0.25 + 0.01 * distance)
+    np.testing.assert_allclose(below, 0.5 + 0.01 * distance)

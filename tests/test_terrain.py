@@ -163,3 +163,19 @@ def test_a_hand_built_grid_that_does_not_fit_is_an_input_error():
     ):
         with pytest.raises(InputError, match=message):
             estimate_terrain(dataclasses.replace(grid, **change), config.terrain)
+
+
+def test_slope_layers_take_both_axes_each_in_its_place():
+    """The slope of a plane that rises along x and y is atan(|∇z|) (not one axis, not their sum);
+    ``dz_dx`` and ``dz_dy`` keep their axes."""
+    out = slope_layers(np.zeros((2, 3)), np.full((2, 3), 0.1), np.full((2, 3), 0.3))
+    np.testing.assert_allclose(out["slope"], np.arctan(np.hypot(0.1, 0.3)), rtol=1e-6)
+    assert (out["dz_dx"] == np.float32(0.1)).all() and (out["dz_dy"] == np.float32(0.3)).all()
+
+
+def test_eq3_weight_and_equalization_fraction_take_alpha_as_the_exponent():
+    """W = 1 + (|Δz|/th)^(−α) and f = 1 / (1 + (|Δz|/th)^(−α)): with |Δz| = 2·th and α = 2,
+    W = 1.25 and f = 0.8; W stops at ``weight_max``."""
+    weights, fraction = sample_weights(np.array([0.2, -0.2, 1e-9]), th=0.1, alpha=2.0, weight_max=100.0)
+    np.testing.assert_allclose(weights, [1.25, 1.25, 100.0])
+    np.testing.assert_allclose(fraction[:2], [0.8, 0.8])
