@@ -40,6 +40,8 @@ def test_eq1_on_hand_built_cells():
     mean = quantize(pts, MEAN)  # k = 0 skips the minimum
     np.testing.assert_allclose(mean.z[[0, 1, 2], [0, 1, 0]], [1.0, 2.5, 0.7])
     np.testing.assert_array_equal(mean.z_top[g.observed], g.z_top[g.observed])
+    half = quantize(pts, GridConfig(**{**SMALL.__dict__, "sigma_factor": 0.5}))  # Z = max(min, mean − k·σ)
+    assert half.z[0, 0] == pytest.approx(1 - 0.5 * np.sqrt(2 / 3))
 
 
 # A level camera 1.8 m up at the origin, f·B = 150 px·m (the simulator's rig without its pitch)

@@ -76,6 +76,9 @@ def test_ditch_is_a_negative_obstacle_with_its_depth():
     assert obstacle.center_m[2] == pytest.approx(ground_z - obstacle.size_m[2] / 2, abs=1e-6)
     np.testing.assert_allclose(obstacle.center_m[:2], [20.0, 0.0], atol=0.1)
     assert extract_obstacles(points, labels, GRID, plane, ObstacleConfig(negative=False)) == []
+    # A ditch is held to min_depth_m, not to the positive obstacles' min_height_m.
+    assert len(extract_obstacles(points, labels, GRID, plane, ObstacleConfig(min_height_m=1.0))) == 1
+    assert extract_obstacles(points, labels, GRID, plane, ObstacleConfig(min_depth_m=0.8)) == []
 
 
 def test_obstacles_come_positive_first_each_kind_sorted_by_range():
@@ -130,6 +133,17 @@ def test_filters(field, value, kept):
     points, labels = labelled(plane, box_points(plane, (10.0, 0.0), 1.0, 1.0, 1.0))
     found = extract_obstacles(points, labels, GRID, plane, ObstacleConfig(**{field: value}))
     assert len(found) == int(kept)
+
+
+def test_a_cluster_of_exactly_min_points_is_kept():
+    """``min_points`` is the fewest points an obstacle may have ("fewer are dropped")."""
+    plane = Plane()
+    points, labels = labelled(plane, box_points(plane, (10.0, 0.0), 1.0, 1.0, 1.0))
+    (obstacle,) = extract_obstacles(points, labels, GRID, plane, ObstacleConfig())
+    config = ObstacleConfig(min_points=obstacle.point_count)
+    assert len(extract_obstacles(points, labels, GRID, plane, config)) == 1
+    config = ObstacleConfig(min_points=obstacle.point_count + 1)
+    assert extract_obstacles(points, labels, GRID, plane, config) == []
 
 
 def test_min_cell_points_drops_sparse_cells():
