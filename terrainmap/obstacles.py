@@ -305,7 +305,8 @@ class Segments:
         return self._scatter(np.add.reduceat(np.asarray(weights, np.float64), self.starts), 0.0)
 
     def reduce(self, ufunc: np.ufunc, values: np.ndarray) -> np.ndarray:
-        """``np.minimum`` or ``np.maximum`` of float ``values`` per cluster (±inf where empty)."""
+        """``np.minimum`` or ``np.maximum`` of float ``values`` ((N,) or (N, K)) per cluster, (n,)
+        or (n, K) (±inf where empty)."""
         return self._scatter(ufunc.reduceat(values, self.starts), np.inf if ufunc is np.minimum else -np.inf)
 
     def spread(self, per_cluster: np.ndarray) -> np.ndarray:
@@ -319,7 +320,7 @@ class Segments:
     def _scatter(self, values: np.ndarray, empty) -> np.ndarray:
         if self.present.size == self.n:
             return values
-        out = np.full(self.n, empty, values.dtype)
+        out = np.full((self.n, *values.shape[1:]), empty, values.dtype)
         out[self.present] = values
         return out
 
@@ -447,8 +448,8 @@ def _footprint_axes(x: np.ndarray, y: np.ndarray, per: Segments):
     """:func:`_principal_axes` for the footprint rectangle: where the covariance has no clear
     major axis (the minor variance over half the major: a pedestrian, a pole, a rock, a square
     box), its axis is set by noise and a rectangle along it cuts off the corners, so the yaw is
-    the one of the least-area rectangle among :data:`_BOX_ANGLES`, turned so that the length lies
-    along it."""
+    the one of the least-area rectangle among :data:`_BOX_ANGLES` (which of its sides is the length
+    the caller decides from the extents)."""
     yaw, ratio = _covariance_yaw(x, y, per, per.counts)
     round_ = np.flatnonzero(ratio > 0.5)
     if round_.size:
@@ -461,15 +462,7 @@ def _footprint_axes(x: np.ndarray, y: np.ndarray, per: Segments):
         sub = Segments(per.spread(np.cumsum(stride > 0) - 1)[inside], round_.size)
         xs, ys = x[inside, None], y[inside, None]
         cos, sin = np.cos(_BOX_ANGLES), np.sin(_BOX_ANGLES)
-        length = _spread_of(xs * cos + ys * sin, sub)  # (clusters, angles)
-        width = _spread_of(ys * cos - xs * sin, sub)
-        best = np.argmin(length * width, axis=1)
-        rows = np.arange(round_.size)
-        angle = _BOX_ANGLES[best] + np.where(length[rows, best] < width[rows, best], np.pi / 2, 0.0)
-        yaw[round_] = np.where(angle > np.pi / 2, angle - np.pi, angle)
+        u, v = xs * cos + ys * sin, ys * cos - xs * sin  # (points, angles)
+        length, width = (sub.reduce(np.maximum, w) - sub.reduce(np.minimum, w) for w in (u, v))
+        yaw[round_] = _BOX_ANGLES[np.argmin(length * width, axis=1)]
     return (yaw, *_along(x, y, per, yaw))
-
-
-def _spread_of(w: np.ndarray, per: Segments) -> np.ndarray:
-    """max − min of each cluster's run of rows of ``w`` (N, K) → (n, K); every cluster non-empty."""
-    return np.maximum.reduceat(w, per.starts) - np.minimum.reduceat(w, per.starts)
