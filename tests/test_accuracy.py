@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 import math
+from collections import Counter
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -143,6 +145,82 @@ def test_obstacle_pixels_count_only_what_both_cameras_see():
     assert [b.pixels for b in truth_obstacles(frame, cal)] == [0, 80]
     depth[:, 0:10] = 10.0  # 1.5 px of disparity: columns 2–9 are matched
     assert [b.pixels for b in truth_obstacles(frame, cal)] == [64, 80]
+
+
+# --- one hand-built frame through the scoring ----------------------------------------------------------
+
+def _score_frame(monkeypatch, *, truth=None, truth_boxes=(), obstacles=(), point_labels=(), pixel_labels=(), **options):
+    """An evaluation of terrainmap on one hand-built frame: its points 5 m ahead, each on its own
+    pixel of a one-row truth image of ``pixel_labels``; ``truth_boxes`` the frame's truth obstacles
+    (vehicle frame, the vehicle at the world origin); no cell observed."""
+    from terrainmap.evaluation.truth_grid import GridTruth
+    from terrainmap.sim.truth import TruthFrame
+    from terrainmap.types import Extrinsics
+
+    config = Config()
+    shape = config.grid.shape
+    gt = GridTruth(np.zeros(shape, bool), np.zeros(shape), np.zeros(shape), np.full(shape, 5.0), list(truth_boxes))
+    monkeypatch.setattr(acc, "grid_truth", lambda *args, **kwargs: gt)
+    n = len(point_labels)
+    width = max(n, 1)
+    label_image = np.zeros((1, width), np.uint8)
+    label_image[0, :n] = pixel_labels
+    frame = TruthFrame(0, 0, np.eye(3), np.zeros(3), [], np.ones((1, width), np.float32), label_image,
+                       np.zeros((1, width), np.uint8))
+    layers = {"elevation": np.zeros(shape, np.float32), "slope": np.zeros(shape), "valid": np.zeros(shape, bool)}
+    result = FrameResult(0, 0, Extrinsics(np.eye(3), np.zeros(3)), np.tile(np.float32([5, 0, 0]), (n, 1)),
+                         np.column_stack([np.arange(n), np.zeros(n)]).astype(np.int32),
+                         np.array(point_labels, np.uint8), None, None, layers=layers, obstacles=list(obstacles))
+    options = {"obstacle_margin_m": 0.5, "obstacle_min_height_m": 0.5, "obstacle_range_m": 20.0,
+               "min_visible_pixels": 20, "min_terrain_pixels": 1, **options}
+    run = acc._Evaluation(truth, config, ["terrainmap"], options)
+    run.add_frame(result, frame)
+    return run
+
+
+def test_points_labelled_below_count_as_not_terrain(monkeypatch):
+    """TERRAIN and BELOW on terrain pixels, BELOW and OBSTACLE on obstacle pixels: precision 1, recall 1/2."""
+    run = _score_frame(monkeypatch, point_labels=[Label.TERRAIN, Label.BELOW, Label.BELOW, Label.OBSTACLE],
+                       pixel_labels=[1, 1, 2, 2])
+    scores = run.scores["terrainmap"].summary(frames=1)["all"]
+    assert scores["terrain_precision"] == 1 and scores["terrain_recall"] == 0.5
+
+
+class _PitsTruth:
+    """Level terrain at height 0 with round pits (centre x, y, depth) of radius 0.4 m, world frame."""
+
+    def __init__(self, *pits):
+        self.pits = pits
+
+    def height(self, x, y):
+        h = np.zeros(np.broadcast(x, y).shape)
+        for px, py, depth in self.pits:
+            h = np.where(np.hypot(np.asarray(x) - px, np.asarray(y) - py) < 0.4, -depth, h)
+        return h
+
+
+def test_a_negative_obstacle_is_false_only_where_the_truth_is_shallower_than_half_min_depth(monkeypatch):
+    """With ``obstacles.min_depth_m`` 0.3 m, a negative obstacle over a true pit 0.2 m deep is right, over one
+    0.1 m deep false."""
+    assert Config().obstacles.min_depth_m == 0.3
+    truth = _PitsTruth((10.0, 3.0, 0.2), (12.0, -3.0, 0.1))
+    ditches = [Obstacle(np.array([x, y, -0.1]), np.array([1.0, 1.0, 0.2]), 0.0, 0.2, 30, float(np.hypot(x, y)),
+                        kind="negative", track_id=k, confirmed=True) for k, (x, y) in enumerate([(10, 3), (12, -3)])]
+    run = _score_frame(monkeypatch, truth=truth, obstacles=ditches)
+    assert run.scores["terrainmap"].summary(frames=1)["all"]["false_obstacles_per_frame"] == 1
+
+
+def test_only_truth_obstacles_within_the_obstacle_range_count(monkeypatch):
+    """A truth rock at 10 m (tracked) and one at 25 m (not) with ``obstacle_range_m`` 20: recall 1, and only the
+    near one has a frames-to-confirmation entry."""
+    from terrainmap.evaluation.truth_grid import TruthObstacle
+
+    rocks = [TruthObstacle(k, "rock", np.array([x, y, 0.5]), np.ones(3), 0.0, 1.0, 100)
+             for k, (x, y) in ((1, (10.0, 2.0)), (2, (25.0, -2.0)))]
+    track = Obstacle(np.array([10.0, 2.0, 0.5]), np.ones(3), 0.0, 1.0, 80, 10.2, track_id=7, confirmed=True)
+    run = _score_frame(monkeypatch, truth_boxes=rocks, obstacles=[track], obstacle_range_m=20.0)
+    assert run.scores["terrainmap"].summary(frames=1)["all"]["obstacle_recall"] == 1
+    assert run.report(Path("log.mcap"), Counter(), 0.0)["obstacles"]["frames_to_confirmation"] == {"1 rock": 0}
 
 
 # --- evaluate(): a perfect pipeline scores perfectly; schema; errors ---------------------------------------

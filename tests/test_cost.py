@@ -178,6 +178,18 @@ def test_step_height_finds_a_kerb_and_ignores_slopes():
     np.testing.assert_allclose(step[[0, 1, 4, 5]][~np.isnan(step[[0, 1, 4, 5]])], 0.0, atol=1e-12)
 
 
+def test_step_height_ignores_unobserved_neighbours():
+    """Ground lying evenly below the surface has no step, also beside a cell without a sample of its own."""
+    elevation = np.zeros(SHAPE)
+    samples = np.full(SHAPE, -0.3)  # relief −0.3 m everywhere
+    observed = np.ones(SHAPE, bool)
+    observed[2, 2] = False
+    samples[2, 2] = 1.0  # no sample of its own: not a step, whatever it holds
+    step = step_height(samples, elevation, observed)
+    assert np.isnan(step[2, 2])
+    np.testing.assert_allclose(step[observed], 0.0, atol=1e-12)
+
+
 def test_shape_mismatch_raises_input_error():
     with pytest.raises(InputError, match="slope"):
         traversability_cost(np.zeros(SHAPE), np.zeros((3, 3)), np.ones(SHAPE, bool), SMALL, [], CostConfig())

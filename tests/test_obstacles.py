@@ -263,6 +263,14 @@ def test_smear_between_two_obstacles_is_cut(per_cell):
     assert person.point_count + car.point_count < int((labels == Label.OBSTACLE).sum())  # the trail is dropped
 
 
+def test_a_cluster_shorter_than_split_min_length_is_never_split():
+    """The person-smear-car cluster is about 10 m long: split with a 9 m minimum, whole with 11 m."""
+    plane, (points, labels) = _smeared_pair(np.random.default_rng(0), 3)
+    assert len(extract_obstacles(points, labels, GRID, plane, ObstacleConfig(split_min_length_m=9.0))) == 2
+    (whole,) = extract_obstacles(points, labels, GRID, plane, ObstacleConfig(split_min_length_m=11.0))
+    assert whole.point_count == int((labels == Label.OBSTACLE).sum())
+
+
 def test_small_obstacle_smeared_into_a_tall_one_is_cut_off():
     """A 0.5 m rock 3.5 m behind a 3 m pole, joined to it by smear: the rock holds under 10 % of
     their cluster (as in the simulated ditch) and is still cut off as an obstacle of its own."""

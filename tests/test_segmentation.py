@@ -193,6 +193,18 @@ def test_thresholds_are_widened_at_the_edge_of_the_observed_area_only():
     assert widen_at_edges((above, below), observed, 0.0) == (above, below)
 
 
+def test_a_cell_missing_one_of_its_8_neighbours_is_on_the_edge():
+    """A single unobserved cell puts each of its 8 neighbours (7 observed neighbours each) on the edge."""
+    observed = np.ones((7, 7), bool)
+    observed[3, 3] = False
+    wide_above, _ = widen_at_edges((np.zeros((7, 7)), np.zeros((7, 7))), observed, 0.1)
+    ring = np.zeros_like(observed)
+    ring[2:5, 2:5] = True
+    ring[3, 3] = False
+    np.testing.assert_allclose(wide_above[ring], 0.1)
+    np.testing.assert_allclose(wide_above[1:-1, 1:-1][~ring[1:-1, 1:-1]], 0.0)
+
+
 def test_column_is_where_a_point_appears_in_the_image():
     camera = StereoCamera.from_rig(500.0, 0.3, CAMERA_POSE, cx_px=319.5, width_px=640)
     ahead = np.array([10.0, 0.0, 1.8 - 10.0 * np.tan(_PITCH)])  # on the optical axis

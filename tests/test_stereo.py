@@ -183,6 +183,28 @@ def test_cx_right_offset_is_applied():
     np.testing.assert_allclose(points[:, 2], 100.0 * 0.5 / 10.0, rtol=1e-6)
 
 
+def test_reprojection_takes_each_axis_its_own_focal_length():
+    """``X = (u − cx)·Z/fx`` and ``Y = (v − cy)·Z/fy`` on a camera whose fx and fy differ."""
+    calib = StereoCalibration(64, 48, fx=100.0, fy=80.0, cx=30.0, cy=20.0, baseline_m=0.5)
+    points, pixels = StereoMatcher(calib).reproject(np.full((48, 64), 10.0, np.float32))
+    assert len(points) == 64 * 48
+    np.testing.assert_allclose(points[:, 2], 5.0, rtol=1e-6)
+    np.testing.assert_allclose(points[:, 0], (pixels[:, 0] - 30.0) * 5.0 / 100.0, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(points[:, 1], (pixels[:, 1] - 20.0) * 5.0 / 80.0, rtol=1e-5, atol=1e-6)
+
+
+def test_the_min_range_holds_with_a_disparity_offset():
+    """With Middlebury's ``doffs`` (20 px, f·B = 50 px·m), disparities nearer than ``min_range_m`` (1 m)
+    give no points: 25 and 29 px (1.11 m, 1.02 m) are kept, 31, 35 and 45 px (0.98 m and nearer) are not."""
+    calib = StereoCalibration(64, 48, fx=100.0, fy=100.0, cx=32.0, cy=24.0, baseline_m=0.5, doffs=20.0)
+    matcher = StereoMatcher(calib, StereoConfig(min_range_m=1.0))
+    disparity = np.full((48, 64), np.nan, np.float32)
+    disparity[10, :5] = [25.0, 29.0, 31.0, 35.0, 45.0]
+    points, pixels = matcher.reproject(disparity)
+    assert pixels[:, 0].tolist() == [0, 1]
+    np.testing.assert_allclose(points[:, 2], [50 / 45, 50 / 49], rtol=1e-6)
+
+
 def test_rectification_recovers_disparity():
     """An unrectified pair rendered from a fronto-parallel plane with known R, T, K, D."""
     H, W, f, B, depth = 240, 320, 300.0, 0.2, 4.0  # true disparity f·B/Z = 15 px

@@ -179,3 +179,29 @@ def test_eq3_weight_and_equalization_fraction_take_alpha_as_the_exponent():
     weights, fraction = sample_weights(np.array([0.2, -0.2, 1e-9]), th=0.1, alpha=2.0, weight_max=100.0)
     np.testing.assert_allclose(weights, [1.25, 1.25, 100.0])
     np.testing.assert_allclose(fraction[:2], [0.8, 0.8])
+
+
+def test_alpha_grows_with_the_iteration(monkeypatch):
+    """Eq. 3's exponent at iteration k = 1, 2, … is α = max(1, alpha_per_iteration · k)."""
+    import terrainmap.terrain as terrain_module
+
+    seen = []
+
+    def spy(dz, th, alpha, weight_max):
+        seen.append(alpha)
+        return sample_weights(dz, th, alpha, weight_max)
+
+    monkeypatch.setattr(terrain_module, "sample_weights", spy)
+    grid, _ = grid_samples(seed=5)
+    est = estimate_terrain(grid, TerrainConfig(alpha_per_iteration=0.5, epsilon_m=0.0))
+    assert est.iterations == 5  # nets of 4, 6, 9, 14, 21 control points
+    assert list(dict.fromkeys(seen)) == [1.0, 1.5, 2.0, 2.5]  # iterations 1 and 2 both at the floor of 1
+
+
+def test_a_net_that_starts_final_is_fitted_once_and_not_converged():
+    """``converged`` means stopped early; a net that starts at the final size never does."""
+    grid, _ = grid_samples(seed=6)
+    est = estimate_terrain(grid, TerrainConfig(start_control_points=25))
+    assert est.iterations == 1 and not est.converged
+    still = estimate_terrain(grid, TerrainConfig(start_control_points=25, epsilon_m=10.0))  # every sample moves < ε
+    assert still.iterations == 1 and not still.converged

@@ -118,6 +118,26 @@ def test_track_leaving_the_area_is_dropped_at_once_and_its_id_not_reused():
     assert new.track_id not in seen
 
 
+def test_track_leaving_the_area_across_its_left_edge_is_dropped():
+    tracker = ObstacleTracker(TrackingConfig(max_misses=10), area=GRID)
+    y = 8.0
+    for k in range(10):  # moving left at 5 m/s across the left edge (+11 m), unseen beyond it
+        out = tracker.update([detection(15.0, y)] if y < 11 else [], k * DT_NS)
+        y += 0.5
+    assert out == [] and tracker.track_count == 0  # 4 misses, well within max_misses
+
+
+def test_a_tentative_track_is_dropped_at_its_first_miss():
+    """Matched in fewer than ``confirm_hits`` frames, a track goes at its first miss (not after ``max_misses``)."""
+    tracker = ObstacleTracker(TrackingConfig(confirm_hits=3, max_misses=10))
+    for k in range(2):
+        (first,) = tracker.update([detection(10.0, 0)], k * DT_NS)
+    assert not first.confirmed
+    assert tracker.update([], 2 * DT_NS) == [] and tracker.track_count == 0
+    (again,) = tracker.update([detection(10.0, 0)], 3 * DT_NS)
+    assert again.track_id != first.track_id and not again.confirmed
+
+
 def test_confirmed_track_coasts_through_misses_then_is_dropped():
     tracker = ObstacleTracker(TrackingConfig(confirm_hits=2, max_misses=2, report_misses=2))
     for k in range(3):
