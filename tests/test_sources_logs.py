@@ -886,6 +886,32 @@ def test_a_pair_whose_image_cannot_be_decoded_is_skipped_and_reading_goes_on(tmp
         images.decode_compressed(png[:-12], "/t")  # cut before its IEND chunk
 
 
+def test_a_pair_whose_raw_image_is_cut_short_is_skipped_and_reading_goes_on(tmp_path, monkeypatch, caplog):
+    """A raw Image whose data is shorter than its height × step is damage of that pair, as a
+    compressed image that cannot be decoded is: the pair is skipped, named by the log and its time."""
+    from types import SimpleNamespace
+
+    from terrainmap.sources import messages
+
+    log = write_ros2_log(tmp_path / "run.mcap", n=4)
+    decode, calls = messages.image_array, []
+
+    def third_image_cut_short(msg, msg_type, topic):
+        calls.append(topic)
+        if len(calls) == 3:  # the second pair's left image: 8×6 rgb8 needs 144 bytes
+            fields = ("header", "height", "width", "encoding", "is_bigendian", "step")
+            msg = SimpleNamespace(**{name: getattr(msg, name) for name in fields}, data=bytes(msg.data)[:50])
+        return decode(msg, msg_type, topic)
+
+    monkeypatch.setattr(messages, "image_array", third_image_cut_short)
+    with open_source(log) as source:
+        frames = list(source.frames())
+        (skipped,) = source.skipped()
+    assert [f.index for f in frames] == [0, 2, 3]
+    assert skipped.startswith(f"{log}: stereo pair at 1700000000.100 s") and "needs more than the 50 bytes given" in skipped
+    assert "damaged, skipped" in caplog.text
+
+
 @pytest.mark.parametrize("tolerance", [-1, 1.5, "10", True, None])
 def test_a_pair_tolerance_that_is_no_whole_number_of_nanoseconds_is_refused(tolerance):
     """The library's pairing tolerance is checked as the CLI's is: a negative one would pair
