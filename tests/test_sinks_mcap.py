@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import errno
 import json
 import math
 import os
@@ -366,6 +367,65 @@ def test_exception_mid_run_leaves_a_finalised_file(tmp_path, flavor):
         assert len(summary.chunk_indexes) >= 1
         grid_topic = "/terrainmap/grid" if flavor == "foxglove" else "/terrainmap/grid_map"
         assert len([m for _, ch, m in reader.iter_messages(topics=[grid_topic])]) == 2
+    assert read_metadata(path)["frames"] == "2"
+
+
+class _DiskFillsUp:
+    """An output file on a disk with ``room`` bytes left (None: plenty): a write beyond it writes what
+    fits, then fails with ENOSPC, as a full disk does."""
+
+    def __init__(self, file):
+        self.file, self.room = file, None
+
+    def write(self, data) -> int:
+        fits = len(data) if self.room is None else min(len(data), self.room)
+        self.file.write(bytes(data[:fits]))
+        if self.room is not None:
+            self.room -= fits
+            if fits < len(data):
+                self.file.flush()
+                raise OSError(errno.ENOSPC, "No space left on device")
+        return fits
+
+    def __getattr__(self, name):  # tell, flush, close
+        return getattr(self.file, name)
+
+
+@pytest.mark.parametrize("flavor", ["foxglove", "ros2"])
+@pytest.mark.parametrize("room", [0, 100])
+def test_a_full_disk_leaves_the_frames_before_it_readable(tmp_path, monkeypatch, flavor, room):
+    """The disk fills up while the third frame (room 100: in the middle of its chunk) or the summary
+    (room 0, after the second frame) is written: the file is cut back to its first two frames and
+    ends there, readable from start to end, with its metadata."""
+    from terrainmap.sinks import base
+
+    outputs = []
+
+    def output_file(path, mode="r", *args, **kwargs):
+        file = open(path, mode, *args, **kwargs)
+        if mode == "wb":
+            outputs.append(_DiskFillsUp(file))
+            return outputs[-1]
+        return file
+
+    monkeypatch.setattr(base, "open", output_file, raising=False)
+    path = tmp_path / "full.mcap"
+    sink = open_mcap_sink(path, flavor, config=Config())
+    for index in range(2):
+        sink.write(*make_frame(index))
+    (disk,) = outputs
+    disk.room = room
+    if room:
+        with pytest.raises(InputError, match=f"cannot write MCAP output {path}: No space left on device"):
+            sink.write(*make_frame(2))
+    with pytest.raises(InputError, match=f"cannot finish MCAP output {path}: No space left on device; "
+                                         "cut back to its first 2 frames, which read back without an index"):
+        sink.close()
+    assert not sink.finished and len(path.read_bytes()) > 0
+    factory = ProtobufDecoderFactory() if flavor == "foxglove" else Ros2DecoderFactory()
+    topics = read_messages(path, factory)  # the mcap package's reader: start to end, without a summary
+    grid_topic = "/terrainmap/grid" if flavor == "foxglove" else "/terrainmap/grid_map"
+    assert [t for t, _, _ in topics[grid_topic]] == [make_frame(i)[0].stamp_ns for i in range(2)]
     assert read_metadata(path)["frames"] == "2"
 
 

@@ -3,6 +3,8 @@
 A sink receives ``write(frame, result)`` once per processed frame and ``close()`` once at the
 end, in a ``finally``: ``close`` must leave a finalised file (summary and index) holding every
 frame written so far, even when the run failed part way, and may be called again safely.
+Where the file itself cannot be written (a full disk), :class:`McapSink` cuts it back to its
+last whole frame and ends it there without a summary, so that it still reads back.
 
 :class:`McapSink` implements that life cycle for the MCAP flavours; subclasses only say how a
 frame becomes messages (``_write_frame``) and how the file is finished (``_finish``). The helpers
@@ -19,6 +21,9 @@ from pathlib import Path
 from typing import Protocol, runtime_checkable
 
 import numpy as np
+from mcap.data_stream import RecordBuilder
+from mcap.records import DataEnd, Footer, Metadata
+from mcap.writer import MCAP0_MAGIC
 
 from ..config import Config
 from ..errors import InputError, TerrainmapError
@@ -80,6 +85,7 @@ class McapSink:
         self._last_static: tuple | None = None
         self.frames_written = 0
         self._closed = False
+        self._failed: OSError | None = None  # the error that stopped the file being written
         self.finished = False
         try:
             self._stream = open(self.path, "wb")  # noqa: SIM115 (closed in close())
@@ -90,6 +96,7 @@ class McapSink:
         except BaseException:
             self._stream.close()
             raise
+        self._whole = self._stream.tell()  # where the last whole frame ends (the header, before any)
 
     def _open(self, stream) -> None:
         raise NotImplementedError
@@ -121,8 +128,16 @@ class McapSink:
             self._extrinsics = result.extrinsics
         self._extrinsics_changes += self._camera not in (None, camera)
         self._camera = camera
-        self._write_frame(frame, result)
+        try:
+            self._write_frame(frame, result)
+            # The frame's chunk goes to the file now, so that a later failure can keep every
+            # frame before it (_cut_back). `_writer._writer`: the flavour writer's mcap writer.
+            self._writer._writer.flush()
+        except OSError as exc:
+            self._failed = exc
+            raise InputError(f"cannot write MCAP output {self.path}: {exc.strerror or exc}") from exc
         self.frames_written += 1
+        self._whole = self._stream.tell()
 
     def close(self) -> None:
         """Write the metadata record, summary and index, and close the file. Safe to call twice."""
@@ -131,13 +146,36 @@ class McapSink:
         self._closed = True
         try:
             try:
-                self._finish(self._metadata_record())
+                if self._failed is None:
+                    self._finish(self._metadata_record())
             finally:
                 self._stream.close()
         except OSError as exc:  # disk full, device gone: the summary could not be written
-            raise InputError(f"cannot finish MCAP output {self.path}: {exc.strerror or exc}") from exc
+            self._failed = exc
+        if self._failed is not None:
+            raise InputError(f"cannot finish MCAP output {self.path}: {self._failed.strerror or self._failed}; "
+                             f"{self._cut_back()}") from self._failed
         self.finished = True
         log.info("wrote %d frames to %s", self.frames_written, self.path)
+
+    def _cut_back(self) -> str:
+        """Cut the file back to the end of its last whole frame and end it there with the metadata
+        record and a footer without summary (a valid MCAP that readers read from start to end;
+        truncating frees the room the ending needs). Returns what the file holds now."""
+        ending = RecordBuilder()
+        Metadata(name=METADATA_NAME, metadata=self._metadata_record()).write(ending)
+        DataEnd(data_section_crc=0).write(ending)  # 0: no CRC computed
+        Footer(summary_start=0, summary_offset_start=0, summary_crc=0).write(ending)
+        ending.write(MCAP0_MAGIC)
+        try:
+            with open(self.path, "r+b") as file:
+                file.truncate(self._whole)
+                file.seek(self._whole)
+                file.write(ending.end())
+        except OSError as exc:
+            return f"it could not be cut back to its last whole frame ({exc.strerror or exc}) and is damaged"
+        n = self.frames_written
+        return f"cut back to its first {n} frame{'s' * (n != 1)}, which read back without an index"
 
     def __enter__(self):
         return self
