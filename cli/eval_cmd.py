@@ -50,7 +50,7 @@ _FIELD_OPTIONS = {"terrain.control_points": "--nets", "terrain.degree": "--degre
 """The artificial-obstacle option behind each config field it sets (errors name both)."""
 
 
-@click.group("eval")
+@click.group("eval", short_help="Evaluate: the paper's Fig. 6, robustness, accuracy, stereo.")
 def eval_group() -> None:
     """Evaluate terrain estimation: the paper's Fig. 6, robustness, accuracy vs ground truth,
     stereo disparity vs ground truth."""

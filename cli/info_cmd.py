@@ -47,8 +47,9 @@ def format_description(description: dict) -> str:
 @click.option(
     "--check", is_flag=True,
     help="Also read and decode every stereo pair process would read (no matching) and say whether the "
-    "log reads to its end (chunk CRCs, images, calibration); exit code 1 if it does not, is damaged anywhere or "
-    "holds no stereo pair.",
+    "log reads to its end (CRCs of the chunks that hold them, images, calibration; chunks of other topics "
+    "only are not read); exit code 1 if it does not, anything was skipped, the log is damaged (damage:) or "
+    "it holds no stereo pair.",
 )
 def info(log: str, source_opts: SourceOptions, as_json: bool, check: bool) -> None:
     """Describe LOG (an MCAP file, rosbag2 or ROS 1 bag, or an image folder): topics, the chosen

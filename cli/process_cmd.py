@@ -44,7 +44,7 @@ def default_output(log: Path) -> Path:
 @source_options
 @config_options
 def process(log, output, flavor, compression, rrd, overwrite, source_opts, config_path, overrides):
-    """Run the terrain pipeline on every stereo pair of LOG (MCAP, rosbag2 folder or image folder)
+    """Run the terrain pipeline on every stereo pair of LOG (MCAP, rosbag2 folder, ROS 1 bag or image folder)
     and write elevation, slope, labels, obstacles and cost to an MCAP (and optionally Rerun)."""
     from terrainmap import runner
     from terrainmap.sinks import open_mcap_sink
@@ -124,7 +124,7 @@ def _why_none(source) -> str:
         why = NO_PAIRS
     elif tally.selected == 0:
         why = (f"--start/--end select none of the {counted(tally.pairs, 'stereo pair')} read, up to "
-               f"{tally.span_s:.3f} s from the first (--start and --end count from it)")
+               f"{max(tally.span_s, 0.0):.3f} s from the first (--start and --end count from it)")
     else:
         why = f"every one of the {counted(tally.selected, 'stereo pair')} selected is damaged"
     if skipped:
@@ -136,7 +136,8 @@ def _report(summary, outputs, skipped: list[str]) -> None:
     from terrainmap.extrinsics import describe_extrinsics
 
     failed = f", {summary.frames_failed} failed ({failures(summary.failures)})" if summary.frames_failed else ""
-    click.echo(f"processed {counted(summary.frames_done, 'frame')}{failed} in {summary.wall_s:.1f} s ({summary.fps:.1f} frames/s)")
+    rate = f" ({summary.fps:.1f} frames/s)" if summary.frames_done else ""
+    click.echo(f"processed {counted(summary.frames_done, 'frame')}{failed} in {summary.wall_s:.1f} s{rate}")
     if skipped:
         click.echo(f"skipped {counted(len(skipped), 'damaged part')}: " + "; ".join(skipped))
     medians = summary.median_ms()

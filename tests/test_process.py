@@ -539,5 +539,7 @@ def test_a_run_where_every_frame_fails_says_its_output_holds_no_frame(small_log,
     assert result.exit_code == 2
     assert f"wrote {out} (no frame in it)" in result.output
     assert f"no frame of {small_log} could be processed (no_points_in_area ×2)" in result.output
+    assert "processed 0 frames, 2 failed (no_points_in_area ×2) in " in result.output
+    assert "frames/s" not in result.output  # no rate for no frame
     with open(out, "rb") as f:
         assert make_reader(f).get_summary() is not None

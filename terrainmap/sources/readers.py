@@ -32,6 +32,10 @@ from .messages import normalize_type
 logger = logging.getLogger(__name__)
 
 
+def _messages(count: int) -> str:
+    return f"{count} message{'s' * (count != 1)}"
+
+
 def _reason(exc: Exception) -> str:
     """``Type: message`` of an exception, first line only ("Type" when the message is empty)."""
     return f"{type(exc).__name__}: {exc}".rstrip(": ").splitlines()[0][:200]
@@ -156,7 +160,7 @@ class _SkipsDamage:
         except InputError:
             raise
         except Exception as exc:
-            raise InputError(f"{self.path}: {what} is truncated or corrupt after {count} messages of "
+            raise InputError(f"{self.path}: {what} is truncated or corrupt after {_messages(count)} of "
                              f"{', '.join(topics)} ({_reason(exc)})") from exc
 
     def _undecodable(self, failing: Counter, topic: str, kind: str, log_time: int, exc: Exception) -> None:
@@ -249,7 +253,7 @@ class McapFile(_SkipsDamage):
                 self.counts[channel.topic] = self.counts.get(channel.topic, 0) + 1
         except Exception as exc:
             # Not a warning: ``info`` shows it, and reading the messages raises it as the error.
-            self.damage = f"{self.path}: truncated or corrupt after {sum(self.counts.values())} messages ({_reason(exc)})"
+            self.damage = f"{self.path}: truncated or corrupt after {_messages(sum(self.counts.values()))} ({_reason(exc)})"
             logger.info("%s", self.damage)
 
     def messages(self, topics: list[str]) -> Iterator[tuple[str, int, Any]]:
