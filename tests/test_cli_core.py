@@ -215,7 +215,7 @@ def test_the_numpy_floor_labels_every_point():
     assert labels.shape == (5000,) and labels.dtype.name == "uint8"
 
 
-def test_eval_artificial_obstacle_on_a_simulated_base_frame(tmp_path):
+def test_eval_artificial_obstacle_on_a_simulated_base_frame(tmp_path, capsys):
     from terrainmap.sim import SimConfig, simulate
 
     log = tmp_path / "base.mcap"
@@ -234,6 +234,10 @@ def test_eval_artificial_obstacle_on_a_simulated_base_frame(tmp_path):
                                      "--json", str(tmp_path / "n.json")])
     assert named.exit_code == 0, named.output
     assert json.loads((tmp_path / "n.json").read_text()) == [thin, wide]
+    with pytest.raises(SystemExit) as exc:  # a base frame with no point in the area
+        main(["eval", "artificial-obstacle", "--base", str(log), "--nets", "25", "--set", "grid.x_min_m=-100"])
+    assert exc.value.code == 2
+    assert capsys.readouterr().err.startswith(f"Error: {log}: stereo pair 0: no finite point lies in the grid area")
 
 
 def test_eval_robustness_reports_both_fits():

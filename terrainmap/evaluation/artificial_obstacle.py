@@ -21,7 +21,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ..config import Config, GridConfig, TerrainConfig
-from ..errors import InputError
+from ..errors import FrameError, InputError
 from ..grid import cell_index, quantize
 from ..terrain import estimate_terrain
 
@@ -148,7 +148,8 @@ def points_from_log(path, config: Config, frame_index: int = 0, **open_kwargs) -
     (``open_kwargs``: topics, calibration and pairing tolerance, as for
     :func:`~terrainmap.sources.open_source`).
 
-    Raises :class:`InputError` if the log has fewer frames, and the pipeline's errors otherwise.
+    Raises :class:`InputError` if the log has fewer frames or the frame yields no terrain (naming
+    the log and the pair), and the pipeline's errors otherwise.
     """
     from ..pipeline import PipelineState, process_frame
     from ..sources import open_source
@@ -156,7 +157,10 @@ def points_from_log(path, config: Config, frame_index: int = 0, **open_kwargs) -
     with open_source(path, **open_kwargs) as source:
         for frame in source.frames(max_frames=frame_index + 1):
             if frame.index == frame_index:
-                return process_frame(frame, config, PipelineState(config)).points_vehicle.astype(float)
+                try:
+                    return process_frame(frame, config, PipelineState(config)).points_vehicle.astype(float)
+                except FrameError as exc:
+                    raise InputError(f"{path}: stereo pair {frame_index}: {exc}") from exc
     raise InputError(f"{path}: has no stereo pair number {frame_index}")
 
 
