@@ -95,7 +95,7 @@ class GridConfig:
             _check(
                 abs(cells - round(cells)) < 1e-6,
                 f"grid.{name}",
-                f"must be a whole number of cells of {self.cell_size_m} m, got {getattr(self, name)}",
+                f"must be a whole number of cells of {self.cell_size_m} m (grid.cell_size_m), got {getattr(self, name)}",
             )
             _check(round(cells) >= 1, f"grid.{name}",
                    f"must hold at least one cell of {self.cell_size_m} m, got {getattr(self, name)}")
@@ -217,7 +217,7 @@ class TerrainConfig:
                 _check(
                     n <= m,
                     f"terrain.{name}",
-                    f"n_max = {n} exceeds the {m} grid cells along {axis} (paper: n_max <= min(m0, m1))",
+                    f"n_max = {n} exceeds the {m} grid cells along {axis} (grid.cell_size_m; paper: n_max <= min(m0, m1))",
                 )
 
 

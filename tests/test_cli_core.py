@@ -345,7 +345,7 @@ def test_a_report_written_through_a_symbolic_link_keeps_the_link(tmp_path):
     (["eval", "artificial-obstacle", "--nets", "3"],
      "Error: --nets (terrain.control_points_x: must be at least degree + 1 = 4, got 3)"),
     (["eval", "artificial-obstacle", "--cell", "100"],
-     "Error: --length/--cell (grid.length_m: must be a whole number of cells of 100.0 m, got 22.0)"),
+     "Error: --length/--cell (grid.length_m: must be a whole number of cells of 100.0 m (grid.cell_size_m), got 22.0)"),
     (["eval", "artificial-obstacle", "--frame", "2"],
      "Error: --frame picks a stereo pair of the --base log; give --base too "
      "(see 'terrainmap eval artificial-obstacle --help')"),
