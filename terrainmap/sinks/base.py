@@ -93,6 +93,10 @@ class McapSink:
             raise InputError(f"cannot create MCAP output {self.path}: {exc.strerror or exc}") from exc
         try:
             self._open(self._stream)
+            self._stream.flush()  # the header on disk: where a file cut back before any frame ends
+        except OSError as exc:
+            self._stream.close()
+            raise InputError(f"cannot write MCAP output {self.path}: {exc.strerror or exc}") from exc
         except BaseException:
             self._stream.close()
             raise
@@ -175,6 +179,8 @@ class McapSink:
         except OSError as exc:
             return f"it could not be cut back to its last whole frame ({exc.strerror or exc}) and is damaged"
         n = self.frames_written
+        if n == 0:
+            return "cut back to its header (no frame in it)"
         return f"cut back to its first {n} frame{'s' * (n != 1)}, which read back without an index"
 
     def __enter__(self):
