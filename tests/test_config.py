@@ -240,3 +240,46 @@ def test_the_accuracy_example_loads_and_sets_what_it_says():
         ]
     )
     assert config.to_dict() == expected.to_dict() != Config().to_dict()
+
+
+@pytest.mark.parametrize(
+    "override, message",
+    [  # the end of each range that the message leaves out
+        ("grid.z_min_m=10", "grid.z_min_m: must be below grid.z_max_m"),  # equal to z_max_m's default
+        ("cost.max_slope_deg=90", r"cost.max_slope_deg: must be in \[0.1, 90\), got 90"),
+        ("rerun.max_points=0", "rerun.max_points: must be >= 1"),
+    ],
+)
+def test_the_open_end_of_a_range_is_refused(override, message):
+    with pytest.raises(ConfigError, match=message):
+        load_config(overrides=[override])
+
+
+@pytest.mark.parametrize(
+    "overrides, check",
+    [  # the end of each range that the message includes
+        (["grid.sigma_factor=5"], lambda c: c.grid.sigma_factor == 5.0),
+        (["tracking.max_misses=4", "tracking.report_misses=4"], lambda c: c.tracking.report_misses == 4),
+        (["grid.length_m=1000"], lambda c: c.grid.shape[0] == 2000),  # at most 2000 cells per axis
+    ],
+)
+def test_the_closed_end_of_a_range_is_accepted(overrides, check):
+    assert check(load_config(overrides=overrides))
+
+
+@pytest.mark.parametrize("text, value", [("1", True), ("0", False), ("yes", True), ("no", False), ("TRUE", True)])
+def test_set_reads_a_flag_from_each_of_its_spellings(text, value):
+    assert load_config(overrides=[f"grid.fill_empty={text}"]).grid.fill_empty is value
+
+
+def test_a_flag_set_in_code_where_a_number_belongs_is_refused():
+    """``True`` is an int to Python; a config built in code must still hold a number there."""
+    config = Config()
+    config.terrain.degree = True
+    with pytest.raises(ConfigError, match="terrain.degree: must be an integer, got True"):
+        config.validate()
+
+
+def test_set_takes_spaces_around_the_equals_sign_as_toml_does():
+    config = load_config(overrides=["stereo.mode = hh", "grid.fill_empty = false", " terrain.degree =2"])
+    assert (config.stereo.mode, config.grid.fill_empty, config.terrain.degree) == ("hh", False, 2)

@@ -298,6 +298,7 @@ def test_overlapped_runner_gives_the_sequential_results(tmp_path, keep_sink):
     with open_source(log) as source:
         expected = [process_frame(frame, config, state) for frame in source.frames()]
     assert summary.frames_done == 4
+    assert summary.extrinsics is keep.results[-1].extrinsics  # the camera pose `process` reports
     for got, want in zip(keep.results, expected, strict=True):
         # the stereo rig reaches the terrain stage (eq. 1's noise discount, the labelling floors)
         assert got.grid.camera is not None and got.grid.height_per_px is not None
@@ -543,3 +544,51 @@ def test_a_run_where_every_frame_fails_says_its_output_holds_no_frame(small_log,
     assert "frames/s" not in result.output  # no rate for no frame
     with open(out, "rb") as f:
         assert make_reader(f).get_summary() is not None
+
+
+class _ClosingSink:
+    """A sink that records its close and may fail it."""
+
+    def __init__(self, failure: Exception | None = None) -> None:
+        self.failure, self.closed = failure, False
+
+    def write(self, frame, result) -> None:
+        pass
+
+    def close(self) -> None:
+        self.closed = True
+        if self.failure is not None:
+            raise self.failure
+
+
+def test_every_sink_is_closed_when_one_fails_to_close_and_the_first_failure_is_raised():
+    sinks = [_ClosingSink(OSError("first disk full")), _ClosingSink(OSError("second")), _ClosingSink()]
+    with pytest.raises(OSError, match="first disk full"):
+        runner.run(iter([]), Config(), sinks)
+    assert [sink.closed for sink in sinks] == [True, True, True]
+
+
+def test_the_throughput_counts_the_failed_frames_too():
+    summary = runner.RunSummary(frames_done=3, wall_s=2.0)
+    summary.failures["no_ground"] += 1
+    assert (summary.frames_failed, summary.fps) == (1, 2.0)
+
+
+def test_the_latest_stamp_an_output_holds_is_accepted_and_one_more_refused():
+    from terrainmap.errors import InputError
+    from terrainmap.types import StereoCalibration, StereoFrame
+
+    image = np.zeros((3, 4), np.uint8)
+    calibration = StereoCalibration(width=4, height=3, fx=1.0, fy=1.0, cx=2.0, cy=1.5, baseline_m=0.5)
+    runner.check_stamp(StereoFrame(0, 2**63 - 1, image, image, calibration))  # 2262-04-11
+    with pytest.raises(InputError, match="frame 1 has stamp 9223372036854775808 ns, outside 1970–2262"):
+        runner.check_stamp(StereoFrame(1, 2**63, image, image, calibration, source="log.mcap"))
+
+
+def test_an_output_in_a_subfolder_of_the_input_folder_is_refused(small_log, tmp_path):
+    folder = tmp_path / "bag"
+    (folder / "sub").mkdir(parents=True)
+    shutil.copy(small_log, folder / "bag_0.mcap")
+    result = CliRunner().invoke(cli, ["process", str(folder), "-o", str(folder / "sub" / "o.mcap")])
+    assert result.exit_code == 2 and "lies inside the input folder" in result.output
+    assert not (folder / "sub" / "o.mcap").exists()

@@ -521,3 +521,24 @@ def test_foxglove_layout_names_written_topics_and_fields(fox_file):
     assert grid["elevationField"] in grid_fields
     assert points["colorField"] == "label" and points["colorField"] in point_fields
     assert panel["followTf"] == "base_link"
+
+
+@pytest.mark.parametrize("flavor", ["foxglove", "ros2"])
+def test_fixed_extrinsics_that_change_go_on_tf_static_again(tmp_path, flavor):
+    """Fixed extrinsics go on /tf_static when first seen and again where they change (a folder of
+    scenes with their own calibrations), not on every frame."""
+    frames = [make_frame(i) for i in range(4)]
+    for i in (2, 3):  # a second scene from frame 2 on
+        frame, result = frames[i]
+        moved = dataclasses.replace(result.extrinsics, translation=np.array([0.2, -0.1, 1.4]))
+        frames[i] = (frame, dataclasses.replace(result, extrinsics=moved))
+    path = tmp_path / f"scenes_{flavor}.mcap"
+    write_frames(path, flavor, frames)
+    topics = read_messages(path, ProtobufDecoderFactory() if flavor == "foxglove" else Ros2DecoderFactory())
+    assert "/tf" not in topics
+    assert [t for t, _, _ in topics["/tf_static"]] == [frames[0][0].stamp_ns, frames[2][0].stamp_ns]
+    heights = []
+    for _, _, msg in topics["/tf_static"]:
+        (t,) = msg.transforms
+        heights.append(t.translation.z if flavor == "foxglove" else t.transform.translation.z)
+    assert heights == [1.6, 1.4]

@@ -242,3 +242,15 @@ def test_full_size_frames_are_written_whole(tmp_path, flavor):
     with open(path, "rb") as f:
         clouds = [m for _s, _c, m in make_reader(f).iter_messages(topics=["/terrainmap/points"])]
     assert len(clouds) == 3 and all(len(m.data) >= 300_000 * 13 for m in clouds)
+
+
+def test_a_cloud_with_a_point_that_is_not_finite_is_not_dense(tmp_path):
+    """PointCloud2's ``is_dense`` says every point is finite: a result built with a NaN point
+    (a library caller's) must not claim it."""
+    frame, result = make_frame(0, points=5)
+    result.points_vehicle[3, 2] = np.nan
+    path = tmp_path / "nan.mcap"
+    write_frames(path, "ros2", [(frame, result)])
+    ((_, _, cloud),) = read_messages(path, DecoderFactory())["/terrainmap/points"]
+    assert cloud.width == 5 and not cloud.is_dense
+    assert np.isnan(np.frombuffer(bytes(cloud.data), np.uint8).reshape(5, 13)[3, 8:12].copy().view("<f4")[0])

@@ -128,7 +128,7 @@ def test_camera_and_depth_use_the_rectified_pinhole(log, tmp_path):
     result = process_frame(frame, config, PipelineState(config))
     r1 = Rotation.from_euler("x", 3, degrees=True).as_matrix()  # as cv2.stereoRectify turns a camera
     result.pinhole = dataclasses.replace(result.pinhole, fx=2 * frame.calibration.fx, fy=2 * frame.calibration.fy,
-                                         rectifying_rotation=tuple(r1.ravel()))
+                                         rectifying_rotation=tuple(r1.ravel()), doffs=4.0)  # Z = f·B / (d + doffs)
     rrd = tmp_path / "pinhole.rrd"
     with RerunSink(rrd, config=config) as sink:
         sink.write(frame, result)
@@ -141,7 +141,7 @@ def test_camera_and_depth_use_the_rectified_pinhole(log, tmp_path):
     depth = np.frombuffer(bytes(depth_image.column("DepthImage:buffer")[0].as_py()[0]), np.float32)
     disparity = result.disparity[::2, ::2].ravel()
     seen = np.isfinite(disparity) & (disparity > 0)
-    expected = result.pinhole.fx * result.pinhole.baseline_m / disparity[seen]
+    expected = result.pinhole.fx * result.pinhole.baseline_m / (disparity[seen] + 4.0)
     np.testing.assert_allclose(depth[seen], expected, rtol=1e-5)
 
 
@@ -301,3 +301,20 @@ def test_a_disk_whose_free_space_cannot_be_read_is_not_taken_for_full(tmp_path, 
     sink = rerun_recording.RerunSink(tmp_path / "o.rrd", config=Config())
     with pytest.raises(InputError, match="its file writer stopped"):
         sink.close()
+
+
+def test_the_timelines_are_the_frame_index_and_the_image_stamp(log, tmp_path):
+    """``frame`` is the source's pair index (not a count of frames written) and ``stamp`` the
+    image's time, to the nanosecond."""
+    rrd = tmp_path / "timelines.rrd"
+    with open_source(log) as source:
+        frames = list(source.frames(every=2))
+    with open_source(log) as source:
+        runner.run(source.frames(every=2), Config(), [RerunSink(rrd, config=Config())])
+    rows = {}
+    for chunk in RrdReader(str(rrd)).store().stream().to_chunks():
+        if str(chunk.entity_path) == "/world/vehicle/points" and not chunk.is_static:
+            batch = chunk.to_record_batch()
+            rows.update(zip(batch.column("frame").to_pylist(), batch.column("stamp").cast("int64").to_pylist(), strict=True))
+    assert [f.index for f in frames] == [0, 2]
+    assert rows == {f.index: f.stamp_ns for f in frames}

@@ -517,3 +517,25 @@ def test_warnings_reach_the_terminal_as_one_plain_line_each(tmp_path):
         assert done.returncode == 0, done.stderr
         (line,) = [line for line in done.stderr.splitlines() if "unknown calibration keys" in line]
         assert line.startswith(f"{prefix}{root / 'calibration.yaml'}: ignoring unknown calibration keys: dofs")
+
+
+def test_a_window_that_starts_where_it_ends_selects_the_pair_stamped_there(tmp_path):
+    """--start and --end are both inclusive: equal, they select the one pair at that time."""
+    root = generic_folder(tmp_path, n=4)  # stamped 0, 0.1, 0.2, 0.3 s
+    with open_source(root) as source:
+        assert [f.index for f in source.frames(start_s=0.2, end_s=0.2)] == [2]
+        with pytest.raises(ConfigError, match=r"end \(--end\) 0.1 s is before start \(--start\) 0.2 s"):
+            list(source.frames(start_s=0.2, end_s=0.1))
+
+
+def test_kitti_raw_calibration_two_levels_above_the_drive(tmp_path):
+    """calib_cam_to_cam.txt is found in the drive folder or one or two folders up (here two)."""
+    drive = tmp_path / "raw" / "2011_09_26" / "2011_09_26_drive_0001_sync"
+    for i in range(2):
+        write(drive / "image_02" / "data" / f"{i:010d}.png", image(i))
+        write(drive / "image_03" / "data" / f"{i:010d}.png", image(5 + i))
+    (tmp_path / "raw" / "calib_cam_to_cam.txt").write_text(f"S_rect_02: 8 6\nP_rect_02: {KITTI_P2}\nP_rect_03: {KITTI_P3}\n")
+    with open_source(drive) as source:
+        assert isinstance(source, KittiRawFolder)
+        frame = next(source.frames())
+    assert frame.calibration.baseline_m == pytest.approx(KITTI_BASELINE)

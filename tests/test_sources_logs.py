@@ -1141,3 +1141,49 @@ def test_a_first_image_without_a_stamp_does_not_put_the_log_on_log_time(tmp_path
         frames = list(source.frames())
     assert [f.stamp_ns for f in frames] == [T0 + i * 100_000_000 for i in range(6)]
     assert "no header stamp" not in caplog.text
+
+
+def test_each_image_topic_takes_the_camera_info_naming_its_side_among_three(tmp_path):
+    """A third camera's info in the pair's namespace (a colour camera beside it) ties with both on
+    namespace: the right images take the info naming their side, not the other one left."""
+    path = tmp_path / "three_infos.mcap"
+    with open(path, "wb") as f, Ros2Writer(f) as writer:
+        image_schema = writer.register_msgdef("sensor_msgs/msg/Image", IMAGE_DEF + HEADER)
+        info_schema = writer.register_msgdef("sensor_msgs/msg/CameraInfo", INFO_DEF + HEADER)
+        for name, tx in (("left", 0.0), ("right", -100.0), ("color", 0.0)):
+            writer.write_message(f"/cam/{name}_info", info_schema, ros_info(T0, f"{name}_optical", 8, 6, tx), T0)
+        for side, image in zip(("left", "right"), pair_images(0), strict=True):
+            writer.write_message(f"/cam/{side}_image", image_schema, ros_image(T0, f"{side}_optical", image, "rgb8"), T0 + 1)
+    with open_source(path) as source:
+        assert source.calibration_topics == ("/cam/left_info", "/cam/right_info")
+        assert source.calibration.baseline_m == pytest.approx(0.25)
+
+
+def test_odometry_of_a_turned_base_footprint_carries_the_mount_of_base_link_turned(tmp_path):
+    """base_link 0.5 m ahead of base_footprint, the vehicle turned 90° left in odom: base_link
+    lies 0.5 m along odom's y from base_footprint (pose · mount, not mount · pose)."""
+    path = tmp_path / "turned.mcap"
+    turned = (0.0, 0.0, np.sqrt(0.5), np.sqrt(0.5))  # 90° about z
+    with open(path, "wb") as f, Ros2Writer(f) as writer:
+        image_schema = writer.register_msgdef("sensor_msgs/msg/Image", IMAGE_DEF + HEADER)
+        info_schema = writer.register_msgdef("sensor_msgs/msg/CameraInfo", INFO_DEF + HEADER)
+        tf_schema = writer.register_msgdef("tf2_msgs/msg/TFMessage", TF_DEF + HEADER)
+        for parent, child, xyz, q in (("base_footprint", "base_link", (0.5, 0, 0.3), (0, 0, 0, 1)),
+                                      ("base_link", "left_optical", (0.5, 0, 1.0), OPTICAL_Q)):
+            writer.write_message("/tf_static", tf_schema, tf_message(T0, parent, child, xyz, q), T0)
+        for side, tx in (("left", 0.0), ("right", -100.0)):
+            writer.write_message(f"/cam/{side}/camera_info", info_schema, ros_info(T0, f"{side}_optical", 8, 6, tx), T0)
+        writer.write_message("/tf", tf_schema, tf_message(T0, "odom", "base_footprint", (10.0, 0, 0), turned), T0)
+        for side, image in zip(("left", "right"), pair_images(0), strict=True):
+            writer.write_message(f"/cam/{side}/image_rect", image_schema, ros_image(T0, f"{side}_optical", image, "rgb8"), T0 + 1)
+    with open_source(path) as source:
+        frame = next(iter(source.frames()))
+    assert frame.extrinsics.vehicle_frame_id == "base_link"
+    np.testing.assert_allclose(frame.vehicle_pose[:3, 3], [10.0, 0.5, 0.3], atol=1e-12)
+    np.testing.assert_allclose(frame.vehicle_pose[:3, :2], [[0, -1], [1, 0], [0, 0]], atol=1e-12)
+
+
+def test_a_pair_tolerance_of_zero_pairs_only_equal_stamps(tmp_path):
+    path = _write_pairs(tmp_path / "exact.mcap", [(T0, T0), (T0 + 100_000_000, T0 + 100_000_001)])
+    with open_source(path, pair_tolerance_ns=0) as source:
+        assert [frame.stamp_ns for frame in source.frames()] == [T0]

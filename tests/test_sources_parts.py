@@ -294,3 +294,35 @@ def test_transform_tree_relates_two_frames_through_their_common_ancestor():
     np.testing.assert_allclose(right_in_left[:3, :3], np.eye(3), atol=1e-12)
     np.testing.assert_allclose(tree.relative("base_link", "left_optical")[:3, 3], [1.0, 0.06, 1.5])
     assert tree.relative("left_optical", "elsewhere") is None and tree.relative("left_optical", "left_optical") is None
+
+
+def test_pairer_takes_a_difference_of_exactly_the_tolerance():
+    """The tolerance is inclusive: stamps at most ``tolerance_ns`` apart pair."""
+    pairer = StereoPairer(tolerance_ns=5)
+    assert pairer.push(0, 100, "L1") is None
+    assert pairer.push(1, 105, "R1") == (100, "L1", "R1")
+    assert pairer.push(1, 206, "R2") is None
+    assert pairer.push(0, 200, "L2") is None  # 6 ns apart
+
+
+def test_pairer_refuses_a_difference_of_half_a_frame_period():
+    """Once the periods are known (100 ns here), a pair must differ by less than half the shorter
+    one, whatever the tolerance: half a period apart, each image is as near a neighbour's partner."""
+    pairer = StereoPairer(tolerance_ns=100)
+    for stamp in (0, 100):
+        pairer.push(0, stamp, "L")
+        assert pairer.push(1, stamp, "R") == (stamp, "L", "R")
+    assert pairer.push(0, 200, "L") is None
+    assert pairer.push(1, 249, "R") == (200, "L", "R")  # 49 ns: less than half of 100
+    assert pairer.push(0, 300, "L") is None
+    assert pairer.push(1, 350, "R") is None  # 50 ns: half the period
+
+
+def test_the_first_transform_seen_for_a_frame_wins():
+    tree = TransformTree()
+    tree.add("base_link", "cam", [1.0, 0.0, 0.0], [0, 0, 0, 1])
+    tree.add("base_link", "cam", [5.0, 0.0, 0.0], [0, 0, 0, 1])
+    tree.add("odom", "cam", [9.0, 0.0, 0.0], [0, 0, 0, 1])
+    extrinsics = tree.extrinsics("cam")
+    assert extrinsics is not None and extrinsics.vehicle_frame_id == "base_link"  # not under odom
+    np.testing.assert_allclose(extrinsics.translation, [1.0, 0.0, 0.0])
