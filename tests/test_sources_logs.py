@@ -562,27 +562,32 @@ def test_damaged_or_incomplete_sqlite3_bags_are_named(tmp_path):
         open_source(bag)
 
 
-def test_odometry_of_base_footprint_gives_the_pose_of_base_link_the_camera_is_mounted_on(tmp_path):
-    """The common tree odom → base_footprint (moving), base_footprint → base_link 0.3 m up
-    (fixed), camera under base_link: a frame's vehicle pose is base_link's, as its extrinsics are."""
-    path = tmp_path / "footprint.mcap"
+def _footprint_log(path: Path, mount_xyz, footprint_q, frames: int = 1) -> Path:
+    """odom → base_footprint (at x = 10 + i m, turned by ``footprint_q``) → base_link (``mount_xyz``,
+    fixed) → the camera, 0.5 m ahead of base_link and 1 m up: a log of ``frames`` stereo pairs."""
     with open(path, "wb") as f, Ros2Writer(f) as writer:
         image_schema = writer.register_msgdef("sensor_msgs/msg/Image", IMAGE_DEF + HEADER)
         info_schema = writer.register_msgdef("sensor_msgs/msg/CameraInfo", INFO_DEF + HEADER)
         tf_schema = writer.register_msgdef("tf2_msgs/msg/TFMessage", TF_DEF + HEADER)
-        for parent, child, xyz, q in (("base_footprint", "base_link", (0, 0, 0.3), (0, 0, 0, 1)),
+        for parent, child, xyz, q in (("base_footprint", "base_link", mount_xyz, (0, 0, 0, 1)),
                                       ("base_link", "left_optical", (0.5, 0, 1.0), OPTICAL_Q)):
             writer.write_message("/tf_static", tf_schema, tf_message(T0, parent, child, xyz, q), T0)
         for side, tx in (("left", 0.0), ("right", -100.0)):
             writer.write_message(f"/cam/{side}/camera_info", info_schema, ros_info(T0, f"{side}_optical", 8, 6, tx), T0)
-        for i in range(3):
+        for i in range(frames):
             stamp = T0 + i * 100_000_000
             writer.write_message("/tf", tf_schema, tf_message(stamp, "odom", "base_footprint", (10.0 + i, 0, 0),
-                                                              (0, 0, 0, 1)), stamp)
+                                                              footprint_q), stamp)
             for side, image in zip(("left", "right"), pair_images(i), strict=True):
                 writer.write_message(f"/cam/{side}/image_rect", image_schema,
                                      ros_image(stamp, f"{side}_optical", image, "rgb8"), stamp + 1)
-    with open_source(path) as source:
+    return path
+
+
+def test_odometry_of_base_footprint_gives_the_pose_of_base_link_the_camera_is_mounted_on(tmp_path):
+    """The common tree odom → base_footprint (moving), base_footprint → base_link 0.3 m up
+    (fixed), camera under base_link: a frame's vehicle pose is base_link's, as its extrinsics are."""
+    with open_source(_footprint_log(tmp_path / "footprint.mcap", (0, 0, 0.3), (0, 0, 0, 1), frames=3)) as source:
         frame = next(iter(source.frames()))
     assert frame.extrinsics.vehicle_frame_id == "base_link"
     np.testing.assert_allclose(frame.vehicle_pose[:3, 3], [10.0, 0.0, 0.3])
@@ -1162,20 +1167,7 @@ def test_each_image_topic_takes_the_camera_info_naming_its_side_among_three(tmp_
 def test_odometry_of_a_turned_base_footprint_carries_the_mount_of_base_link_turned(tmp_path):
     """base_link 0.5 m ahead of base_footprint, the vehicle turned 90° left in odom: base_link
     lies 0.5 m along odom's y from base_footprint (pose · mount, not mount · pose)."""
-    path = tmp_path / "turned.mcap"
-    turned = (0.0, 0.0, np.sqrt(0.5), np.sqrt(0.5))  # 90° about z
-    with open(path, "wb") as f, Ros2Writer(f) as writer:
-        image_schema = writer.register_msgdef("sensor_msgs/msg/Image", IMAGE_DEF + HEADER)
-        info_schema = writer.register_msgdef("sensor_msgs/msg/CameraInfo", INFO_DEF + HEADER)
-        tf_schema = writer.register_msgdef("tf2_msgs/msg/TFMessage", TF_DEF + HEADER)
-        for parent, child, xyz, q in (("base_footprint", "base_link", (0.5, 0, 0.3), (0, 0, 0, 1)),
-                                      ("base_link", "left_optical", (0.5, 0, 1.0), OPTICAL_Q)):
-            writer.write_message("/tf_static", tf_schema, tf_message(T0, parent, child, xyz, q), T0)
-        for side, tx in (("left", 0.0), ("right", -100.0)):
-            writer.write_message(f"/cam/{side}/camera_info", info_schema, ros_info(T0, f"{side}_optical", 8, 6, tx), T0)
-        writer.write_message("/tf", tf_schema, tf_message(T0, "odom", "base_footprint", (10.0, 0, 0), turned), T0)
-        for side, image in zip(("left", "right"), pair_images(0), strict=True):
-            writer.write_message(f"/cam/{side}/image_rect", image_schema, ros_image(T0, f"{side}_optical", image, "rgb8"), T0 + 1)
+    path = _footprint_log(tmp_path / "turned.mcap", (0.5, 0, 0.3), (0.0, 0.0, np.sqrt(0.5), np.sqrt(0.5)))  # 90° about z
     with open_source(path) as source:
         frame = next(iter(source.frames()))
     assert frame.extrinsics.vehicle_frame_id == "base_link"
