@@ -7,6 +7,8 @@ import errno
 import json
 import math
 import os
+import subprocess
+import sys
 import tomllib
 from pathlib import Path
 
@@ -428,6 +430,92 @@ def test_a_full_disk_leaves_the_frames_before_it_readable(tmp_path, monkeypatch,
     grid_topic = "/terrainmap/grid" if flavor == "foxglove" else "/terrainmap/grid_map"
     assert [t for t, _, _ in topics.get(grid_topic, [])] == [make_frame(i)[0].stamp_ns for i in range(frames)]
     assert read_metadata(path)["frames"] == str(frames)
+
+
+_FILE_SIZE_LIMIT = """
+import resource, signal, sys
+sys.path.insert(0, sys.argv[1])
+from test_sinks_mcap import Config, make_frame, open_mcap_sink
+from terrainmap.errors import InputError
+path, limit = sys.argv[2], int(sys.argv[3])
+signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # a write past the limit fails with EFBIG instead
+resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+try:
+    sink = open_mcap_sink(path, "foxglove", config=Config())
+except InputError as exc:
+    sys.exit(print(exc))
+try:
+    for index in range(3):
+        sink.write(*make_frame(index))
+except InputError as exc:
+    print(exc)
+try:
+    sink.close()
+except InputError as exc:
+    print(exc)
+"""
+
+
+def _whole_frames_end(path: Path) -> list[int]:
+    """Where the header and each of 3 frames end in the file of a foxglove sink."""
+    sink = open_mcap_sink(path, "foxglove", config=Config())
+    ends = [path.stat().st_size]
+    for index in range(3):
+        sink.write(*make_frame(index))
+        ends.append(path.stat().st_size)
+    sink.close()
+    return ends
+
+
+def test_a_file_size_limit_hit_in_the_header_or_a_frame_leaves_no_file_or_the_frames_before_it(tmp_path):
+    """A real write error (EFBIG past RLIMIT_FSIZE, in a child process): in the header, no file
+    is left and one line names the output; 100 bytes into the third frame, the file is cut back to
+    two frames and ends there, with no room for the metadata."""
+    ends = _whole_frames_end(tmp_path / "sizes.mcap")
+    tests = str(Path(__file__).parent)
+    for limit, expected in ((20, None), (ends[2] + 100, 2)):
+        path = tmp_path / f"limit{limit}.mcap"
+        out = subprocess.run([sys.executable, "-c", _FILE_SIZE_LIMIT, tests, str(path), str(limit)],
+                             capture_output=True, text=True, timeout=120)
+        assert out.returncode == 0, out.stderr
+        lines = out.stdout.splitlines()
+        if expected is None:
+            assert lines == [f"cannot write MCAP output {path}: File too large"] and not path.exists()
+            continue
+        assert lines == [f"cannot write MCAP output {path}: File too large",
+                         f"cannot finish MCAP output {path}: File too large; cut back to its first 2 frames, "
+                         "which read back without an index"]
+        topics = read_messages(path, ProtobufDecoderFactory())
+        assert [t for t, _, _ in topics["/terrainmap/grid"]] == [make_frame(i)[0].stamp_ns for i in range(2)]
+
+
+@pytest.mark.parametrize("flavor", ["foxglove", "ros2"])
+def test_a_frame_that_fails_part_way_is_cut_off_and_nothing_more_is_written(tmp_path, monkeypatch, flavor, caplog):
+    """An error other than the disk's in the middle of a frame (here out of memory packing its
+    points, after its grid was written): close() keeps the frames before it, ends the file there
+    and warns; the sink takes no more frames."""
+    from terrainmap.sinks import mcap_foxglove, mcap_ros2
+
+    path = tmp_path / "partial.mcap"
+    sink = open_mcap_sink(path, flavor, config=Config())
+    sink.write(*make_frame(0))
+    module, name = (mcap_foxglove, "encode_points") if flavor == "foxglove" else (mcap_ros2, "encode_point_cloud2")
+
+    def out_of_memory(*args, **kwargs):
+        raise MemoryError
+
+    monkeypatch.setattr(module, name, out_of_memory)
+    with pytest.raises(MemoryError):
+        sink.write(*make_frame(1))
+    with pytest.raises(TerrainmapError, match="failed in an earlier frame"):
+        sink.write(*make_frame(2))
+    sink.close()
+    assert not sink.finished and "cut back to its first 1 frame, which read back" in caplog.text
+    factory = ProtobufDecoderFactory() if flavor == "foxglove" else Ros2DecoderFactory()
+    topics = read_messages(path, factory)
+    assert {topic: len(messages) for topic, messages in topics.items() if topic != "/tf_static"} == {
+        topic: 1 for topic in topics if topic != "/tf_static"}  # every topic has frame 0 only
+    assert read_metadata(path)["frames"] == "1"
 
 
 @pytest.mark.parametrize("flavor", ["foxglove", "ros2"])

@@ -917,6 +917,33 @@ def test_a_pair_whose_raw_image_is_cut_short_is_skipped_and_reading_goes_on(tmp_
     assert "damaged, skipped" in caplog.text
 
 
+def test_pairs_that_never_decode_end_the_reading_after_20_in_a_row(tmp_path, monkeypatch):
+    """Every image of a log cut short is no damage here and there: the 20th such pair in a row ends
+    the reading with one error; fewer in a row are skipped and the pairs between them kept."""
+    from types import SimpleNamespace
+
+    from terrainmap.sources import messages
+    from terrainmap.sources.base import MAX_DAMAGED_IN_A_ROW
+
+    log = write_ros2_log(tmp_path / "run.mcap", n=MAX_DAMAGED_IN_A_ROW + 2)
+    decode, good = messages.image_array, set()
+
+    def cut_short(msg, msg_type, topic):
+        if int(msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec) in good or topic.endswith("right/image_rect"):
+            return decode(msg, msg_type, topic)
+        fields = ("header", "height", "width", "encoding", "is_bigendian", "step")
+        return decode(SimpleNamespace(**{name: getattr(msg, name) for name in fields}, data=b""), msg_type, topic)
+
+    monkeypatch.setattr(messages, "image_array", cut_short)
+    with open_source(log) as source, pytest.raises(InputError) as exc:
+        list(source.frames())
+    assert str(exc.value).startswith(f"{log}: 20 stereo pairs in a row cannot be read, which is no damage here and "
+                                     f"there (the last: {log}: stereo pair at 1700000001.900 s (")
+    good.add(T0 + 10 * 100_000_000)  # the 11th pair decodes: never 20 in a row
+    with open_source(log) as source:
+        assert [f.index for f in source.frames()] == [10] and len(source.skipped()) == MAX_DAMAGED_IN_A_ROW + 1
+
+
 @pytest.mark.parametrize("tolerance", [-1, 1.5, "10", True, None])
 def test_a_pair_tolerance_that_is_no_whole_number_of_nanoseconds_is_refused(tolerance):
     """The library's pairing tolerance is checked as the CLI's is: a negative one would pair

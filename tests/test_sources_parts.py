@@ -4,7 +4,7 @@ import cv2
 import numpy as np
 import pytest
 
-from terrainmap.errors import InputError
+from terrainmap.errors import DamagedImageError, InputError
 from terrainmap.sources.images import decode_raw
 from terrainmap.sources.pairing import StereoPairer
 from terrainmap.sources.tf import TransformTree, VehiclePoses, quaternion_to_matrix
@@ -271,8 +271,11 @@ def test_decode_raw_reads_yuv420_semi_planar(encoding):
     assert np.abs(wrong.astype(float) - rgb).max() > 20
     with pytest.raises(InputError, match="/t: nv12 image of size 16×11: YUV 4:2:0 needs an even width and height"):
         decode_raw(bytes(400), width=16, height=11, step=16, encoding="nv12", name="/t")
-    with pytest.raises(InputError, match="needs more than the 200 bytes given"):
+    with pytest.raises(DamagedImageError, match="needs more than the 200 bytes given"):  # one message cut short
         decode_raw(bytes(200), width=16, height=12, step=16, encoding="nv12", name="/t")
+    with pytest.raises(InputError, match="/t: image of 16×12 rgb8: a step of 16 bytes is shorter than a row of 48") as exc:
+        decode_raw(bytes(1000), width=16, height=12, step=16, encoding="rgb8", name="/t")  # a header wrong on every message
+    assert not isinstance(exc.value, DamagedImageError)
 
 
 @pytest.mark.parametrize("encoding, order", [("rgb16", (0, 1, 2)), ("bgr16", (2, 1, 0)), ("16UC3", (2, 1, 0))])

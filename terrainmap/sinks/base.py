@@ -13,6 +13,7 @@ below turn a :class:`~terrainmap.types.FrameResult` into the plain arrays both f
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import numbers
@@ -85,7 +86,7 @@ class McapSink:
         self._last_static: tuple | None = None
         self.frames_written = 0
         self._closed = False
-        self._failed: OSError | None = None  # the error that stopped the file being written
+        self._failed: BaseException | None = None  # what stopped the file being written, part way into a frame
         self.finished = False
         try:
             self._stream = open(self.path, "wb")  # noqa: SIM115 (closed in close())
@@ -94,12 +95,13 @@ class McapSink:
         try:
             self._open(self._stream)
             self._stream.flush()  # the header on disk: where a file cut back before any frame ends
-        except OSError as exc:
-            self._stream.close()
+        except BaseException as exc:
+            with contextlib.suppress(OSError):  # closing flushes what failed again
+                self._stream.close()
+            if not isinstance(exc, OSError):
+                raise
+            self.path.unlink(missing_ok=True)  # not even a header: no MCAP at all
             raise InputError(f"cannot write MCAP output {self.path}: {exc.strerror or exc}") from exc
-        except BaseException:
-            self._stream.close()
-            raise
         self._whole = self._stream.tell()  # where the last whole frame ends (the header, before any)
 
     def _open(self, stream) -> None:
@@ -119,6 +121,8 @@ class McapSink:
         """Write all messages of one frame, stamped ``frame.stamp_ns``."""
         if self._closed:
             raise TerrainmapError(f"MCAP output {self.path} is already closed")
+        if self._failed is not None:
+            raise TerrainmapError(f"MCAP output {self.path} failed in an earlier frame ({self._failed})")
         for stamp in {frame.stamp_ns, result.stamp_ns}:  # checked before any message of the frame is written
             if isinstance(stamp, bool) or not isinstance(stamp, numbers.Integral) or not 0 <= stamp < 2**64:
                 raise InputError(f"MCAP output {self.path}: frame {result.index}: the stamp must be a whole number "
@@ -137,9 +141,11 @@ class McapSink:
             # The frame's chunk goes to the file now, so that a later failure can keep every
             # frame before it (_cut_back). `_writer._writer`: the flavour writer's mcap writer.
             self._writer._writer.flush()
-        except OSError as exc:
+        except BaseException as exc:  # part of the frame may be written or buffered: close() cuts it off
             self._failed = exc
-            raise InputError(f"cannot write MCAP output {self.path}: {exc.strerror or exc}") from exc
+            if isinstance(exc, OSError):
+                raise InputError(f"cannot write MCAP output {self.path}: {exc.strerror or exc}") from exc
+            raise
         self.frames_written += 1
         self._whole = self._stream.tell()
 
@@ -149,35 +155,46 @@ class McapSink:
             return
         self._closed = True
         try:
-            try:
-                if self._failed is None:
-                    self._finish(self._metadata_record())
-            finally:
-                self._stream.close()
+            if self._failed is None:
+                self._finish(self._metadata_record())
         except OSError as exc:  # disk full, device gone: the summary could not be written
             self._failed = exc
-        if self._failed is not None:
+        finally:
+            try:
+                self._stream.close()
+            except OSError as exc:
+                self._failed = self._failed or exc
+        if isinstance(self._failed, OSError):
             raise InputError(f"cannot finish MCAP output {self.path}: {self._failed.strerror or self._failed}; "
                              f"{self._cut_back()}") from self._failed
+        if self._failed is not None:  # the run's own error says what went wrong
+            log.warning("MCAP output %s: %s", self.path, self._cut_back())
+            return
         self.finished = True
         log.info("wrote %d frames to %s", self.frames_written, self.path)
 
     def _cut_back(self) -> str:
         """Cut the file back to the end of its last whole frame and end it there with the metadata
-        record and a footer without summary (a valid MCAP that readers read from start to end;
-        truncating frees the room the ending needs). Returns what the file holds now."""
-        ending = RecordBuilder()
-        Metadata(name=METADATA_NAME, metadata=self._metadata_record()).write(ending)
-        DataEnd(data_section_crc=0).write(ending)  # 0: no CRC computed
-        Footer(summary_start=0, summary_offset_start=0, summary_crc=0).write(ending)
-        ending.write(MCAP0_MAGIC)
-        try:
-            with open(self.path, "r+b") as file:
-                file.truncate(self._whole)
-                file.seek(self._whole)
-                file.write(ending.end())
-        except OSError as exc:
-            return f"it could not be cut back to its last whole frame ({exc.strerror or exc}) and is damaged"
+        record and a footer without summary (a valid MCAP that readers read from start to end),
+        or without the metadata where there is no room for it. Returns what the file holds now."""
+        error: OSError | None = None
+        for metadata in (True, False):
+            ending = RecordBuilder()
+            if metadata:
+                Metadata(name=METADATA_NAME, metadata=self._metadata_record()).write(ending)
+            DataEnd(data_section_crc=0).write(ending)  # 0: no CRC computed
+            Footer(summary_start=0, summary_offset_start=0, summary_crc=0).write(ending)
+            ending.write(MCAP0_MAGIC)
+            try:
+                with open(self.path, "r+b") as file:
+                    file.truncate(self._whole)
+                    file.seek(self._whole)
+                    file.write(ending.end())
+                break
+            except OSError as exc:
+                error = exc
+        else:
+            return f"it could not be cut back to its last whole frame ({error.strerror or error}) and is damaged"
         n = self.frames_written
         if n == 0:
             return "cut back to its header (no frame in it)"

@@ -10,7 +10,7 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
-from ..errors import ConfigError
+from ..errors import ConfigError, InputError
 from ..types import Extrinsics, StereoFrame
 
 logger = logging.getLogger(__name__)
@@ -20,6 +20,10 @@ DEFAULT_PERIOD_NS = 100_000_000
 
 END_SLACK_S = 1.0
 """How far past ``end_s`` reading goes on for pairs stamped out of order (:meth:`Source.frames`)."""
+
+MAX_DAMAGED_IN_A_ROW = 20
+"""Selected stereo pairs skipped as damaged one after the other that end the reading with
+:class:`InputError`: images that never decode are not damage but the wrong kind of data."""
 
 
 @dataclass
@@ -115,11 +119,13 @@ class Source(ABC):
 
         ``StereoFrame.index`` counts pairs from the start of the source, not from ``start_s``.
         The window is by stamp: a pair stamped out of order is kept where its stamp lies in it, and
-        reading stops at the first pair stamped :data:`END_SLACK_S` past ``end_s``.
+        reading stops at the first pair stamped :data:`END_SLACK_S` past ``end_s``. A damaged pair is
+        skipped (:meth:`skipped`); :data:`MAX_DAMAGED_IN_A_ROW` of them in a row raise
+        :class:`InputError`.
         """
         check_selection(start_s, end_s, every, max_frames)
         first_ns: int | None = None
-        in_window = kept = 0
+        in_window = kept = damaged_in_a_row = 0
         tally = self.tally = Tally()
         for ref in self._pairs():
             if max_frames is not None and kept >= max_frames:
@@ -136,8 +142,11 @@ class Source(ABC):
             if in_window % every == 0:
                 tally.selected += 1
                 if (frame := ref.load()) is not None:  # None: skipped as damaged
-                    kept += 1
+                    kept, damaged_in_a_row = kept + 1, 0
                     yield frame
+                elif (damaged_in_a_row := damaged_in_a_row + 1) >= MAX_DAMAGED_IN_A_ROW:
+                    raise InputError(f"{self.path}: {MAX_DAMAGED_IN_A_ROW} stereo pairs in a row cannot be read, "
+                                     f"which is no damage here and there (the last: {self._damaged[-1]})")
             in_window += 1
 
     def skipped(self) -> list[str]:

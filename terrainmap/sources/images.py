@@ -155,8 +155,8 @@ def decode_raw(
     bayer_rggb8, _bggr8, _gbrg8, _grbg8 and their 16-bit forms (demosaiced bilinearly); YUV 4:2:2
     uyvy/yuv422 and yuyv/yuv422_yuy2 (even widths); YUV 4:2:0 nv12 and nv21 (even sizes).
 
-    Raises :class:`InputError` naming ``name`` for an encoding or size it cannot read, and its
-    :class:`DamagedImageError` when ``data`` is shorter than the size and ``step`` need.
+    Raises :class:`InputError` naming ``name`` for an encoding, size or ``step`` it cannot read,
+    and its :class:`DamagedImageError` when ``data`` is shorter than the size and ``step`` need.
     """
     if encoding.lower() in _YUV420_ENCODINGS:
         return _decode_yuv420(data, width, height, step, encoding, name)
@@ -189,9 +189,12 @@ def _decode_yuv420(data: bytes, width: int, height: int, step: int, encoding: st
 
 def _rows(data: bytes, rows: int, row_bytes: int, step: int, what: str) -> np.ndarray:
     """The first ``row_bytes`` of each of ``rows`` rows ``step`` bytes apart: (rows, row_bytes)
-    uint8, contiguous; :class:`DamagedImageError` starting with ``what`` when ``data`` is too short
-    for its header (one message cut short: a log skips that pair and goes on)."""
-    if rows <= 0 or row_bytes <= 0 or step < row_bytes or len(data) < step * (rows - 1) + row_bytes:
+    uint8, contiguous. :class:`InputError` starting with ``what`` when ``step`` is shorter than a
+    row (the header is wrong, on every message alike), and its :class:`DamagedImageError` when
+    ``data`` is too short for the header (one message cut short: a log skips that pair)."""
+    if step < row_bytes:
+        raise InputError(f"{what}: a step of {step} bytes is shorter than a row of {row_bytes}")
+    if len(data) < step * (rows - 1) + row_bytes:
         raise DamagedImageError(f"{what} with step {step} needs more than the {len(data)} bytes given")
     buffer = np.frombuffer(bytes(data), dtype=np.uint8)
     if buffer.size < step * rows:  # the last row may omit its padding
