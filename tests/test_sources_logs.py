@@ -432,6 +432,18 @@ def test_truncated_log_yields_what_it_can_then_raises(tmp_path):
     np.testing.assert_array_equal(frames[2].left, pair_images(2)[0])
 
 
+def test_describe_gives_the_span_of_the_log_times_in_every_format(tmp_path):
+    """tf and camera infos at T0, 6 pairs 100 ms apart, each right image 2 ms after its left: 0.502 s
+    as an indexed MCAP, scanned without its summary, as rosbag2 in sqlite3 and as a ROS 1 bag."""
+    log = write_ros2_log(tmp_path / "run.mcap", n=6)
+    unindexed = tmp_path / "unindexed.mcap"
+    unindexed.write_bytes(log.read_bytes()[:-40])  # footer and magic cut off: read from start to end
+    db3 = rewrite_rosbag2(log, tmp_path / "bag", storage="sqlite3")
+    for path in (log, unindexed, db3, ros1_bag(log, tmp_path / "run.bag")):
+        with open_source(path) as source:
+            assert source.describe()["duration_s"] == pytest.approx(0.502, abs=1e-9), path
+
+
 def test_truncated_log_names_its_damage_in_describe(tmp_path):
     path = write_ros2_log(tmp_path / "full.mcap", n=20)
     cut = tmp_path / "cut.mcap"

@@ -316,11 +316,12 @@ class LogSource(Source):
 
     def _contents(self) -> dict:
         """What the log holds, whatever its topics: format, files, damage, topics."""
-        counts = self.reader.counts
+        counts, span = self.reader.counts, self.reader.span_ns
         return {
             "format": self.format,
             "path": str(self.path),
             "files": [str(p) for p in self.reader.paths],
+            "duration_s": None if span is None else (span[1] - span[0]) / 1e9,  # of all its messages
             "damage": self.reader.damage,
             "topics": [{"topic": t, "type": k, "count": counts.get(t)} for t, k in sorted(self.reader.types.items())],
         }

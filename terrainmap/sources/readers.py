@@ -184,6 +184,7 @@ class McapFile(_SkipsDamage):
         self.path = path
         self.types: dict[str, str] = {}
         self.counts: dict[str, int | None] = {}
+        self.span_ns: tuple[int, int] | None = None  # log times of the first and the last message
         self.indexed = False
         self._data_end: int | None = None  # where a summary that cannot be used begins: reading stops there
         self._index = None  # the summary of an indexed file (its channels, schemas and chunk indexes)
@@ -241,6 +242,8 @@ class McapFile(_SkipsDamage):
     def _from_summary(self, summary) -> None:
         self.indexed = bool(summary.chunk_indexes)
         counts = summary.statistics.channel_message_counts if summary.statistics else {}
+        if summary.statistics and summary.statistics.message_count:
+            self.span_ns = (summary.statistics.message_start_time, summary.statistics.message_end_time)
         for channel in summary.channels.values():
             schema = summary.schemas.get(channel.schema_id)
             self.types[channel.topic] = normalize_type(schema.name if schema else "")
@@ -248,9 +251,10 @@ class McapFile(_SkipsDamage):
 
     def _scan(self, stream) -> None:
         try:
-            for schema, channel, _ in self._linear(stream):
+            for schema, channel, message in self._linear(stream):
                 self.types[channel.topic] = normalize_type(schema.name if schema else "")
                 self.counts[channel.topic] = self.counts.get(channel.topic, 0) + 1
+                self.span_ns = _widened(self.span_ns, message.log_time, message.log_time)
         except Exception as exc:
             # Not a warning: ``info`` shows it, and reading the messages raises it as the error.
             self.damage = f"{self.path}: truncated or corrupt after {_messages(sum(self.counts.values()))} ({_reason(exc)})"
@@ -421,6 +425,10 @@ class McapLog:
                 where.setdefault(topic, f.path)
             for topic, n in f.counts.items():
                 self.counts[topic] = (self.counts.get(topic) or 0) + (n or 0)
+        self.span_ns = None
+        for f in self.files:
+            if f.span_ns is not None:
+                self.span_ns = _widened(self.span_ns, *f.span_ns)
 
     @property
     def skipped(self) -> list[str]:
@@ -430,6 +438,17 @@ class McapLog:
     def messages(self, topics: list[str]) -> Iterator[tuple[str, int, Any]]:
         for f in self.files:
             yield from f.messages(topics)
+
+
+def _widened(span: tuple[int, int] | None, start_ns: int, end_ns: int) -> tuple[int, int]:
+    """The span ``(first, last)`` log time, ns, that also covers ``start_ns`` to ``end_ns``."""
+    return (start_ns, end_ns) if span is None else (min(span[0], start_ns), max(span[1], end_ns))
+
+
+def _rosbags_span(bag, counts: dict[str, int]) -> tuple[int, int] | None:
+    """Log times of a ``rosbags`` reader's first and last message (None: no message); its
+    ``end_time`` is 1 ns after the last."""
+    return (bag.start_time, max(bag.start_time, bag.end_time - 1)) if sum(counts.values()) else None
 
 
 def _topics(connections) -> tuple[dict[str, str], dict[str, int]]:
@@ -474,6 +493,7 @@ class Ros1Bag(_RosbagsLog):
                     logger.info("%s: topic %s: cannot parse the definition of %s (%s)", path, c.topic, c.msgtype,
                                 _reason(exc))
             self.types, self.counts = _topics(bag.connections)
+            self.span_ns = _rosbags_span(bag, self.counts)
             ids = {c.id for c in bag.connections}
             for chunk in bag.chunk_infos:  # an index that names no connection of the bag lost the messages it held
                 if unknown := sorted(set(chunk.connection_counts) - ids):
@@ -529,6 +549,7 @@ class Rosbag2Bag(_RosbagsLog):
         except Exception as exc:  # ReaderError, but also sqlite3, YAML and zstd errors on damaged files
             raise InputError(f"{path}: not a readable rosbag2 ({_reason(exc)})") from exc
         self.types, self.counts = _topics(self._bag.connections)
+        self.span_ns = _rosbags_span(self._bag, self.counts)
 
     def close(self) -> None:
         if self._bag.is_open:
