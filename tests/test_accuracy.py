@@ -210,6 +210,21 @@ def test_a_negative_obstacle_is_false_only_where_the_truth_is_shallower_than_hal
     assert run.scores["terrainmap"].summary(frames=1)["all"]["false_obstacles_per_frame"] == 1
 
 
+def test_a_negative_obstacles_depression_is_measured_on_a_ring_just_beyond_its_half_width(monkeypatch):
+    """The truth's depth under a 1 m wide negative obstacle is taken against a ring of radius 0.5 + 0.5 m
+    (half its width plus the margin): a pit 0.2 m deep in level ground is a right detection, though the ground
+    2–3 m away lies 0.3 m lower still."""
+
+    class PitInAHollow:
+        def height(self, x, y):
+            r = np.hypot(np.asarray(x) - 10.0, np.asarray(y) - 3.0)
+            return np.where(r < 0.4, -0.2, np.where((r > 2.0) & (r < 3.0), -0.3, 0.0))
+
+    ditch = Obstacle(np.array([10.0, 3.0, -0.1]), np.array([1.0, 1.0, 0.2]), 0.0, 0.2, 30, float(np.hypot(10, 3)),
+                     kind="negative", track_id=1, confirmed=True)
+    run = _score_frame(monkeypatch, truth=PitInAHollow(), obstacles=[ditch])
+    assert run.scores["terrainmap"].summary(frames=1)["all"]["false_obstacles_per_frame"] == 0
+
 def test_only_truth_obstacles_within_the_obstacle_range_count(monkeypatch):
     """A truth rock at 10 m (tracked) and one at 25 m (not) with ``obstacle_range_m`` 20: recall 1, and only the
     near one has a frames-to-confirmation entry."""
@@ -221,6 +236,38 @@ def test_only_truth_obstacles_within_the_obstacle_range_count(monkeypatch):
     run = _score_frame(monkeypatch, truth_boxes=rocks, obstacles=[track], obstacle_range_m=20.0)
     assert run.scores["terrainmap"].summary(frames=1)["all"]["obstacle_recall"] == 1
     assert run.report(Path("log.mcap"), Counter(), 0.0)["obstacles"]["frames_to_confirmation"] == {"1 rock": 0}
+
+
+
+def test_points_on_sky_pixels_are_not_scored(monkeypatch):
+    """A point labelled TERRAIN on a sky pixel is neither a true nor a false terrain point."""
+    run = _score_frame(monkeypatch, point_labels=[Label.TERRAIN, Label.TERRAIN, Label.OBSTACLE], pixel_labels=[1, 0, 2])
+    scores = run.scores["terrainmap"].summary(frames=1)["all"]
+    assert scores["terrain_precision"] == 1 and scores["terrain_recall"] == 1
+
+
+def test_an_obstacle_exactly_as_tall_and_as_far_as_the_limits_is_eligible(monkeypatch):
+    """``obstacle_min_height_m`` and ``obstacle_range_m`` are "at least" and "within": a rock 0.5 m tall
+    at 20.0 m counts, and its track matches it."""
+    from terrainmap.evaluation.truth_grid import TruthObstacle
+
+    rock = TruthObstacle(1, "rock", np.array([20.0, 0.0, 0.25]), np.ones(3), 0.0, 0.5, 100)
+    track = Obstacle(np.array([20.0, 0.0, 0.25]), np.ones(3), 0.0, 0.5, 80, 20.0, track_id=3, confirmed=True)
+    run = _score_frame(monkeypatch, truth_boxes=[rock], obstacles=[track], obstacle_range_m=20.0,
+                       obstacle_min_height_m=0.5)
+    assert run.scores["terrainmap"].summary(frames=1)["all"]["obstacle_recall"] == 1
+
+
+def test_a_detection_within_the_margin_of_a_true_footprint_is_not_false(monkeypatch):
+    """A confirmed obstacle 0.3 m beside a true rock's footprint (margin 0.5 m) is the rock, not a false
+    obstacle; 0.7 m beside it, it is."""
+    from terrainmap.evaluation.truth_grid import TruthObstacle
+
+    rock = TruthObstacle(1, "rock", np.array([10.0, 0.0, 0.5]), np.ones(3), 0.0, 1.0, 100)
+    for offset, false in ((0.8, 0), (1.2, 1)):  # the footprint ends 0.5 m from the centre
+        track = Obstacle(np.array([10.0, offset, 0.5]), np.ones(3), 0.0, 1.0, 80, 10.0, track_id=3, confirmed=True)
+        run = _score_frame(monkeypatch, truth_boxes=[rock], obstacles=[track])
+        assert run.scores["terrainmap"].summary(frames=1)["all"]["false_obstacles_per_frame"] == false, offset
 
 
 # --- evaluate(): a perfect pipeline scores perfectly; schema; errors ---------------------------------------
@@ -617,3 +664,102 @@ def test_bands_take_their_lower_edge_and_precision_is_not_recall():
     out = scores.summary(frames=1)
     assert out["0-10"]["terrain_precision"] is None
     assert out["10-20"]["terrain_precision"] == 0.5 and out["10-20"]["terrain_recall"] == 1.0
+
+
+# --- the truth on the grid: hand-built truth with a known answer ----------------------------------------
+
+def _flat_truth(height=lambda x, y: np.zeros(np.shape(x)), translation=(0.25, 0.25, 0.0)):
+    """A truth with terrain ``height`` (world frame) seen by a camera on the ground looking along +x
+    (optical z = base x, optical x = base −y), 64×8 pixels, fx 50, principal point (32, 4)."""
+    from types import SimpleNamespace
+
+    from terrainmap.sim.rig import _OPTICAL_IN_BASE
+    from terrainmap.types import Extrinsics, StereoCalibration
+
+    cal = StereoCalibration(width=64, height=8, fx=50.0, fy=50.0, cx=32.0, cy=4.0, baseline_m=0.3)
+    return SimpleNamespace(height=lambda x, y: np.asarray(height(np.asarray(x), np.asarray(y)), float),
+                           calibration=cal, extrinsics=Extrinsics(_OPTICAL_IN_BASE, np.array(translation)))
+
+
+def _one_row_frame(label_columns: dict[int, int], depth_m: float = 10.0, pose=(np.eye(3), np.zeros(3)), obstacles=()):
+    """A TruthFrame whose row 4 holds pixels of ``label_columns`` (column → label) at ``depth_m``."""
+    from terrainmap.sim.truth import TruthFrame
+
+    label = np.zeros((8, 64), np.uint8)
+    for u, value in label_columns.items():
+        label[4, u] = value
+    instance = np.where(label == 2, 1, 0).astype(np.uint8)
+    return TruthFrame(0, 0, *pose, list(obstacles), np.full((8, 64), depth_m, np.float32), label, instance)
+
+
+def test_a_cell_is_observed_by_at_least_min_pixels_terrain_pixels_not_by_obstacle_pixels():
+    """Two terrain pixels fall in the cell of (10.25, 0.25) m, three obstacle pixels in that of
+    (10.25, −1.75) m: only the first is observed, with up to 2 pixels asked for ("at least")."""
+    from terrainmap.grid import cell_index
+
+    grid = Config().grid
+    truth = _flat_truth()
+    frame = _one_row_frame({32: 1, 33: 1, 42: 2, 43: 2, 44: 2})  # 0.2 m per column at 10 m
+    terrain_cell = cell_index(np.array([[10.25, 0.25, 0.0]]), grid)[0]
+    for min_pixels in (1, 2):
+        observed = observed_cells(truth, frame, grid, min_pixels=min_pixels)
+        assert np.flatnonzero(observed).tolist() == [terrain_cell], min_pixels
+    assert not observed_cells(truth, frame, grid, min_pixels=3).any()
+
+
+def test_grid_truth_of_a_plane_gives_its_height_slope_and_range_at_each_cell_centre():
+    """Terrain z = 0.1·x − 0.05·y under a vehicle at the origin: the truth height at every cell centre
+    is the plane's, its slope atan(|∇z|) and its range the horizontal distance of the centre."""
+    from terrainmap.grid import cell_centers
+
+    grid = Config().grid
+    truth = _flat_truth(lambda x, y: 0.1 * x - 0.05 * y)
+    gt = grid_truth(truth, _one_row_frame({32: 1}), grid)
+    xs, ys = cell_centers(grid)
+    x, y = np.meshgrid(xs, ys, indexing="ij")
+    np.testing.assert_allclose(gt.height_m, 0.1 * x - 0.05 * y, atol=1e-6)
+    np.testing.assert_allclose(gt.slope_rad, np.arctan(np.hypot(0.1, 0.05)), atol=1e-6)
+    np.testing.assert_allclose(gt.range_m, np.hypot(x, y))
+
+
+def test_truth_obstacles_are_moved_into_the_vehicle_frame_with_their_heading():
+    """The vehicle at (3, 4) heading along world +y (yaw 90°): a box at world (3, 9) heading +y as
+    well stands 5 m straight ahead, heading along the vehicle's x; one at world (1, 4) heading +x
+    stands 2 m to the left, heading to the vehicle's right (−90°)."""
+    from terrainmap.sim.obstacles import ObstacleBox
+
+    yaw90 = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    boxes = [ObstacleBox(1, "car", "box", np.array([3.0, 9.0, 0.75]), np.array([4.3, 1.8, 1.5]), np.pi / 2, 1.5,
+                         np.zeros(3)),
+             ObstacleBox(2, "rock", "box", np.array([1.0, 4.0, 0.3]), np.ones(3), 0.0, 0.6, np.zeros(3))]
+    frame = _one_row_frame({}, pose=(yaw90, np.array([3.0, 4.0, 0.0])), obstacles=boxes)
+    ahead, left = truth_obstacles(frame, _flat_truth().calibration)
+    np.testing.assert_allclose(ahead.center_m, [5.0, 0.0, 0.75], atol=1e-12)
+    assert ahead.yaw_rad == pytest.approx(0.0, abs=1e-12) and ahead.range_m == pytest.approx(5.0)
+    np.testing.assert_allclose(left.center_m, [0.0, 2.0, 0.3], atol=1e-12)
+    assert left.yaw_rad == pytest.approx(-np.pi / 2)
+    assert ahead.contains_xy(np.array([[7.0, 0.0], [5.0, 1.3]]), 0.0).tolist() == [True, False]  # 4.3 m long, 1.8 m wide
+
+
+def test_p95_is_the_95th_percentile_of_the_absolute_error():
+    from terrainmap.evaluation.scores import ErrorStats
+
+    stats = ErrorStats()
+    errors = (np.arange(200) // 2 + 0.5) / 1000 * np.tile([1, -1], 100)  # ±0.5 … ±99.5 mm, each twice
+    stats.add(errors)
+    summary = stats.summary()
+    assert summary["elevation_p95_m"] == pytest.approx(0.095, abs=0.001)
+    assert summary["elevation_mae_m"] == pytest.approx(0.05) and summary["elevation_bias_m"] == pytest.approx(0.0)
+    assert summary["elevation_rmse_m"] == pytest.approx(np.sqrt(np.mean(errors**2)))
+
+
+def test_table_puts_each_metric_under_its_own_title():
+    from terrainmap.evaluation.accuracy_report import format_table
+
+    values = dict.fromkeys(METRICS, None) | {"elevation_rmse_m": 0.1, "elevation_mae_m": 0.05, "elevation_bias_m": -0.02,
+                                             "elevation_p95_m": 0.2, "coverage": 0.9, "terrain_recall": 0.7}
+    report = {"log": "x.mcap", "frames": 1, "methods": {"terrainmap": {"0-10": values}}}
+    header, row = format_table(report).splitlines()[-2:]
+    columns = dict(zip(header.split()[1:], row.split()[1:], strict=True))
+    assert columns == {"rmse_m": "0.100", "mae_m": "0.050", "bias_m": "-0.020", "p95_m": "0.200", "slope°": "—",
+                       "cover": "0.900", "prec": "—", "recall": "0.700", "f1": "—", "obs_rec": "—", "false/fr": "—"}

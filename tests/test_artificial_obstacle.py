@@ -54,3 +54,19 @@ def test_a_box_the_grid_never_sees_is_an_error_not_zero_percent(position, height
     untouched and score a misleading 0 %."""
     with pytest.raises(InputError, match="leaves no point in the grid"):
         ao.run([ao.Scenario(5, 2.0, height)], position_xy=position)
+
+
+def test_the_deviation_is_the_largest_over_the_area_as_a_percentage_of_the_height():
+    """Fig. 6's measure: max |S_with − S_without| over the lattice, in % of h (not a mean or a percentile)."""
+    from dataclasses import replace
+
+    from terrainmap.config import TerrainConfig
+
+    (result,) = ao.run([ao.Scenario(5, 4.0, 2.0)])
+    terrain = replace(TerrainConfig(), control_points_x=5, control_points_y=5)
+    base = ao.flat_base(ao.PAPER_GRID)
+    without, _ = ao._surface_on_lattice(base, ao.PAPER_GRID, terrain, 5)
+    with_box, _ = ao._surface_on_lattice(ao.add_box(base, (11.0, 0.0), 4.0, 2.0), ao.PAPER_GRID, terrain, 5)
+    deviation = np.abs(with_box - without)
+    assert result.max_deviation_m == pytest.approx(deviation.max())
+    assert result.max_deviation_pct == pytest.approx(100 * deviation.max() / 2.0)

@@ -101,3 +101,26 @@ def test_baselines_label_with_terrainmaps_thresholds_for_the_rig(scene):
     expected = label_points(points, out.elevation, gx, gy, config.grid, config.segmentation, limits=limits)
     np.testing.assert_array_equal(out.point_labels, expected)
     assert (out.point_labels != METHODS["ransac_plane"](points, config, None).point_labels).any()
+
+
+def test_lowest_point_takes_each_cells_lowest_point_and_says_nothing_in_empty_cells():
+    config = Config()
+    points = np.array([[10.25, 0.25, 0.4], [10.3, 0.3, 0.1], [10.2, 0.2, 0.25], [12.25, -3.25, -0.2],
+                       [80.0, 0.0, 0.0]])  # the last one beyond the grid
+    out = METHODS["lowest_point"](points, config)
+    ix, iy = np.floor((points[:, :2] - [config.grid.x_min_m, config.grid.y_min_m]) / config.grid.cell_size_m).astype(int).T
+    assert out.elevation[ix[0], iy[0]] == pytest.approx(0.1) and out.elevation[ix[3], iy[3]] == pytest.approx(-0.2)
+    assert np.isfinite(out.elevation).sum() == 2
+    assert out.point_labels[-1] == Label.UNKNOWN  # outside the grid: not scored, not an obstacle
+
+
+def test_ransac_plane_fits_the_ground_not_the_outliers_above_it():
+    """A plane z = 0.02·x − 0.01·y sampled over the grid with 30 % of the points 0.6 m above it: the
+    plane RANSAC returns is the ground's, within a centimetre (the final fit takes the inliers only)."""
+    config = Config()
+    rng = np.random.default_rng(4)
+    xs, ys = cell_centers(config.grid)
+    x, y = rng.uniform(xs[0], xs[-1], 5000), rng.uniform(ys[0], ys[-1], 5000)
+    z = 0.02 * x - 0.01 * y + np.where(rng.random(5000) < 0.3, 0.6, 0.0)
+    out = METHODS["ransac_plane"](np.column_stack([x, y, z]), config)
+    np.testing.assert_allclose(out.elevation, 0.02 * xs[:, None] - 0.01 * ys[None, :], atol=0.01)

@@ -246,6 +246,14 @@ def test_eval_robustness_reports_both_fits():
     assert "iterative (Algorithm V-B.1) RMSE" in result.output and "single unweighted fit" in result.output
 
 
+def test_eval_robustness_ratio_is_the_single_fits_rmse_over_the_iterative_ones():
+    from terrainmap.config import Config
+    from terrainmap.evaluation import robustness
+
+    r = robustness.run(Config(), seeds=range(1))
+    assert r["ratio"] == pytest.approx(r["single_fit_rmse_m"] / r["iterative_rmse_m"]) and r["ratio"] > 2
+
+
 def test_eval_robustness_takes_outliers_lower_than_the_usual_20_cm():
     result = CliRunner().invoke(cli, ["eval", "robustness", "--seeds", "1", "--outlier-max", "0.1"])
     assert result.exit_code == 0, result.output

@@ -283,3 +283,14 @@ def test_kitti_000005_disparities_agree_with_its_ground_truth():
     every = ev.evaluate_disparity(folder, Config())["bands"]["all"]
     assert every["median_abs_error_px"] < 1.0  # issue 3's target; 0.58 px measured (2026-11-26)
     assert every["coverage"] > 0.7 and every["d1"] < 0.1  # 0.751 and 0.065 measured
+
+
+def test_depth_bands_use_the_disparity_offset_and_take_their_lower_edge():
+    """Z = f·B / (d + doffs): with f·B 100 px·m and doffs 5 px, 10 px of disparity lie at 6.7 m (band 0-10,
+    not 10 m); 5 px lie at exactly 10 m, in 10-20 (lo ≤ Z < hi)."""
+    stats = _stats()
+    ev.score_disparity(stats, np.array([[10.0, 5.0]], np.float32), np.array([[10.0, 5.0]], np.float32), 100.0, 5.0)
+    assert stats["0-10"].summary()["truth_pixels"] == 1 and stats["10-20"].summary()["truth_pixels"] == 1
+    stats = _stats()
+    ev.score_disparity(stats, np.array([[10.0]], np.float32), np.array([[10.0]], np.float32), 100.0, 0.0)
+    assert stats["10-20"].summary()["truth_pixels"] == 1 and stats["0-10"].summary()["truth_pixels"] == 0

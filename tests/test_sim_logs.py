@@ -341,3 +341,30 @@ def test_a_walker_that_stops_at_the_roadside_stands_still_in_the_truth(tmp_path)
         assert [list(w.velocity_mps) for w in walker] == [[0, -1.2, 0]] * 3 + [[0, 0, 0]]
         assert walker[3].center_m[:2] == pytest.approx([13.0, 5.0 - 1.2 * 2.5])
         assert {round(w.yaw_rad, 6) for w in walker} == {round(-np.pi / 2, 6)}  # it keeps facing its way
+
+
+def test_the_static_transforms_mount_the_left_camera_and_put_the_right_one_a_baseline_to_its_right(mcap_log):
+    """/tf_static: the left camera 1.8 m above base_link, pitched as the rig says; the right camera
+    baseline_m along the left camera's +x (right), unrotated (a rectified pair)."""
+    from terrainmap.ros2defs import quaternion_from_matrix
+    from terrainmap.sim.rig import CameraRig
+
+    static = next(dec for topic, _, _, dec in _decoded(mcap_log) if topic == "/tf_static").transforms
+    left, right = (t.transform for t in static)
+    assert (left.translation.x, left.translation.y, left.translation.z) == pytest.approx((0.0, 0.0, 1.8))
+    q = (left.rotation.x, left.rotation.y, left.rotation.z, left.rotation.w)
+    assert q == pytest.approx(tuple(quaternion_from_matrix(CameraRig().rotation_base_cam())))
+    assert (right.translation.x, right.translation.y, right.translation.z) == pytest.approx((0.3, 0.0, 0.0))
+    assert (right.rotation.x, right.rotation.y, right.rotation.z, right.rotation.w) == (0.0, 0.0, 0.0, 1.0)
+
+
+def test_a_stereo_frame_without_its_own_truth_is_an_error_not_the_next_frames_truth():
+    from terrainmap.sim.truth import TruthFrame, truth_at
+
+    def frame(stamp):
+        image = np.zeros((2, 3), np.float32)
+        return TruthFrame(0, stamp, np.eye(3), np.zeros(3), [], image, image.astype(np.uint8), image.astype(np.uint8))
+
+    assert truth_at(iter([frame(100), frame(200)]), 200, Path("x.mcap"), (2, 3)).stamp_ns == 200
+    with pytest.raises(InputError, match="x.mcap: no ground truth for the stereo frame at stamp 150"):
+        truth_at(iter([frame(100), frame(200)]), 150, Path("x.mcap"), (2, 3))

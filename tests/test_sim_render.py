@@ -202,3 +202,81 @@ def test_truth_height_is_the_top_above_the_ground_at_the_centre():
     assert on_slope.height_m == pytest.approx(top - slope.height(5.0, 5.0), abs=1e-6)
     assert on_slope.height_m == pytest.approx(0.5 - 0.3 * 0.35, abs=0.01)  # sunk by the slope over half its length
     assert car.at(slope, 0.0).height_m == pytest.approx(1.5, abs=1e-6)  # a box's top is placed that high
+
+
+# --- geometry of the truth on hand-built scenes -------------------------------------------------------
+
+def _plane(gx: float = 0.0, gy: float = 0.0):
+    """Heightfield of the plane z = gx·x + gy·y over [0, 20] × [−10, 10] m at 0.1 m."""
+    from terrainmap.sim.heightfield import Heightfield
+
+    x, y = np.arange(200) * 0.1 + 0.05, np.arange(200) * 0.1 - 9.95
+    return Heightfield((gx * x[:, None] + gy * y[None, :]).astype(np.float32), 0.0, -10.0, 0.1)
+
+
+@pytest.mark.parametrize("shape", ["box", "ellipsoid"])
+def test_a_ray_enters_a_solid_on_its_near_side(shape):
+    """Rays from x = 0 along +x into a solid centred 10 m ahead, 2 m long: the hit is its entry at 9 m
+    (the truth depth of the face the camera sees, not the back of the solid), the normal faces the camera."""
+    from terrainmap.sim.obstacles import ObstacleBox
+
+    solid = ObstacleBox(1, "rock", shape, np.array([10.0, 0.0, 0.5]), np.array([2.0, 1.0, 1.0]), 0.0, 1.0, np.zeros(3))
+    d = np.array([[1.0, 0.0, 0.0], [1.0, 0.5, 0.0]], np.float32)  # the second one misses
+    t, normal, _ = solid.intersect(np.array([0.0, 0.0, 0.5]), d)
+    assert t[0] == pytest.approx(9.0, abs=1e-5) and np.isinf(t[1])
+    np.testing.assert_allclose(normal[0], [-1.0, 0.0, 0.0], atol=1e-6)
+
+
+def test_an_obstacles_length_lies_along_its_yaw():
+    """A car (4.3 m long, 1.8 m wide) at yaw 90° is long along world y: a ray along +x meets its side
+    0.9 m before its centre, its corners span 1.8 m in x and 4.3 m in y."""
+    from terrainmap.sim.obstacles import ObstacleBox
+
+    car = ObstacleBox(1, "car", "box", np.array([10.0, 0.0, 0.75]), np.array([4.3, 1.8, 1.5]), np.pi / 2, 1.5, np.zeros(3))
+    corners = car.corners_world()
+    np.testing.assert_allclose(np.ptp(corners, axis=0), [1.8, 4.3, 1.5], atol=1e-6)
+    t, _, _ = car.intersect(np.array([0.0, 0.0, 0.75]), np.array([[1.0, 0.0, 0.0]], np.float32))
+    assert t[0] == pytest.approx(9.1, abs=1e-5)
+    np.testing.assert_allclose(car.to_local(np.array([[10.0, 2.0, 0.75]])), [[2.0, 0.0, 0.0]], atol=1e-12)
+
+
+def test_a_box_on_a_slope_reaches_below_its_lowest_ground():
+    """A box's bottom is 5 cm below the lowest terrain under its footprint (so no gap shows under it on a
+    slope), its top its height above the ground at its centre."""
+    from terrainmap.sim.obstacles import ObstacleSpec
+
+    slope = _plane(gx=0.3)
+    car = ObstacleSpec(1, "car", (10.0, 0.0)).at(slope, 0.0)
+    bottom, top = car.center_m[2] - car.size_m[2] / 2, car.center_m[2] + car.size_m[2] / 2
+    assert bottom == pytest.approx(0.3 * (10.0 - 4.3 / 2) - 0.05, abs=1e-4)
+    assert top == pytest.approx(0.3 * 10.0 + 1.5, abs=1e-4)
+
+
+@pytest.mark.parametrize("gx, gy", [(0.2, 0.0), (0.0, 0.2), (-0.1, 0.15)])
+def test_the_vehicle_stands_on_a_plane_with_its_z_axis_along_the_normal(gx, gy):
+    rotation, position = vehicle_pose(_plane(gx, gy), 10.0, 1.0, 0.0)
+    np.testing.assert_allclose(rotation[:, 2], np.array([-gx, -gy, 1.0]) / np.sqrt(1 + gx * gx + gy * gy), atol=1e-6)
+    assert np.linalg.det(rotation) == pytest.approx(1.0)  # right-handed: y to the left of x
+    assert rotation[1, 1] > 0.9 and rotation[0, 0] > 0.9  # heading +x
+    assert position[2] == pytest.approx(10.0 * gx + 1.0 * gy, abs=1e-5)
+
+
+TINY = CameraRig(width=64, height=48, focal_px=50.0)
+
+
+def test_each_frame_and_camera_has_its_own_noise_and_frames_render_in_any_order():
+    """Noise comes from (seed, frame, camera): left and right, frame 1 and frame 2 get different noise,
+    and frame 2 is the same whether frame 1 was rendered before it or not."""
+    scene = build_scene("flat", 2, length_m=10.0)
+    clean = Renderer(scene, TINY, seed=2, noise_dn=0.0)
+    noisy = Renderer(scene, TINY, seed=2, noise_dn=4.0)
+    noise = {}
+    for i in (1, 2):
+        a, b = clean.frame(i), noisy.frame(i)
+        noise[i] = [b.left.astype(int) - a.left, b.right.astype(int) - a.right]
+    assert all(np.std(n) > 2 for pair in noise.values() for n in pair)
+    assert np.corrcoef(noise[1][0].ravel(), noise[1][1].ravel())[0, 1] < 0.5  # left ≠ right
+    assert np.corrcoef(noise[1][0].ravel(), noise[2][0].ravel())[0, 1] < 0.5  # frame 1 ≠ frame 2
+    np.testing.assert_array_equal(Renderer(scene, TINY, seed=2, noise_dn=4.0).frame(2).left, noisy.frame(2).left)
+
+
