@@ -141,12 +141,14 @@ class Source(ABC):
                 continue
             if in_window % every == 0:
                 tally.selected += 1
-                if (frame := ref.load()) is not None:  # None: skipped as damaged
-                    kept, damaged_in_a_row = kept + 1, 0
-                    yield frame
-                elif (damaged_in_a_row := damaged_in_a_row + 1) >= MAX_DAMAGED_IN_A_ROW:
+                frame = ref.load()
+                damaged_in_a_row = 0 if frame is not None else damaged_in_a_row + 1  # None: skipped as damaged
+                if damaged_in_a_row >= MAX_DAMAGED_IN_A_ROW:
                     raise InputError(f"{self.path}: {MAX_DAMAGED_IN_A_ROW} stereo pairs in a row cannot be read, "
                                      f"which is no damage here and there (the last: {self._damaged[-1]})")
+                if frame is not None:
+                    kept += 1
+                    yield frame
             in_window += 1
 
     def skipped(self) -> list[str]:
