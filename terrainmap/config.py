@@ -750,6 +750,11 @@ class Config:
     def validate(self) -> Config:
         """Check every section; raise :class:`ConfigError` naming the first bad field."""
         for section in fields(self):
+            value = getattr(self, section.name)
+            if type(value) is not section.default_factory:
+                raise ConfigError(f"{section.name}: must be a {section.default_factory.__name__}, "
+                                  f"got {type(value).__name__}")
+        for section in fields(self):
             check_section(getattr(self, section.name), self.grid)
         return self
 
@@ -783,6 +788,9 @@ def check_section(section: Any, grid: GridConfig | None = None) -> None:
     stages check theirs every frame."""
     if not isinstance(section, TerrainConfig):
         grid = None  # only the terrain's ranges depend on it: so the stages' checks find what validate() passed
+    if type(section) not in _SECTION_NAMES:
+        raise ConfigError(f"expected one section of the config (e.g. config.{_SECTION_NAMES[TrackingConfig]}), "
+                          f"got {type(section).__name__}")
     if _passed_before(section, grid):
         return
     name = _SECTION_NAMES[type(section)]

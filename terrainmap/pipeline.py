@@ -88,6 +88,8 @@ def map_points(
     ------
     ConfigError
         ``config`` does not validate (:meth:`Config.validate`).
+    InputError
+        ``points_vehicle`` is not an (N, 3) array of numbers.
     FrameError
         No terrain can be found (no points in the area, too few cells, fit failure).
     """
@@ -266,5 +268,7 @@ def process_frame(frame: StereoFrame, config: Config, state: PipelineState) -> F
         cells, fit failure); the runner counts it and goes on.
     CalibrationError, InputError
         The frame cannot be used at all (bad calibration, image sizes); the run stops.
+    ConfigError
+        ``config`` does not validate (it is checked whenever it changed since the last frame).
     """
     return finish_frame(frame, match_frame(frame, config, state), config, state)

@@ -30,7 +30,7 @@ import cv2
 import numpy as np
 
 from .config import StereoConfig, check_section
-from .errors import CalibrationError, InputError
+from .errors import CalibrationError, InputError, brief
 from .extrinsics import is_rotation
 from .types import Extrinsics, StereoCalibration, StereoCamera
 
@@ -100,6 +100,15 @@ class StereoResult:
 
 PLAUSIBLE = {"fx": (1.0, 1e6, "pixels"), "fy": (1.0, 1e6, "pixels"), "baseline_m": (1e-3, 100.0, "m")}
 """Ranges that a stereo camera's focal lengths and baseline fall in (:func:`check_calibration`)."""
+_NUMBER = (int, float, np.integer, np.floating)
+_CALIBRATION_KINDS = {
+    **dict.fromkeys(("width", "height"), ((int, np.integer), "an integer")),
+    **dict.fromkeys(("fx", "fy", "cx", "cy", "baseline_m", "doffs"), (_NUMBER, "a number")),
+    "cx_right": ((*_NUMBER, type(None)), "a number or None"),
+    "rectified": ((bool, np.bool_), "true or false"),
+}
+"""Field → (accepted types, how a message names them) of a :class:`StereoCalibration` (never a bool
+for a number: Python's True is an int)."""
 MAX_SIDE_PX, MAX_PIXELS = 16384, 2**26
 """The largest image a calibration may describe: the matcher's per-pixel tables (16 bytes a pixel)
 and SGBM's buffers are allocated for it before any image is seen."""
@@ -109,7 +118,13 @@ def check_calibration(calibration: StereoCalibration, *, size_known: bool = True
     """Return ``calibration``, or raise :class:`CalibrationError` (one line, naming its source and
     the problem) if it is unusable. ``size_known=False`` accepts an image size of 0×0, for
     calibration files that do not state it (the first image fills it in)."""
+    if not isinstance(calibration, StereoCalibration):
+        raise CalibrationError(f"expected a StereoCalibration, got {type(calibration).__name__}")
     name = calibration.source or "stereo calibration"
+    for field, (kinds, kind_name) in _CALIBRATION_KINDS.items():
+        value = getattr(calibration, field)
+        if not isinstance(value, kinds) or (isinstance(value, bool) and field != "rectified"):
+            raise CalibrationError(f"{name}: {field} must be {kind_name}, got {brief(value)}")
     for field, value in (
         ("fx", calibration.fx),
         ("fy", calibration.fy),
@@ -439,7 +454,8 @@ class StereoMatcher:
             if not isinstance(image, np.ndarray) or image.dtype != np.uint8 or image.ndim not in (2, 3):
                 raise InputError(f"{side} image must be a uint8 H×W or H×W×3 array")
             if image.ndim == 3 and image.shape[2] != 3:
-                raise InputError(f"{side} image has {image.shape[2]} channels, expected 1 or 3")
+                hint = " (give a mono image as H×W: image[..., 0])" if image.shape[2] == 1 else ""
+                raise InputError(f"{side} image has {image.shape[2]} channels, expected 3 or an H×W mono image{hint}")
         if left.shape[:2] != right.shape[:2]:
             raise CalibrationError(f"left image is {_size(left)} but right image is {_size(right)}")
         if left.shape[:2] != (self.calibration.height, self.calibration.width):

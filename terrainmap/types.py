@@ -119,7 +119,9 @@ class Obstacle:
 
     ``center_m`` is the centre of its oriented bounding box (x, y, z), ``size_m`` its
     (length along ``yaw_rad``, width, height) and ``height_m`` its top above the terrain surface
-    (depth below it for ``kind == "negative"``). ``track_id`` is -1 before tracking.
+    (depth below it for ``kind == "negative"``), metres. ``range_m`` is the distance from the
+    vehicle origin to the cluster's nearest point (not to the centre), ``point_count`` the points
+    it holds. ``track_id`` is -1 before tracking.
     """
 
     center_m: np.ndarray

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from collections import Counter
 from pathlib import Path
 
@@ -763,3 +764,16 @@ def test_table_puts_each_metric_under_its_own_title():
     columns = dict(zip(header.split()[1:], row.split()[1:], strict=True))
     assert columns == {"rmse_m": "0.100", "mae_m": "0.050", "bias_m": "-0.020", "p95_m": "0.200", "slope°": "—",
                        "cover": "0.900", "prec": "—", "recall": "0.700", "f1": "—", "obs_rec": "—", "false/fr": "—"}
+
+
+@pytest.mark.parametrize("options, message", [
+    ({"obstacle_margin_m": float("nan")}, "obstacle_margin_m: must be a finite number >= 0, got nan"),
+    ({"obstacle_range_m": -1.0}, "obstacle_range_m: must be a finite number >= 0, got -1.0"),
+    ({"min_visible_pixels": "20"}, "min_visible_pixels: must be a whole number >= 0, got '20'"),
+    ({"min_terrain_pixels": 0}, "min_terrain_pixels: must be a whole number >= 1, got 0"),
+    ({"methods": "terrainmap"}, "--methods: give a list of method names, got the string 'terrainmap'"),
+])
+def test_evaluate_refuses_scoring_options_that_would_give_wrong_scores(tmp_path, options, message):
+    """Checked before the log is opened: a NaN margin scored every detection false, silently."""
+    with pytest.raises(ConfigError, match=re.escape(message)):
+        acc.evaluate(tmp_path / "absent.mcap", Config(), **options)

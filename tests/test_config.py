@@ -283,3 +283,14 @@ def test_a_flag_set_in_code_where_a_number_belongs_is_refused():
 def test_set_takes_spaces_around_the_equals_sign_as_toml_does():
     config = load_config(overrides=["stereo.mode = hh", "grid.fill_empty = false", " terrain.degree =2"])
     assert (config.stereo.mode, config.grid.fill_empty, config.terrain.degree) == ("hh", False, 2)
+
+
+def test_a_whole_config_or_a_dict_where_a_section_belongs_is_a_config_error():
+    """A stage given the whole config (or a section given as a dict or None) is told what it wants."""
+    from terrainmap.tracking import ObstacleTracker
+
+    with pytest.raises(ConfigError, match=r"expected one section of the config \(e.g. config.tracking\), got Config"):
+        ObstacleTracker(Config())
+    for value, got in (({"cell_size_m": 1.0}, "dict"), (None, "NoneType")):
+        with pytest.raises(ConfigError, match=f"grid: must be a GridConfig, got {got}"):
+            Config(grid=value).validate()

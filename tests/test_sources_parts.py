@@ -329,3 +329,11 @@ def test_the_first_transform_seen_for_a_frame_wins():
     extrinsics = tree.extrinsics("cam")
     assert extrinsics is not None and extrinsics.vehicle_frame_id == "base_link"  # not under odom
     np.testing.assert_allclose(extrinsics.translation, [1.0, 0.0, 0.0])
+
+
+@pytest.mark.parametrize("path", ["", None, 5])
+def test_an_empty_path_or_no_path_is_refused_not_taken_for_the_current_folder(path):
+    from terrainmap.sources import open_source
+
+    with pytest.raises(InputError, match="expected the path of a log or folder, got"):
+        open_source(path)

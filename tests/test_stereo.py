@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import re
 
 import cv2
 import numpy as np
@@ -562,3 +563,22 @@ def test_the_pipeline_knows_the_image_columns_of_its_camera():
     frame = sim_frame()
     camera = match_frame(frame, config, PipelineState(config)).camera
     assert camera.has_image and (camera.width_px, camera.cx_px) == (640, frame.calibration.cx)
+
+
+@pytest.mark.parametrize("change, message", [
+    ({"fx": "500"}, "fx must be a number, got '500'"),
+    ({"width": 64.0}, "width must be an integer, got 64.0"),
+    ({"cx": None}, "cx must be a number, got None"),
+    ({"baseline_m": True}, "baseline_m must be a number, got True"),
+])
+def test_a_calibration_built_in_code_with_a_value_of_the_wrong_kind_names_the_field(change, message):
+    calib = StereoCalibration(64, 48, fx=100.0, fy=100.0, cx=32.0, cy=24.0, baseline_m=0.5, source="rig.yaml")
+    with pytest.raises(CalibrationError, match=f"rig.yaml: {re.escape(message)}"):
+        StereoMatcher(dataclasses.replace(calib, **change))
+
+
+def test_an_image_with_one_channel_axis_is_told_to_drop_it():
+    calib = StereoCalibration(64, 48, fx=100.0, fy=100.0, cx=32.0, cy=24.0, baseline_m=0.5)
+    image = np.zeros((48, 64, 1), np.uint8)
+    with pytest.raises(InputError, match=r"left image has 1 channels, expected 3 or an H×W mono image \(give a mono"):
+        StereoMatcher(calib).rectify(image, image)

@@ -60,6 +60,7 @@ skipped for every method; a baseline failing on a frame says nothing there (NaN,
 from __future__ import annotations
 
 import logging
+import math
 import time
 from collections import Counter, defaultdict
 from collections.abc import Callable
@@ -69,7 +70,7 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from ..config import Config
-from ..errors import ConfigError, FrameError
+from ..errors import ConfigError, FrameError, brief
 from ..grid import cell_index
 from ..pipeline import PipelineState, process_frame
 from ..sim.truth import TruthFrame, open_truth, truth_at
@@ -96,6 +97,8 @@ def select_methods(methods: list[str] | None) -> list[str]:
     available = baselines.available_methods()
     if methods is None:
         return available
+    if isinstance(methods, str):
+        raise ConfigError(f"--methods: give a list of method names, got the string {methods!r}")
     for name in methods:
         if name not in baselines.METHODS:
             raise ConfigError(f"--methods: unknown method {name!r}; available: {', '.join(available)}")
@@ -105,6 +108,18 @@ def select_methods(methods: list[str] | None) -> list[str]:
     if not methods:
         raise ConfigError(f"--methods: no method given; available: {', '.join(available)}")
     return list(dict.fromkeys(methods))
+
+
+def _check_options(**options) -> None:
+    """:class:`ConfigError` naming the first of :func:`evaluate`'s scoring options that is not a
+    finite number ≥ 0 (a whole one for the pixel counts; ``min_terrain_pixels`` at least 1)."""
+    for name, value in options.items():
+        whole = name.endswith("_pixels")
+        kinds = (int, np.integer) if whole else (int, float, np.integer, np.floating)
+        least = 1 if name == "min_terrain_pixels" else 0
+        if isinstance(value, bool) or not isinstance(value, kinds) or not (math.isfinite(value) and value >= least):
+            what = "a whole number" if whole else "a finite number"
+            raise ConfigError(f"{name}: must be {what} >= {least}, got {brief(value)}")
 
 
 def match_tracks(hits: np.ndarray, distances: np.ndarray, previous: list[int | None], ids: list[int]) -> np.ndarray:
@@ -314,11 +329,14 @@ def evaluate(
     InputError
         The log has no ground truth (names the missing topics or files) or cannot be read.
     ConfigError
-        Bad config or method names.
+        Bad config, method names or scoring options (NaN or negative margins, say).
     """
     start = time.perf_counter()
     config.validate()
     names = select_methods(methods)
+    _check_options(obstacle_margin_m=obstacle_margin_m, obstacle_min_height_m=obstacle_min_height_m,
+                   obstacle_range_m=obstacle_range_m, min_visible_pixels=min_visible_pixels,
+                   min_terrain_pixels=min_terrain_pixels)
     log_path = Path(log_path)
     options = {"obstacle_margin_m": obstacle_margin_m, "obstacle_min_height_m": obstacle_min_height_m,
                "obstacle_range_m": obstacle_range_m, "min_visible_pixels": min_visible_pixels,

@@ -34,6 +34,7 @@ message naming the path or topic.
 from __future__ import annotations
 
 import numbers
+import os
 from pathlib import Path
 
 from ..errors import ConfigError, InputError
@@ -61,7 +62,10 @@ __all__ = ["SOURCES", "Source", "log_path", "open_source", "source_class"]
 
 def log_path(path: str | Path) -> Path:
     """``path``, or the rosbag2 folder where ``path`` is its ``metadata.yaml`` (as ``ros2 bag``
-    takes either)."""
+    takes either); :class:`InputError` for an empty path (which ``Path`` would take for the
+    current folder) or one that is not a path at all."""
+    if not isinstance(path, str | os.PathLike) or str(path) == "":
+        raise InputError(f"expected the path of a log or folder, got {path!r}")
     path = Path(path)
     return path.parent if path.name == "metadata.yaml" and path.is_file() else path
 
