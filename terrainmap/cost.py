@@ -72,11 +72,12 @@ def traversability_cost(
     Raises
     ------
     InputError
-        A layer does not have the grid's shape.
+        A layer does not have the grid's shape, or a confirmed obstacle's box is not finite.
     ConfigError
-        ``config`` does not validate.
+        ``config`` or ``grid_config`` does not validate.
     """
     check_section(config)
+    check_section(grid_config)
     shape = grid_config.shape
     layers = {"elevation": elevation, "slope": slope, "valid": valid}
     if step is not None:
@@ -108,6 +109,8 @@ def occupancy(obstacles: list[Obstacle], grid_config: GridConfig, clearance_m: f
     boxes = np.array([[*o.center_m[:2], *o.size_m[:2], o.yaw_rad] for o in obstacles if o.confirmed], float)
     if not len(boxes):
         return occupied.reshape(m0, m1)
+    if not np.isfinite(boxes).all():
+        raise InputError("cost: a confirmed obstacle's centre, size or yaw is not finite")
     cx, cy, length, width, yaw = boxes.T
     h = c / 2
     radius = np.hypot(length, width) / 2 + clearance_m + h * np.sqrt(2)

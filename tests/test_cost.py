@@ -300,3 +300,12 @@ def test_low_relief_on_ground_too_steep_to_drive_is_no_obstacle_and_the_cost_is_
 def test_step_height_names_a_layer_of_the_wrong_shape():
     with pytest.raises(InputError, match=r"step_height: elevation must have shape \(3, 3\), got \(3, 4\)"):
         step_height(np.zeros((3, 3)), np.zeros((3, 4)), np.ones((3, 3), bool))
+
+
+def test_a_bad_grid_or_an_obstacle_that_is_not_finite_is_refused():
+    zeros, valid = np.zeros(SHAPE), np.ones(SHAPE, bool)
+    with pytest.raises(ConfigError, match="grid.cell_size_m"):
+        traversability_cost(zeros, zeros, valid, GridConfig(cell_size_m=-1.0), [], CostConfig())
+    lost = Obstacle(np.array([np.nan, 0.0, 0.5]), np.ones(3), 0.0, 1.0, 20, 5.0, track_id=1, confirmed=True)
+    with pytest.raises(InputError, match="confirmed obstacle's centre, size or yaw is not finite"):
+        traversability_cost(zeros, zeros, valid, SMALL, [lost], CostConfig())

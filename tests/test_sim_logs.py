@@ -210,6 +210,13 @@ def test_bad_options_raise_config_errors_naming_them():
         SimConfig(baseline_m=-1).validate()
     with pytest.raises(ConfigError, match="--texture-detail"):
         SimConfig(texture_detail=0).validate()
+    # A config built in code with a value of the wrong kind, or no config at all
+    with pytest.raises(ConfigError, match="SimConfig.color: must be true or false, got 'no'"):
+        SimConfig(color="no").validate()
+    with pytest.raises(ConfigError, match="SimConfig.frames: must be an integer, got '5'"):
+        SimConfig(frames="5").validate()
+    with pytest.raises(ConfigError, match="simulate: expected a SimConfig, got NoneType"):
+        simulate(Path("unused.mcap"), None)
     # What process would refuse in the log's camera infos is refused before rendering it
     with pytest.raises(ConfigError, match=r"--baseline-m: must be within 0.001..100 m, got 0.0005"):
         SimConfig(baseline_m=0.0005).validate()

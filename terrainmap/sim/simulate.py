@@ -13,6 +13,7 @@ from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
+from ..config import _check_kinds
 from ..errors import ConfigError, InputError
 from ..stereo import PLAUSIBLE
 from .folder_log import FolderLog
@@ -64,6 +65,8 @@ class SimConfig:
         def check(ok: bool, option: str, message: str) -> None:
             if not ok:
                 raise ConfigError(f"--{option.replace('_', '-')}: {message}")
+
+        _check_kinds("SimConfig", self)  # built in code: a str or a bool where a number belongs
 
         check(self.scene in SCENES, "scene", f"unknown scene {self.scene!r}; choose one of {', '.join(SCENES)}")
         check(self.format in ("mcap", "folder"), "format", f"must be mcap or folder, got {self.format!r}")
@@ -141,6 +144,8 @@ def simulate(out: str | Path, config: SimConfig, progress: Callable[[int], None]
     ``progress(i)`` is called after each frame. Returns a summary: ``path``, ``frames``,
     ``seconds`` (wall time), ``bytes`` written. Raises ConfigError for a bad config.
     """
+    if not isinstance(config, SimConfig):
+        raise ConfigError(f"simulate: expected a SimConfig, got {type(config).__name__}")
     config.validate()
     start = time.perf_counter()
     scene = build_scene(config.scene, config.seed, length_m=config.length_m, resolution_m=config.terrain_resolution_m)
