@@ -605,8 +605,9 @@ def test_a_truth_grid_that_is_no_grid_is_named():
 
 @pytest.mark.parametrize(
     "field, value, message",
-    [("baseline_m", "x", "TypeError"), ("focal_px", 0, "ConfigError: --focal-px: must be > 0, got 0"),
-     ("frames", None, "TypeError"), ("nonsense", 1, "TypeError")],
+    [("baseline_m", "x", "ConfigError: SimConfig.baseline_m: must be a number, got 'x'"),
+     ("focal_px", 0, "ConfigError: --focal-px: must be > 0, got 0"),
+     ("frames", None, "ConfigError: SimConfig.frames: must be an integer, got None"), ("nonsense", 1, "TypeError")],
 )
 def test_a_damaged_scene_description_is_named_not_scored(tmp_path, field, value, message):
     """The simulator's settings stored with the truth (the rig the scoring rebuilds): a value of

@@ -518,6 +518,17 @@ def test_a_frame_that_fails_part_way_is_cut_off_and_nothing_more_is_written(tmp_
     assert read_metadata(path)["frames"] == "1"
 
 
+def test_a_sink_without_a_valid_config_is_refused_before_its_file_is_made(tmp_path):
+    path = tmp_path / "o.mcap"
+    with pytest.raises(ConfigError, match="config must be a Config, got NoneType"):
+        open_mcap_sink(path, "foxglove", config=None)
+    bad = Config()
+    bad.mcap.max_points = -3
+    with pytest.raises(ConfigError, match="mcap.max_points"):
+        open_mcap_sink(path, "ros2", config=bad)
+    assert not path.exists()
+
+
 @pytest.mark.parametrize("flavor", ["foxglove", "ros2"])
 def test_close_twice_and_write_after_close(tmp_path, flavor):
     path = tmp_path / "twice.mcap"

@@ -337,3 +337,15 @@ def test_an_empty_path_or_no_path_is_refused_not_taken_for_the_current_folder(pa
 
     with pytest.raises(InputError, match="expected the path of a log or folder, got"):
         open_source(path)
+
+
+def test_a_closed_source_reads_no_more(tmp_path):
+    from terrainmap.sim import SimConfig, simulate
+    from terrainmap.sources import open_source
+
+    log = tmp_path / "drive.mcap"
+    simulate(log, SimConfig(scene="flat", frames=2, width=64, height=48, focal_px=50.0))
+    source = open_source(log)
+    source.close()
+    with pytest.raises(InputError, match=f"{log}: the source is closed; open it again"):
+        next(source.frames())

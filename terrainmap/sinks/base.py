@@ -27,7 +27,7 @@ from mcap.records import DataEnd, Footer, Metadata
 from mcap.writer import MCAP0_MAGIC
 
 from ..config import Config
-from ..errors import InputError, TerrainmapError
+from ..errors import ConfigError, InputError, TerrainmapError
 from ..ros2defs import quaternion_from_matrix
 from ..types import Extrinsics, FrameResult, Obstacle, StereoFrame
 
@@ -77,6 +77,9 @@ class McapSink:
     """
 
     def __init__(self, path: str | Path, *, config: Config, metadata: Mapping[str, str] | None = None):
+        if not isinstance(config, Config):
+            raise ConfigError(f"MCAP output {path}: config must be a Config, got {type(config).__name__}")
+        config.validate()  # before the file is created: its TOML goes into the metadata at the end
         self.path = Path(path)
         self._config = config
         self._metadata = {_utf8(k): _utf8(v) for k, v in (metadata or {}).items()}

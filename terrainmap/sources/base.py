@@ -121,9 +121,11 @@ class Source(ABC):
         The window is by stamp: a pair stamped out of order is kept where its stamp lies in it, and
         reading stops at the first pair stamped :data:`END_SLACK_S` past ``end_s``. A damaged pair is
         skipped (:meth:`skipped`); :data:`MAX_DAMAGED_IN_A_ROW` of them in a row raise
-        :class:`InputError`.
+        :class:`InputError`, as does reading a source that was closed.
         """
         check_selection(start_s, end_s, every, max_frames)
+        if self._closed:
+            raise InputError(f"{self.path}: the source is closed; open it again to read its frames")
         first_ns: int | None = None
         in_window = kept = damaged_in_a_row = 0
         tally = self.tally = Tally()
