@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 import re
 import tomllib
 from dataclasses import dataclass, field, fields
@@ -940,6 +941,8 @@ def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str
         raise ConfigError(f"overrides must be a list of 'section.field=value' strings, got {overrides!r}")
     config, data = Config(), {}
     if path is not None:
+        if not isinstance(path, str | os.PathLike):
+            raise ConfigError(f"config file: expected a path, got {brief(path)}")
         path = Path(path)
         try:
             data = tomllib.loads(path.read_text())

@@ -15,6 +15,7 @@ from dataclasses import dataclass, field, fields, replace
 import numpy as np
 
 from .config import Config
+from .errors import ConfigError
 from .extrinsics import estimate_extrinsics, extrinsics_from_calibration
 from .grid import HeightGrid, cell_index, quantize
 from .obstacle_stage import make_tracker, run_obstacle_stage
@@ -93,6 +94,8 @@ def map_points(
     FrameError
         No terrain can be found (no points in the area, too few cells, fit failure).
     """
+    if not isinstance(config, Config):  # a section would pass its own validate() and fail later
+        raise ConfigError(f"map_points: config must be the whole Config, got {type(config).__name__}")
     return _map_points(points_vehicle, config.validate(), watch or Stopwatch(), camera)
 
 

@@ -24,7 +24,7 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 from .config import Config
-from .errors import FrameError, InputError
+from .errors import FrameError, InputError, TerrainmapError
 from .pipeline import Matched, PipelineState, finish_frame, match_frame
 from .sinks.base import Sink
 from .types import Extrinsics, FrameResult, StereoFrame
@@ -85,6 +85,8 @@ def run(
     ``on_frame`` is called after each frame (the result is None for a failed frame) — the CLI
     draws its progress line there. Sinks are closed when the run ends, however it ends.
     """
+    if not isinstance(sinks, list | tuple) or not all(callable(getattr(s, m, None)) for s in sinks for m in ("write", "close")):
+        raise TerrainmapError(f"run: sinks must be a list of sinks (write and close), got {sinks!r}")
     summary = RunSummary()
     start = time.perf_counter()
     ahead = None

@@ -55,7 +55,7 @@ from scipy.optimize import linear_sum_assignment
 from scipy.spatial import cKDTree
 
 from .config import GridConfig, TrackingConfig, check_section
-from .errors import InputError
+from .errors import ConfigError, InputError
 from .extrinsics import is_rotation
 from .types import Obstacle, StereoCamera
 
@@ -82,6 +82,8 @@ class ObstacleTracker:
     def __init__(self, config: TrackingConfig, *, area: GridConfig | None = None):
         check_section(config)
         if area is not None:
+            if not isinstance(area, GridConfig):
+                raise ConfigError(f"ObstacleTracker: area must be the GridConfig, got {type(area).__name__}")
             check_section(area)
         self.config = config
         self.area = area

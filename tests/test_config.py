@@ -294,3 +294,22 @@ def test_a_whole_config_or_a_dict_where_a_section_belongs_is_a_config_error():
     for value, got in (({"cell_size_m": 1.0}, "dict"), (None, "NoneType")):
         with pytest.raises(ConfigError, match=f"grid: must be a GridConfig, got {got}"):
             Config(grid=value).validate()
+
+
+def test_entry_points_given_the_wrong_object_say_what_they_want():
+    """A section where the whole config belongs, a config where the area belongs, no sinks, a number
+    for a path: each a one-line error naming what was expected, not an AttributeError or TypeError."""
+    from terrainmap import runner
+    from terrainmap.errors import TerrainmapError
+    from terrainmap.pipeline import map_points
+    from terrainmap.tracking import ObstacleTracker
+
+    config = Config()
+    with pytest.raises(ConfigError, match="map_points: config must be the whole Config, got GridConfig"):
+        map_points(np.zeros((10, 3)), config.grid)
+    with pytest.raises(ConfigError, match="ObstacleTracker: area must be the GridConfig, got TrackingConfig"):
+        ObstacleTracker(config.tracking, area=config.tracking)
+    with pytest.raises(TerrainmapError, match=r"run: sinks must be a list of sinks \(write and close\), got None"):
+        runner.run(iter([]), config, None)
+    with pytest.raises(ConfigError, match="config file: expected a path, got 5"):
+        load_config(5)
