@@ -790,12 +790,11 @@ def check_section(section: Any, grid: GridConfig | None = None) -> None:
     if not isinstance(section, TerrainConfig):
         grid = None  # only the terrain's ranges depend on it: so the stages' checks find what validate() passed
     if type(section) not in _SECTION_NAMES:
-        raise ConfigError(f"expected one section of the config (e.g. config.{_SECTION_NAMES[TrackingConfig]}), "
-                          f"got {type(section).__name__}")
+        raise ConfigError(f"expected one section of the config (e.g. config.tracking), got {type(section).__name__}")
     if _passed_before(section, grid):
         return
     name = _SECTION_NAMES[type(section)]
-    _check_kinds(name, section)
+    check_kinds(name, section)
     if isinstance(section, TerrainConfig):
         section.validate(grid)
     else:
@@ -826,7 +825,7 @@ def _passed_before(section: Any, grid: GridConfig | None) -> bool:
     return same and all(kinds)
 
 
-def _check_kinds(name: str, section: Any) -> None:
+def check_kinds(name: str, section: Any) -> None:
     """Every field of ``section`` holds a value of its declared kind (an int where a float is
     declared is fine), and every number is finite: what TOML and ``--set`` ensure for a loaded
     config, checked here for one built in code (so the sections' own checks are of ranges only).

@@ -85,7 +85,8 @@ def run(
     ``on_frame`` is called after each frame (the result is None for a failed frame) — the CLI
     draws its progress line there. Sinks are closed when the run ends, however it ends.
     """
-    if not isinstance(sinks, list | tuple) or not all(callable(getattr(s, m, None)) for s in sinks for m in ("write", "close")):
+    usable = isinstance(sinks, list | tuple) and all(callable(getattr(s, m, None)) for s in sinks for m in ("write", "close"))
+    if not usable:
         raise TerrainmapError(f"run: sinks must be a list of sinks (write and close), got {sinks!r}")
     summary = RunSummary()
     start = time.perf_counter()

@@ -13,7 +13,7 @@ from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-from ..config import _check_kinds
+from ..config import check_kinds
 from ..errors import ConfigError, InputError
 from ..stereo import PLAUSIBLE
 from .folder_log import FolderLog
@@ -66,7 +66,7 @@ class SimConfig:
             if not ok:
                 raise ConfigError(f"--{option.replace('_', '-')}: {message}")
 
-        _check_kinds("SimConfig", self)  # built in code: a str or a bool where a number belongs
+        check_kinds("SimConfig", self)  # built in code: a str or a bool where a number belongs
 
         check(self.scene in SCENES, "scene", f"unknown scene {self.scene!r}; choose one of {', '.join(SCENES)}")
         check(self.format in ("mcap", "folder"), "format", f"must be mcap or folder, got {self.format!r}")
