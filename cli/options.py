@@ -13,6 +13,8 @@ from pathlib import Path
 
 import click
 
+from terrainmap.errors import counted
+
 PLOT_SUFFIXES = (".png", ".pdf", ".svg")
 
 
@@ -90,11 +92,6 @@ NO_PAIRS = "no left and right images whose stamps agree within --pair-tolerance-
 def failures(counts: dict[str, int]) -> str:
     """``no_ground ×3, too_few_cells ×1``: frame failures by reason, most frequent first."""
     return ", ".join(f"{reason} ×{n}" for reason, n in Counter(counts).most_common())
-
-
-def counted(count: int, noun: str) -> str:
-    """``1 frame``, ``2 frames``: a count with its noun in the right number."""
-    return f"{count} {noun}{'s' * (count != 1)}"
 
 
 def wrote_before_stopping(frames: int, paths) -> str:

@@ -750,13 +750,12 @@ class Config:
 
     def validate(self) -> Config:
         """Check every section; raise :class:`ConfigError` naming the first bad field."""
-        for section in fields(self):
+        for section in fields(self):  # grid first: the terrain's ranges are checked against it
             value = getattr(self, section.name)
             if type(value) is not section.default_factory:
                 raise ConfigError(f"{section.name}: must be a {section.default_factory.__name__}, "
                                   f"got {type(value).__name__}")
-        for section in fields(self):
-            check_section(getattr(self, section.name), self.grid)
+            check_section(value, self.grid)
         return self
 
     def to_dict(self) -> dict[str, dict[str, Any]]:

@@ -14,6 +14,11 @@ _BRIEF.maxlevel, _BRIEF.maxlist, _BRIEF.maxtuple, _BRIEF.maxdict, _BRIEF.maxset 
 _BRIEF.maxstring = _BRIEF.maxother = 60
 
 
+def counted(count: int, noun: str) -> str:
+    """``1 frame``, ``2 frames``: a count with its noun in the right number, for messages."""
+    return f"{count} {noun}{'s' * (count != 1)}"
+
+
 def brief(value) -> str:
     """``repr(value)`` cut short (nesting, items, characters), for a message naming a value read
     from a file: a YAML alias bomb or a huge list stays one short line (``[[...], [...], ...]``)."""

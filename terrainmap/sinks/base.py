@@ -27,7 +27,7 @@ from mcap.records import DataEnd, Footer, Metadata
 from mcap.writer import MCAP0_MAGIC
 
 from ..config import Config
-from ..errors import ConfigError, InputError, TerrainmapError
+from ..errors import ConfigError, InputError, TerrainmapError, counted
 from ..ros2defs import quaternion_from_matrix
 from ..types import Extrinsics, FrameResult, Obstacle, StereoFrame
 
@@ -201,7 +201,7 @@ class McapSink:
         n = self.frames_written
         if n == 0:
             return "cut back to its header (no frame in it)"
-        return f"cut back to its first {n} frame{'s' * (n != 1)}, which read back without an index"
+        return f"cut back to its first {counted(n, 'frame')}, which read back without an index"
 
     def __enter__(self):
         return self

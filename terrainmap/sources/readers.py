@@ -26,14 +26,10 @@ from typing import Any
 
 import yaml
 
-from ..errors import InputError
+from ..errors import InputError, counted
 from .messages import normalize_type
 
 logger = logging.getLogger(__name__)
-
-
-def _messages(count: int) -> str:
-    return f"{count} message{'s' * (count != 1)}"
 
 
 def _reason(exc: Exception) -> str:
@@ -160,7 +156,7 @@ class _SkipsDamage:
         except InputError:
             raise
         except Exception as exc:
-            raise InputError(f"{self.path}: {what} is truncated or corrupt after {_messages(count)} of "
+            raise InputError(f"{self.path}: {what} is truncated or corrupt after {counted(count, 'message')} of "
                              f"{', '.join(topics)} ({_reason(exc)})") from exc
 
     def _undecodable(self, failing: Counter, topic: str, kind: str, log_time: int, exc: Exception) -> None:
@@ -257,7 +253,7 @@ class McapFile(_SkipsDamage):
                 self.span_ns = _widened(self.span_ns, message.log_time, message.log_time)
         except Exception as exc:
             # Not a warning: ``info`` shows it, and reading the messages raises it as the error.
-            self.damage = f"{self.path}: truncated or corrupt after {_messages(sum(self.counts.values()))} ({_reason(exc)})"
+            self.damage = f"{self.path}: truncated or corrupt after {counted(sum(self.counts.values()), 'message')} ({_reason(exc)})"
             logger.info("%s", self.damage)
 
     def messages(self, topics: list[str]) -> Iterator[tuple[str, int, Any]]:
@@ -411,6 +407,7 @@ class McapLog:
             raise InputError(f"{path}: no .mcap files in this folder")
         self.types: dict[str, str] = {}
         self.counts: dict[str, int | None] = {}
+        self.span_ns: tuple[int, int] | None = None  # of all its files' messages
         self.damage = next((f.damage for f in self.files if f.damage), None)
         if path.is_dir() and (missing := missing_bag_files(path)):  # a recording's file lost: its messages are too
             self.damage = f"{path / 'metadata.yaml'} lists {', '.join(missing)}, not in the folder"
@@ -425,8 +422,6 @@ class McapLog:
                 where.setdefault(topic, f.path)
             for topic, n in f.counts.items():
                 self.counts[topic] = (self.counts.get(topic) or 0) + (n or 0)
-        self.span_ns = None
-        for f in self.files:
             if f.span_ns is not None:
                 self.span_ns = _widened(self.span_ns, *f.span_ns)
 
