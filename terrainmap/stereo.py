@@ -347,10 +347,14 @@ class StereoMatcher:
             pair = [cv2.copyMakeBorder(image, 0, 0, self._pad, 0, cv2.BORDER_REPLICATE) for image in pair]
         disparity = self._sgbm(pair)
         rows = len(disparity) if last_row is None else min(last_row, len(disparity))
-        if self.config.vertical_passes == 2 and rows > 0:  # cancels the single-pass modes' bias on ground (config)
+        top = self._second_pass_top(disparity[:rows]) if self.config.vertical_passes == 2 else rows
+        if top < rows:  # cancels the single-pass modes' bias on ground (config)
             end = min(rows + _SECOND_PASS_MARGIN, len(disparity))
-            upside_down = cv2.flip(self._sgbm([cv2.flip(image[:end], 0) for image in pair]), 0)[:rows]
-            both = disparity[:rows]
+            start = max(0, top - self.config.block_size)  # the upside-down paths end at its first row
+            upside_down = cv2.flip(self._sgbm([cv2.flip(image[start:end], 0) for image in pair]), 0)
+            top = top if start else 0  # rows above top, matched only for SGBM's window, keep one pass
+            upside_down = upside_down[top - start : rows - start]
+            both = disparity[top:rows]
             with np.errstate(invalid="ignore"):  # NaN compares false: pixels only one pass matched drop
                 disagree = ~(np.abs(both - upside_down) <= self.config.pass_tolerance_px)
             both += upside_down
@@ -367,6 +371,19 @@ class StereoMatcher:
         if self.config.fattening_trim_px > 0:
             trim_fattening(disparity, self.config.fattening_jump_px, self.config.fattening_trim_px)
         return disparity
+
+    def _second_pass_top(self, disparity: np.ndarray) -> int:
+        """The first row the upside-down pass averages: with ``vertical_passes_max_range_m``, the
+        first of ``disparity``'s rows (single pass, H×W pixels) in which at least half the pixels
+        lie nearer than that range, else 0; ``len(disparity)`` when no row qualifies."""
+        range_m = self.config.vertical_passes_max_range_m
+        if range_m <= 0 or len(disparity) == 0:
+            return 0
+        p = self.pinhole
+        with np.errstate(invalid="ignore"):  # NaN compares false: no match is not near
+            near = np.count_nonzero(disparity >= p.fx * p.baseline_m / range_m - p.doffs, axis=1)
+        rows = np.flatnonzero(near >= 0.5 * disparity.shape[1])
+        return int(rows[0]) if rows.size else len(disparity)
 
     def _sgbm(self, pair) -> np.ndarray:
         """One SGBM call on the (padded) grey pair → H×W float32 pixels, NaN where invalid."""

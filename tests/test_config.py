@@ -235,8 +235,8 @@ def test_the_accuracy_example_loads_and_sets_what_it_says():
     expected = load_config(
         overrides=[
             "stereo.vertical_passes=2",
-            "segmentation.threshold_per_m=0.005",
-            "segmentation.disparity_tolerance_px=1.5",
+            "stereo.vertical_passes_min_range_m=8",
+            "stereo.vertical_passes_max_range_m=30",
         ]
     )
     assert config.to_dict() == expected.to_dict() != Config().to_dict()

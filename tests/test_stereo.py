@@ -538,6 +538,31 @@ def test_a_second_pass_on_the_far_rows_only_unbiases_far_ground_and_leaves_the_n
         StereoConfig(vertical_passes_min_range_m=-1).validate()
 
 
+def test_a_second_pass_on_the_rows_of_near_ground_only_unbiases_them_and_leaves_the_rows_above():
+    """``vertical_passes_max_range_m`` has the upside-down pass skip the rows above the first in
+    which half the pixels lie nearer than it: on the hills, those rows keep the single pass's values
+    exactly, and the ground below reads unbiased as with the whole second pass."""
+    renderer = SimConfig(scene="hills", frames=1, seed=1).renderer(build_scene("hills", 1, length_m=10.0))
+    frame, calibration = renderer.frame(0), renderer.rig.calibration()
+    truth = calibration.fx * calibration.baseline_m / frame.depth
+    single = StereoMatcher(calibration, StereoConfig()).compute(frame.left, frame.right).disparity
+    band = StereoMatcher(calibration, StereoConfig(vertical_passes=2, vertical_passes_max_range_m=20.0))
+    disparity = band.compute(frame.left, frame.right).disparity
+    near = calibration.fx * calibration.baseline_m / 20.0
+    first = int(np.argmax(np.count_nonzero(single >= near, axis=1) >= 0.5 * calibration.width))
+    assert 150 < first < 300  # rows of sky and of ground beyond 20 m above it
+    np.testing.assert_array_equal(disparity[:first], single[:first])
+    ground = (frame.label == 1) & (frame.depth < 20)
+    ground[:first] = False
+    kept = ground & np.isfinite(disparity)
+    assert kept.sum() > 0.95 * (ground & np.isfinite(single)).sum()  # only disagreements drop
+    assert abs(np.median(disparity[kept] - truth[kept])) < 0.1
+    both = kept & np.isfinite(single)
+    assert np.median(single[both] - truth[both]) < -0.15  # what the second pass takes away
+    with pytest.raises(ConfigError, match="stereo.vertical_passes_max_range_m"):
+        StereoConfig(vertical_passes_max_range_m=float("nan")).validate()
+
+
 def test_rig_camera_places_columns_in_the_rectified_image():
     from terrainmap.stereo import RectifiedPinhole, rig_camera
 
