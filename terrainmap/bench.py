@@ -150,7 +150,7 @@ def first_frame(path, **open_kwargs) -> StereoFrame:
     ``open_kwargs``: topics, calibration and pairing tolerance, as for
     :func:`~terrainmap.sources.open_source`."""
     from .errors import InputError
-    from .runner import check_stamp
+    from .pipeline import check_stamp
     from .sources import open_source
 
     with open_source(path, **open_kwargs) as source:

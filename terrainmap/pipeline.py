@@ -15,7 +15,7 @@ from dataclasses import dataclass, field, fields, replace
 import numpy as np
 
 from .config import Config
-from .errors import ConfigError
+from .errors import ConfigError, InputError
 from .extrinsics import estimate_extrinsics, extrinsics_from_calibration
 from .grid import HeightGrid, cell_index, quantize
 from .obstacle_stage import make_tracker, run_obstacle_stage
@@ -193,9 +193,18 @@ class Matched:
         return rig_camera(self.stereo.pinhole, self.extrinsics)
 
 
+def check_stamp(frame: StereoFrame) -> None:
+    """:class:`InputError` naming the frame's source when its stamp is no time an MCAP or ROS
+    stamp (unsigned 64-bit) can hold, before an output refuses it mid-write (the tracker would take it)."""
+    if not 0 <= frame.stamp_ns <= 2**63 - 1:
+        raise InputError(f"{frame.source or 'input'}: frame {frame.index} has stamp {frame.stamp_ns} ns, "
+                         "outside 1970–2262 (0 to 2^63 − 1 ns)")
+
+
 def match_frame(frame: StereoFrame, config: Config, state: PipelineState) -> Matched:
     """SGM disparity → 3D points in the vehicle frame (uses and updates ``state.matcher`` and
     ``state.extrinsics`` only, so it can run one frame ahead of :func:`finish_frame`)."""
+    check_stamp(frame)
     watch = Stopwatch()
     with watch("stereo"):
         if state.matcher is None or not state.matcher.same_setup(frame.calibration, config.stereo):

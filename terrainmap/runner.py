@@ -24,7 +24,7 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 from .config import Config
-from .errors import FrameError, InputError, TerrainmapError
+from .errors import FrameError, TerrainmapError
 from .pipeline import Matched, PipelineState, finish_frame, match_frame
 from .sinks.base import Sink
 from .types import Extrinsics, FrameResult, StereoFrame
@@ -32,7 +32,6 @@ from .types import Extrinsics, FrameResult, StereoFrame
 log = logging.getLogger(__name__)
 
 _RESERVOIR = 4096  # per-stage time samples kept for the medians
-_MAX_STAMP_NS = 2**63 - 1
 
 
 @dataclass
@@ -122,14 +121,6 @@ def run(
     return summary
 
 
-def check_stamp(frame: StereoFrame) -> None:
-    """:class:`InputError` naming the frame's source when its stamp is no time an MCAP or ROS
-    stamp (unsigned 64-bit) can hold, before an output refuses it mid-write."""
-    if not 0 <= frame.stamp_ns <= _MAX_STAMP_NS:
-        raise InputError(f"{frame.source or 'input'}: frame {frame.index} has stamp {frame.stamp_ns} ns, "
-                         "outside 1970–2262 (0 to 2^63 − 1 ns)")
-
-
 def _matched_ahead(
     frames: Iterable[StereoFrame], config: Config, state: PipelineState
 ) -> Iterator[tuple[StereoFrame, Matched | FrameError]]:
@@ -141,7 +132,6 @@ def _matched_ahead(
         frame = next(source, None)
         if frame is None:
             return None
-        check_stamp(frame)
         try:
             return frame, match_frame(frame, config, state)
         except FrameError as exc:

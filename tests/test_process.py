@@ -1,5 +1,6 @@
 """End-to-end: `terrainmap process` and the runner on the real KITTI frame and bad input."""
 
+import dataclasses
 import os
 import shutil
 from pathlib import Path
@@ -11,7 +12,7 @@ from log_copies import rewrite_mcap, rewrite_rosbag2
 from mcap.reader import make_reader
 from mcap_protobuf.decoder import DecoderFactory
 
-from terrainmap import runner
+from terrainmap import pipeline, runner
 from terrainmap.cli.main import cli
 from terrainmap.config import Config
 from terrainmap.sinks import open_mcap_sink
@@ -580,9 +581,9 @@ def test_the_latest_stamp_an_output_holds_is_accepted_and_one_more_refused():
 
     image = np.zeros((3, 4), np.uint8)
     calibration = StereoCalibration(width=4, height=3, fx=1.0, fy=1.0, cx=2.0, cy=1.5, baseline_m=0.5)
-    runner.check_stamp(StereoFrame(0, 2**63 - 1, image, image, calibration))  # 2262-04-11
+    pipeline.check_stamp(StereoFrame(0, 2**63 - 1, image, image, calibration))  # 2262-04-11
     with pytest.raises(InputError, match="frame 1 has stamp 9223372036854775808 ns, outside 1970–2262"):
-        runner.check_stamp(StereoFrame(1, 2**63, image, image, calibration, source="log.mcap"))
+        pipeline.check_stamp(StereoFrame(1, 2**63, image, image, calibration, source="log.mcap"))
 
 
 def test_an_output_in_a_subfolder_of_the_input_folder_is_refused(small_log, tmp_path):
@@ -592,3 +593,14 @@ def test_an_output_in_a_subfolder_of_the_input_folder_is_refused(small_log, tmp_
     result = CliRunner().invoke(cli, ["process", str(folder), "-o", str(folder / "sub" / "o.mcap")])
     assert result.exit_code == 2 and "lies inside the input folder" in result.output
     assert not (folder / "sub" / "o.mcap").exists()
+
+
+def test_process_frame_refuses_a_negative_stamp_naming_the_frame():
+    """A library caller's frame gets the runner's check: the tracker would take a negative stamp."""
+    from terrainmap.bench import sim_frame
+    from terrainmap.errors import InputError
+    from terrainmap.pipeline import PipelineState, process_frame
+
+    frame = dataclasses.replace(sim_frame(), stamp_ns=-1, source="mine.mcap")
+    with pytest.raises(InputError, match="^mine.mcap: frame 0 has stamp -1 ns, outside 1970–2262"):
+        process_frame(frame, Config(), PipelineState(Config()))
