@@ -651,9 +651,12 @@ def test_damaged_truth_in_a_log_is_an_input_error_not_wrong_scores(tmp_path, whe
         summary_start = struct.unpack_from("<Q", data, len(data) - 8 - 20)[0]
         data[data.index(b"/truth/left/depth", summary_start) + 8] ^= 0x01  # /truth/left/depth -> .../lefu/...
     log.write_bytes(bytes(data))
-    with pytest.raises(InputError, match=f"{log}: damaged"):
+    with pytest.raises(InputError, match=f"{log}: damaged") as info:
         with open_truth(log) as truth:
             list(truth.frames())
+    if where == "chunk":  # where in the log: the log time of the last truth read before the chunk
+        seconds = float(re.search(r"damaged ground truth after log time (\d+\.\d{3}) s", str(info.value))[1])
+        assert summary.chunk_indexes[0].message_start_time <= seconds * 1e9 <= chunk.message_start_time + 5e5
 
 
 def test_bands_take_their_lower_edge_and_precision_is_not_recall():

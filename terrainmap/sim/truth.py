@@ -264,11 +264,16 @@ def _mcap_frames(truth: Truth) -> Iterator[TruthFrame]:
 
 def _undamaged(messages: Iterator, path: Path) -> Iterator:
     """``messages``, with any error in reading them (a chunk's CRC, its decompression, a message's
-    decoding: mcap and its codecs raise many kinds) one :class:`InputError` naming the log."""
+    decoding: mcap and its codecs raise many kinds) one :class:`InputError` naming the log and the
+    log time of the last message read before it."""
+    last = None
     try:
-        yield from messages
+        for item in messages:
+            last = item[2].log_time
+            yield item
     except Exception as exc:
-        raise InputError(f"{path}: damaged ground truth ({type(exc).__name__}: {exc})") from exc
+        where = "before its first truth message" if last is None else f"after log time {last / 1e9:.3f} s"
+        raise InputError(f"{path}: damaged ground truth {where} ({type(exc).__name__}: {exc})") from exc
 
 
 def _mcap_frame(truth: Truth, index: int, stamp_ns: int, parts: dict) -> TruthFrame:
