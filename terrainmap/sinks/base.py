@@ -157,6 +157,7 @@ class McapSink:
         if self._closed:
             return
         self._closed = True
+        failed_in_frame = self._failed
         try:
             if self._failed is None:
                 self._finish(self._metadata_record())
@@ -168,7 +169,8 @@ class McapSink:
             except OSError as exc:
                 self._failed = self._failed or exc
         if isinstance(self._failed, OSError):
-            raise InputError(f"cannot finish MCAP output {self.path}: {self._failed.strerror or self._failed}; "
+            what = "write" if self._failed is failed_in_frame else "finish"
+            raise InputError(f"cannot {what} MCAP output {self.path}: {self._failed.strerror or self._failed}; "
                              f"{self._cut_back()}") from self._failed
         if self._failed is not None:  # the run's own error says what went wrong
             log.warning("MCAP output %s: %s", self.path, self._cut_back())
