@@ -338,8 +338,9 @@ class StereoMatcher:
         :data:`_SECOND_PASS_MARGIN` rows more below them whose single-pass values it leaves."""
         if first_row > 0:
             disparity = np.full(left_rect.shape[:2], np.nan, np.float32)
-            rest = None if last_row is None else max(last_row - first_row, 0)
-            disparity[first_row:] = self.match(left_rect[first_row:], right_rect[first_row:], 0, rest)
+            if first_row < len(disparity):  # SGBM fails on no rows
+                rest = None if last_row is None else max(last_row - first_row, 0)
+                disparity[first_row:] = self.match(left_rect[first_row:], right_rect[first_row:], 0, rest)
             return disparity
         grey = to_grey(left_rect)
         pair = (grey, to_grey(right_rect))

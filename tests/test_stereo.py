@@ -607,3 +607,15 @@ def test_an_image_with_one_channel_axis_is_told_to_drop_it():
     image = np.zeros((48, 64, 1), np.uint8)
     with pytest.raises(InputError, match=r"left image has 1 channels, expected 3 or an H×W mono image \(give a mono"):
         StereoMatcher(calib).rectify(image, image)
+
+
+@pytest.mark.parametrize("passes", [1, 2])
+def test_matching_from_a_row_at_or_past_the_last_matches_nothing(passes):
+    """``match(first_row=)`` at or past the image's last row (a frame all sky) gives an all-NaN
+    disparity, not OpenCV's assertion on an empty image."""
+    calibration = StereoCalibration(width=160, height=120, fx=120.0, fy=120.0, cx=80.0, cy=60.0, baseline_m=0.3)
+    matcher = StereoMatcher(calibration, StereoConfig(vertical_passes=passes, vertical_passes_max_range_m=30))
+    image = np.random.default_rng(0).integers(0, 255, (120, 160), dtype=np.uint8)
+    for first_row in (119, 120, 500):
+        disparity = matcher.match(image, image, first_row)
+        assert disparity.shape == (120, 160) and np.isnan(disparity[:119]).all()
