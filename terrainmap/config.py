@@ -467,8 +467,8 @@ class StereoConfig:
     paths run up the image, so the rows it skips do not feed those it matches. 0: every row.
     On the simulated drives 30, with ``vertical_passes_min_range_m`` 8, kept the RMSE within 20 m
     at 11.1 and 10.3 cm and the recall at 0.845 and 0.891, with 0.10 and 0.10 false obstacles per
-    frame summed (without it 0.20 and 0.15), for 1.6–1.7 instead of 1.9 × SGBM's time on the
-    simulated mounds frame (docs/accuracy.md, settings table)."""
+    frame summed (without it 0.20 and 0.15), for 1.56–1.75 instead of 1.86–1.96 × SGBM's time on
+    the simulated mounds frame (docs/accuracy.md, settings table)."""
     pass_tolerance_px: float = 2.0
     """With ``vertical_passes`` = 2: a pixel whose two disparities differ by more than this is
     dropped (one of them is a mismatch), as is a pixel only one pass matched."""

@@ -335,7 +335,8 @@ class StereoMatcher:
         """SGBM on a rectified pair → disparity H×W float32 in pixels, NaN where invalid.
         Rows above ``first_row`` are not matched (NaN). With ``config.vertical_passes`` 2, the
         upside-down pass covers the rows above ``last_row`` only (all when None), matching
-        :data:`_SECOND_PASS_MARGIN` rows more below them whose single-pass values it leaves."""
+        :data:`_SECOND_PASS_MARGIN` rows more below them whose single-pass values it leaves, and
+        with ``config.vertical_passes_max_range_m`` the rows from the first of near ground down."""
         if first_row > 0:
             disparity = np.full(left_rect.shape[:2], np.nan, np.float32)
             if first_row < len(disparity):  # SGBM fails on no rows
