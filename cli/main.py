@@ -33,6 +33,11 @@ COMMANDS = {
 }
 
 
+class _Interrupted(Exception):
+    """A KeyboardInterrupt (Ctrl-C, or SIGTERM made one) carried past click, whose own handler
+    prints an empty line before its Abort: :func:`main` says "Interrupted." alone."""
+
+
 class LazyGroup(click.Group):
     """A click group whose subcommands are imported on first use."""
 
@@ -42,6 +47,12 @@ class LazyGroup(click.Group):
 
     def list_commands(self, ctx: click.Context) -> list[str]:
         return sorted(set(super().list_commands(ctx)) | set(self.lazy))
+
+    def invoke(self, ctx: click.Context):
+        try:
+            return super().invoke(ctx)
+        except KeyboardInterrupt as exc:
+            raise _Interrupted from exc
 
     def get_command(self, ctx: click.Context, name: str) -> click.Command | None:
         if name in self.lazy:
@@ -119,7 +130,9 @@ def main(argv: list[str] | None = None) -> None:
         else:
             click.echo(f"Error: {exc}", err=True)
         _exit(2)
-    except KeyboardInterrupt:
+    except (KeyboardInterrupt, _Interrupted):
+        if GracefulStop.last_signal in (None, signal.SIGINT) and sys.stderr.isatty():
+            click.echo(err=True)  # past the terminal's "^C"
         click.echo("Interrupted.", err=True)
         sys.exit(_signal_exit_code())
     except MemoryError as exc:  # settings past what the machine holds (a huge grid or net)

@@ -1,5 +1,6 @@
 import json
 import os
+import sys
 import tomllib
 
 import pytest
@@ -79,6 +80,23 @@ def test_interruptions_and_os_errors_end_with_one_line(monkeypatch, capsys, erro
         main(["config"])
     assert exc.value.code == code
     assert capsys.readouterr().err.splitlines() == [line]
+
+
+@pytest.mark.parametrize("terminal", [False, True])
+def test_ctrl_c_in_a_command_ends_with_interrupted_after_the_terminal_s_caret_c_only(monkeypatch, capsys, terminal):
+    """click prints an empty line before its Abort; terrainmap's "Interrupted." is alone, after a
+    line end only on a terminal, where the "^C" that Ctrl-C echoes would precede it."""
+    import click
+
+    def interrupted(self, ctx):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(click.Group, "invoke", interrupted)
+    monkeypatch.setattr(sys.stderr, "isatty", lambda: terminal)
+    with pytest.raises(SystemExit) as exc:
+        main(["config"])
+    assert exc.value.code == 130
+    assert capsys.readouterr().err == ("\n" if terminal else "") + "Interrupted.\n"
 
 
 def test_eval_artificial_obstacle_writes_json_csv_and_plot(tmp_path):
@@ -320,7 +338,7 @@ def test_sigterm_ends_a_command_like_ctrl_c_and_leaves_no_partial_report(tmp_pat
         main(["eval", "artificial-obstacle", "--nets", "5", "--widths", "1", "--heights", "1",
               "--json", str(tmp_path / "r.json")])
     assert exc.value.code == 128 + signal.SIGTERM
-    assert capsys.readouterr().err.splitlines()[-1] == "Interrupted."
+    assert capsys.readouterr().err == "Interrupted.\n"  # one line: no empty one before it
     assert list(tmp_path.iterdir()) == []
     assert signal.getsignal(signal.SIGTERM) is before
 
