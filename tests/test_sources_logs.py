@@ -90,6 +90,14 @@ def ros_image(stamp_ns: int, frame: str, array: np.ndarray, encoding: str) -> di
             "is_bigendian": 0, "step": array.strides[0], "data": array.tobytes()}
 
 
+def cut_short(image, data: bytes):
+    """A decoded raw Image message object ``image`` with its ``data`` replaced (cut short)."""
+    from types import SimpleNamespace
+
+    fields = ("header", "height", "width", "encoding", "is_bigendian", "step")
+    return SimpleNamespace(**{name: getattr(image, name) for name in fields}, data=data)
+
+
 def info_msg(*args, **changes):
     """A CameraInfo message object (attributes, as a decoder gives it) of :func:`ros_info` with ``changes``."""
     from types import SimpleNamespace
@@ -906,8 +914,6 @@ def test_a_pair_whose_image_cannot_be_decoded_is_skipped_and_reading_goes_on(tmp
 def test_a_pair_whose_raw_image_is_cut_short_is_skipped_and_reading_goes_on(tmp_path, monkeypatch, caplog):
     """A raw Image whose data is shorter than its height × step is damage of that pair, as a
     compressed image that cannot be decoded is: the pair is skipped, named by the log and its time."""
-    from types import SimpleNamespace
-
     from terrainmap.sources import messages
 
     log = write_ros2_log(tmp_path / "run.mcap", n=4)
@@ -916,8 +922,7 @@ def test_a_pair_whose_raw_image_is_cut_short_is_skipped_and_reading_goes_on(tmp_
     def third_image_cut_short(msg, msg_type, topic):
         calls.append(topic)
         if len(calls) == 3:  # the second pair's left image: 8×6 rgb8 needs 144 bytes
-            fields = ("header", "height", "width", "encoding", "is_bigendian", "step")
-            msg = SimpleNamespace(**{name: getattr(msg, name) for name in fields}, data=bytes(msg.data)[:50])
+            msg = cut_short(msg, bytes(msg.data)[:50])
         return decode(msg, msg_type, topic)
 
     monkeypatch.setattr(messages, "image_array", third_image_cut_short)
@@ -932,21 +937,18 @@ def test_a_pair_whose_raw_image_is_cut_short_is_skipped_and_reading_goes_on(tmp_
 def test_pairs_that_never_decode_end_the_reading_after_20_in_a_row(tmp_path, monkeypatch):
     """Every image of a log cut short is no damage here and there: the 20th such pair in a row ends
     the reading with one error; fewer in a row are skipped and the pairs between them kept."""
-    from types import SimpleNamespace
-
     from terrainmap.sources import messages
     from terrainmap.sources.base import MAX_DAMAGED_IN_A_ROW
 
     log = write_ros2_log(tmp_path / "run.mcap", n=MAX_DAMAGED_IN_A_ROW + 2)
     decode, good = messages.image_array, set()
 
-    def cut_short(msg, msg_type, topic):
+    def left_cut_short(msg, msg_type, topic):
         if int(msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec) in good or topic.endswith("right/image_rect"):
             return decode(msg, msg_type, topic)
-        fields = ("header", "height", "width", "encoding", "is_bigendian", "step")
-        return decode(SimpleNamespace(**{name: getattr(msg, name) for name in fields}, data=b""), msg_type, topic)
+        return decode(cut_short(msg, b""), msg_type, topic)
 
-    monkeypatch.setattr(messages, "image_array", cut_short)
+    monkeypatch.setattr(messages, "image_array", left_cut_short)
     with open_source(log) as source, pytest.raises(InputError) as exc:
         list(source.frames())
     assert str(exc.value).startswith(f"{log}: 20 stereo pairs in a row cannot be read, which is no damage here and "
