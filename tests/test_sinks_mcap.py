@@ -544,6 +544,27 @@ def test_close_twice_and_write_after_close(tmp_path, flavor):
 
 
 @pytest.mark.parametrize("flavor", ["foxglove", "ros2"])
+@pytest.mark.parametrize("cut", [False, True])
+def test_the_finished_or_cut_back_file_is_synced_to_disk_whole(tmp_path, monkeypatch, flavor, cut):
+    """close() has the OS write the file to the device once it is whole (its summary, or the
+    ending after the frames kept), so that a power cut after the run loses nothing of it."""
+    from terrainmap.sinks import base, mcap_foxglove, mcap_ros2
+
+    synced = []
+    monkeypatch.setattr(base.os, "fsync", lambda fd: synced.append(os.fstat(fd).st_size))
+    path = tmp_path / "synced.mcap"
+    sink = open_mcap_sink(path, flavor, config=Config())
+    sink.write(*make_frame(0))
+    if cut:
+        module, name = (mcap_foxglove, "encode_points") if flavor == "foxglove" else (mcap_ros2, "encode_point_cloud2")
+        monkeypatch.setattr(module, name, lambda *args, **kwargs: 1 / 0)
+        with pytest.raises(ZeroDivisionError):
+            sink.write(*make_frame(1))
+    sink.close()
+    assert synced == [path.stat().st_size] and sink.finished is not cut
+
+
+@pytest.mark.parametrize("flavor", ["foxglove", "ros2"])
 @pytest.mark.parametrize("stamp", [-1, 1.7e18, 2**64, True])
 def test_a_bad_stamp_is_refused_and_the_frames_before_it_are_kept(tmp_path, flavor, stamp):
     path = tmp_path / "stamp.mcap"

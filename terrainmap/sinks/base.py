@@ -17,6 +17,7 @@ import contextlib
 import json
 import logging
 import numbers
+import os
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Protocol, runtime_checkable
@@ -42,6 +43,13 @@ POINT_DTYPE = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("label", "u1"
 """Packed point record of both flavours: 13 bytes, x, y, z in metres (vehicle frame), Label."""
 OBSTACLE_RGBA = {"positive": (1.0, 0.35, 0.1, 0.85), "negative": (0.3, 0.3, 1.0, 0.85)}
 """Box colour by :attr:`Obstacle.kind` (others: grey)."""
+
+
+def _to_disk(file) -> None:
+    """Flush ``file`` and have the OS write it to the device: the output of a finished (or cut
+    back) run then survives a power cut right after, as on a vehicle whose power is switched off."""
+    file.flush()
+    os.fsync(file.fileno())
 
 
 def _utf8(value) -> str:
@@ -161,6 +169,7 @@ class McapSink:
         try:
             if self._failed is None:
                 self._finish(self._metadata_record())
+                _to_disk(self._stream)
         except OSError as exc:  # disk full, device gone: the summary could not be written
             self._failed = exc
         finally:
@@ -195,6 +204,7 @@ class McapSink:
                     file.truncate(self._whole)
                     file.seek(self._whole)
                     file.write(ending.end())
+                    _to_disk(file)
                 break
             except OSError as exc:
                 error = exc
