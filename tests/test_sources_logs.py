@@ -126,9 +126,10 @@ def pair_images(i: int, shape=(6, 8, 3)) -> tuple[np.ndarray, np.ndarray]:
 
 def write_ros2_log(path: Path, n: int = 6, *, camera_info=True, tf=True, topics=("/cam/left/image_rect", "/cam/right/image_rect"),
                    encode=lambda a: (a, "rgb8"), d=(0.0,) * 5, right_offset_ns=2_000_000, chunk_size=1024,
-                   right_tx=-400.0 * 0.25, extra_tf=()) -> Path:
+                   right_tx=-400.0 * 0.25, extra_tf=(), frame_ids=("left_optical", "right_optical")) -> Path:
     """A ROS 2 MCAP: tf_static and camera_info first, then n pairs at 10 Hz (right 2 ms late) and
-    one unpaired left image in the middle. ``extra_tf``: more static (parent, child, xyz, q)."""
+    one unpaired left image in the middle. ``extra_tf``: more static (parent, child, xyz, q);
+    ``frame_ids``: the left and right camera messages' header frame ids."""
     with open(path, "wb") as f, Ros2Writer(f, chunk_size=chunk_size) as writer:
         image_schema = writer.register_msgdef("sensor_msgs/msg/Image", IMAGE_DEF + HEADER)
         if tf:
@@ -139,15 +140,15 @@ def write_ros2_log(path: Path, n: int = 6, *, camera_info=True, tf=True, topics=
                 writer.write_message("/tf_static", tf_schema, tf_message(T0, parent, child, xyz, q), T0)
         if camera_info:
             info_schema = writer.register_msgdef("sensor_msgs/msg/CameraInfo", INFO_DEF + HEADER)
-            for side, tx in (("left", 0.0), ("right", right_tx)):
-                writer.write_message(f"/cam/{side}/camera_info", info_schema, ros_info(T0, f"{side}_optical", 8, 6, tx, d), T0)
+            for side, tx, frame in (("left", 0.0, frame_ids[0]), ("right", right_tx, frame_ids[1])):
+                writer.write_message(f"/cam/{side}/camera_info", info_schema, ros_info(T0, frame, 8, 6, tx, d), T0)
         for i in range(n):
             stamp = T0 + i * 100_000_000
             left, right = pair_images(i)
-            writer.write_message(topics[0], image_schema, ros_image(stamp, "left_optical", *encode(left)), stamp)
+            writer.write_message(topics[0], image_schema, ros_image(stamp, frame_ids[0], *encode(left)), stamp)
             if i == n // 2:
-                writer.write_message(topics[0], image_schema, ros_image(stamp + 50_000_000, "left_optical", *encode(left)), stamp + 1)
-            writer.write_message(topics[1], image_schema, ros_image(stamp + right_offset_ns, "right_optical", *encode(right)),
+                writer.write_message(topics[0], image_schema, ros_image(stamp + 50_000_000, frame_ids[0], *encode(left)), stamp + 1)
+            writer.write_message(topics[1], image_schema, ros_image(stamp + right_offset_ns, frame_ids[1], *encode(right)),
                                  stamp + right_offset_ns)
     return path
 
@@ -611,6 +612,16 @@ def test_odometry_of_base_footprint_gives_the_pose_of_base_link_the_camera_is_mo
         frame = next(iter(source.frames()))
     assert frame.extrinsics.vehicle_frame_id == "base_link"
     np.testing.assert_allclose(frame.vehicle_pose[:3, 3], [10.0, 0.0, 0.3])
+
+
+def test_camera_messages_without_a_frame_id_are_in_camera_optical(tmp_path):
+    """A driver that leaves header.frame_id empty: the camera frame is ``camera_optical``, not ''
+    (the outputs' /tf would place an unnamed frame, which tf2 ignores)."""
+    log = write_ros2_log(tmp_path / "unnamed.mcap", tf=False, frame_ids=("", "/"))
+    with open_source(log) as source:
+        frames = list(source.frames())
+        assert source.frame_id == source.describe()["frame_id"] == "camera_optical"
+    assert {f.frame_id for f in frames} == {"camera_optical"}  # what an estimated camera pose is placed in
 
 
 def test_copies_of_a_simulated_drive_keep_its_vehicle_poses(tmp_path):

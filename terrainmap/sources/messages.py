@@ -40,7 +40,10 @@ def stamp_ns(msg) -> int:
 
 
 def frame_id(msg) -> str:
-    return str(msg.header.frame_id if hasattr(msg, "header") else msg.frame_id).lstrip("/")
+    """The message's frame id without a leading '/'; ``camera_optical`` where the driver left it
+    empty (a transform to an unnamed frame is one tf2 ignores and Foxglove cannot name)."""
+    name = str(msg.header.frame_id if hasattr(msg, "header") else msg.frame_id).lstrip("/")
+    return name or "camera_optical"
 
 
 def image_array(msg, msg_type: str, topic: str) -> np.ndarray:
