@@ -126,10 +126,10 @@ def pair_images(i: int, shape=(6, 8, 3)) -> tuple[np.ndarray, np.ndarray]:
 
 def write_ros2_log(path: Path, n: int = 6, *, camera_info=True, tf=True, topics=("/cam/left/image_rect", "/cam/right/image_rect"),
                    encode=lambda a: (a, "rgb8"), d=(0.0,) * 5, right_offset_ns=2_000_000, chunk_size=1024,
-                   right_tx=-400.0 * 0.25, extra_tf=(), frame_ids=("left_optical", "right_optical")) -> Path:
+                   right_tx=-400.0 * 0.25, extra_tf=(), frame_ids=("left_optical", "right_optical"), r=np.eye(3)) -> Path:
     """A ROS 2 MCAP: tf_static and camera_info first, then n pairs at 10 Hz (right 2 ms late) and
     one unpaired left image in the middle. ``extra_tf``: more static (parent, child, xyz, q);
-    ``frame_ids``: the left and right camera messages' header frame ids."""
+    ``frame_ids``: the left and right camera messages' header frame ids; ``d``, ``r``: both infos'."""
     with open(path, "wb") as f, Ros2Writer(f, chunk_size=chunk_size) as writer:
         image_schema = writer.register_msgdef("sensor_msgs/msg/Image", IMAGE_DEF + HEADER)
         if tf:
@@ -141,7 +141,7 @@ def write_ros2_log(path: Path, n: int = 6, *, camera_info=True, tf=True, topics=
         if camera_info:
             info_schema = writer.register_msgdef("sensor_msgs/msg/CameraInfo", INFO_DEF + HEADER)
             for side, tx, frame in (("left", 0.0, frame_ids[0]), ("right", right_tx, frame_ids[1])):
-                writer.write_message(f"/cam/{side}/camera_info", info_schema, ros_info(T0, frame, 8, 6, tx, d), T0)
+                writer.write_message(f"/cam/{side}/camera_info", info_schema, ros_info(T0, frame, 8, 6, tx, d, r), T0)
         for i in range(n):
             stamp = T0 + i * 100_000_000
             left, right = pair_images(i)
@@ -350,6 +350,22 @@ def test_raw_distorted_images_give_an_unrectified_calibration(tmp_path):
     assert not calib.rectified and calib.dist_left[0] == 0.1
     np.testing.assert_allclose(calib.R, np.eye(3))
     np.testing.assert_allclose(calib.T, [-0.25, 0, 0])
+
+
+@pytest.mark.parametrize("d, r, message", [
+    ((np.nan, 0, 0, 0, 0), np.eye(3), r"dist_left must hold finite coefficients below 1e6, got \[nan"),
+    ((0.1, 0, 0), np.eye(3), "dist_left must hold 4, 5, 8, 12 or 14 coefficients"),
+    ((0.1, 0, 0, 0, 0), np.diag([1.0, 1.0, 2.0]), "R must be a rotation matrix"),
+])
+def test_raw_images_with_a_camera_info_that_cannot_rectify_them_are_refused_where_it_is_read(tmp_path, d, r, message):
+    """The distortion and the stereo rotation are checked with the rest of the calibration, so
+    that `info --check` says what `process` would refuse, and a bad info part way is passed over
+    with a warning like any unusable one."""
+    path = write_ros2_log(tmp_path / "raw.mcap", n=1, topics=("/cam/left/image_raw", "/cam/right/image_raw"), d=d, r=r)
+    with open_source(path) as source:
+        assert source.calibration is None
+        with pytest.raises(CalibrationError, match=message):
+            next(source.frames())
 
 
 def test_undistorted_raw_images_with_a_rectifying_rotation_are_still_rectified():

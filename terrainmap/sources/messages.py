@@ -181,9 +181,9 @@ def calibration_from_infos(
         R, T = right_in_left[:3, :3].T, -right_in_left[:3, :3].T @ right_in_left[:3, 3]
     else:
         R, T = right["R"].T @ left["R"], -right["R"].T @ np.array([calib.baseline_m, 0.0, 0.0])
-    return dataclasses.replace(
+    return calib_io.check_calibration(dataclasses.replace(  # the distortion and R, T checked too: where they come in
         calib, rectified=False, K_left=left["K"], K_right=right["K"], dist_left=left["D"], dist_right=right["D"], R=R, T=T
-    )
+    ))
 
 
 def _right_projection(left: dict, right: dict, right_in_left: np.ndarray | None, rectified: bool, source: str):
