@@ -160,6 +160,7 @@ def test_calibration_toml_extrinsics_and_unrectified(tmp_path):
         ("K_left = [[500, 0, 4], [0, 500, 3], [0, 0, 1]]", "", "'K_left' is required as rectified is false$"),
         ("translation_m = [0.5, 0.0, 1.5]", "translation_m = [nan, 0.0, 1.5]", "'translation_m' must be a list of finite"),
         ("translation_m = [0.5, 0.0, 1.5]", "translation_m = [0.5, 0.0, 1e30]", "translation_m must be within 1 km"),
+        ("translation_m = [0.5, 0.0, 1.5]", "translation = [0.5, 0.0, 1.5]", "'translation_m' is required in extrinsics$"),
         ("rectified = false", 'rectified = "false"', "rectified must be true or false"),
         ("width = 8", "width = 8.5", "width must be a whole number of pixels, got 8.5$"),
         ("width = 8", "width = true", "width must be a number, got True$"),
@@ -175,6 +176,15 @@ def test_nonsense_in_a_calibration_file_is_named(tmp_path, old, new, message):
     path.write_text(path.read_text().replace(old, new))
     with pytest.raises(CalibrationError, match=message):
         next(open_source(path.parent).frames())
+
+
+def test_an_unknown_key_in_the_extrinsics_is_warned_about(tmp_path, caplog):
+    test_calibration_toml_extrinsics_and_unrectified(tmp_path)  # writes a valid calibration.toml
+    path = next(tmp_path.rglob("calibration.toml"))
+    path.write_text(path.read_text().replace("[extrinsics]\n", "[extrinsics]\nheight_m = 1.5\n"))
+    with open_source(path.parent) as source:
+        assert next(source.frames()).extrinsics.translation[2] == 1.5
+    assert "ignoring unknown keys in extrinsics: height_m (known: translation_m, rotation, quaternion_xyzw)" in caplog.text
 
 
 def test_a_calibration_value_that_is_a_yaml_alias_bomb_is_named_in_one_short_line(tmp_path):

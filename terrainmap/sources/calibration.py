@@ -197,7 +197,11 @@ def extrinsics_from_dict(data: dict, path: Path) -> Extrinsics:
     """The ``extrinsics:`` section: ``translation_m`` and ``rotation`` (3×3) or ``quaternion_xyzw``."""
     if not isinstance(data, dict):
         raise CalibrationError(f"{path}: 'extrinsics' must be a table with translation_m and rotation")
-    translation = _array({"translation_m": data.get("translation_m", [0, 0, 0])}, "translation_m", (3,), path)
+    unknown = sorted(set(data) - {"translation_m", "rotation", "quaternion_xyzw"}, key=str)
+    if unknown:
+        logger.warning("%s: ignoring unknown keys in extrinsics: %s (known: translation_m, rotation, quaternion_xyzw)",
+                       path, ", ".join(map(str, unknown)))
+    translation = _array(data, "translation_m", (3,), path, "in extrinsics")  # (at the origin: a camera on the ground)
     if np.abs(translation).max() > MAX_MOUNT_M:
         raise CalibrationError(f"{path}: extrinsics translation_m must be within 1 km, got {translation.tolist()}")
     if "quaternion_xyzw" in data:
