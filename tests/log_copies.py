@@ -54,14 +54,15 @@ def ros1_mcap(bag: Path, dst: Path) -> Path:
     return dst
 
 
-def rewrite_mcap(src: Path, dst: Path, edit) -> Path:
+def rewrite_mcap(src: Path, dst: Path, edit=lambda topic, data: data, *, use_statistics: bool = True) -> Path:
     """``src`` (an MCAP file) copied message by message by the ``mcap`` writer, each message's
-    bytes passed through ``edit(topic, data) -> data``."""
+    bytes passed through ``edit(topic, data) -> data``; without the (optional) statistics record
+    where ``use_statistics`` is false."""
     from mcap.reader import make_reader
     from mcap.writer import Writer
 
     with open(src, "rb") as f, open(dst, "wb") as g:
-        reader, writer = make_reader(f), Writer(g)
+        reader, writer = make_reader(f), Writer(g, use_statistics=use_statistics)
         summary = reader.get_summary()
         writer.start(profile=reader.get_header().profile, library="tests")
         schemas = {i: writer.register_schema(s.name, s.encoding, s.data) for i, s in summary.schemas.items()}

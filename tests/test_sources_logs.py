@@ -11,7 +11,7 @@ from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
 from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
 from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
-from log_copies import YAML_BOMB, rewrite_rosbag2, ros1_bag, ros1_mcap
+from log_copies import YAML_BOMB, rewrite_mcap, rewrite_rosbag2, ros1_bag, ros1_mcap
 from mcap.reader import make_reader
 from mcap_protobuf.writer import Writer as ProtobufWriter
 from mcap_ros2.writer import Writer as Ros2Writer
@@ -628,6 +628,23 @@ def test_odometry_of_base_footprint_gives_the_pose_of_base_link_the_camera_is_mo
         frame = next(iter(source.frames()))
     assert frame.extrinsics.vehicle_frame_id == "base_link"
     np.testing.assert_allclose(frame.vehicle_pose[:3, 3], [10.0, 0.0, 0.3])
+
+
+def test_an_indexed_mcap_without_statistics_has_unknown_counts_and_reads_whole(tmp_path):
+    """The statistics record is optional in MCAP: the message counts are then unknown, not 0, in
+    the log alone and in a rosbag2 folder with a second file that has them; the span comes from
+    the chunk indexes."""
+    log = write_ros2_log(tmp_path / "counted.mcap")
+    (tmp_path / "bag").mkdir()
+    plain = rewrite_mcap(log, tmp_path / "bag" / "a_0.mcap", use_statistics=False)
+    shutil.copy(log, tmp_path / "bag" / "a_1.mcap")
+    with open_source(log) as counted, open_source(plain) as source:
+        expected, info = counted.describe(), source.describe()
+        _same_frames(list(source.frames()), list(counted.frames()))
+    assert expected["frames"] == 6 and info["frames"] is None and "no message counts" in info["frames_note"]
+    assert {t["count"] for t in info["topics"]} == {None} and info["duration_s"] == expected["duration_s"]
+    with open_source(tmp_path / "bag") as bag:
+        assert bag.describe()["frames"] is None
 
 
 def test_camera_messages_without_a_frame_id_are_in_camera_optical(tmp_path):

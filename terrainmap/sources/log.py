@@ -328,13 +328,15 @@ class LogSource(Source):
 
     def describe(self) -> dict:
         counts = self.reader.counts
-        pairs = min(counts.get(self.left_topic) or 0, counts.get(self.right_topic) or 0)
+        sides = [counts.get(self.left_topic), counts.get(self.right_topic)]
+        pairs = None if None in sides else min(sides)  # (unknown: an MCAP without its statistics)
         return {
             **self._contents(),
             "left_topic": self.left_topic,
             "right_topic": self.right_topic,
             "frames": pairs,
-            "frames_note": "at most; from message counts, pairs are matched by stamp",
+            "frames_note": "at most; from message counts, pairs are matched by stamp" if pairs is not None
+            else "unknown: the MCAP has no message counts (no statistics record)",
             "frame_id": self.frame_id,
             "calibration_topics": list(self.calibration_topics),
             "calibration": calib_io.summary(self.calibration) or f"missing: {self.calibration_error}",

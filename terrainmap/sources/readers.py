@@ -237,13 +237,17 @@ class McapFile(_SkipsDamage):
 
     def _from_summary(self, summary) -> None:
         self.indexed = bool(summary.chunk_indexes)
-        counts = summary.statistics.channel_message_counts if summary.statistics else {}
-        if summary.statistics and summary.statistics.message_count:
-            self.span_ns = (summary.statistics.message_start_time, summary.statistics.message_end_time)
+        stats = summary.statistics  # optional in MCAP: without it the counts are unknown (None)
+        if stats and stats.message_count:
+            self.span_ns = (stats.message_start_time, stats.message_end_time)
+        elif not stats and summary.chunk_indexes:
+            self.span_ns = (min(c.message_start_time for c in summary.chunk_indexes),
+                            max(c.message_end_time for c in summary.chunk_indexes))
         for channel in summary.channels.values():
             schema = summary.schemas.get(channel.schema_id)
             self.types[channel.topic] = normalize_type(schema.name if schema else "")
-            self.counts[channel.topic] = self.counts.get(channel.topic, 0) + counts.get(channel.id, 0)
+            self.counts[channel.topic] = (self.counts.get(channel.topic, 0) + stats.channel_message_counts.get(channel.id, 0)
+                                          if stats else None)
 
     def _scan(self, stream) -> None:
         try:
@@ -420,8 +424,9 @@ class McapLog:
                     raise InputError(f"{path}: topic {topic} is {self.types[topic]} in {where[topic].name} but {kind} "
                                      f"in {f.path.name}: these files are not one log; give one of them")
                 where.setdefault(topic, f.path)
-            for topic, n in f.counts.items():
-                self.counts[topic] = (self.counts.get(topic) or 0) + (n or 0)
+            for topic, n in f.counts.items():  # unknown (None) in one file: unknown in all
+                known = n is not None and (topic not in self.counts or self.counts[topic] is not None)
+                self.counts[topic] = self.counts.get(topic, 0) + n if known else None
             if f.span_ns is not None:
                 self.span_ns = _widened(self.span_ns, *f.span_ns)
 
