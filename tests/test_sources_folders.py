@@ -46,12 +46,22 @@ def write(path: Path, array: np.ndarray) -> Path:
     return path
 
 
-def generic_folder(root: Path, n: int = 5, calib: str = CALIB_YAML, suffix: str = ".png") -> Path:
+def generic_folder(root: Path, n: int = 5, calib: str = CALIB_YAML, suffix: str = ".png", digits: int = 6) -> Path:
     for i in range(n):
-        write(root / "left" / f"{i:06d}{suffix}", image(2 * i))
-        write(root / "right" / f"{i:06d}{suffix}", image(2 * i + 1))
+        write(root / "left" / f"{i:0{digits}d}{suffix}", image(2 * i))
+        write(root / "right" / f"{i:0{digits}d}{suffix}", image(2 * i + 1))
     (root / "calibration.yaml").write_text(calib)
     return root
+
+
+def test_images_numbered_without_leading_zeros_are_read_in_their_numbers_order(tmp_path):
+    root = generic_folder(tmp_path, n=12, digits=1)
+    (root / "timestamps.txt").write_text("".join(f"{i * 10**8}\n" for i in range(12)))
+    with open_source(root) as source:
+        frames = list(source.frames())
+    assert [f.stamp_ns for f in frames] == [i * 10**8 for i in range(12)]
+    for i in (2, 10):
+        np.testing.assert_array_equal(frames[i].left, image(2 * i))
 
 
 def test_a_stray_mcap_file_does_not_make_an_image_folder_a_log(tmp_path):

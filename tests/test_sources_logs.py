@@ -279,15 +279,17 @@ def test_files_that_give_a_topic_two_types_are_not_read_as_one_log(tmp_path):
 
 
 def test_rosbag2_directory_without_metadata_is_read_in_file_order(tmp_path):
-    """A recording killed before rosbag2 wrote metadata.yaml leaves only its .mcap files."""
+    """A recording killed before rosbag2 wrote metadata.yaml leaves only its .mcap files, numbered
+    from 0 without leading zeros: bag_2 comes before bag_10."""
     bag = tmp_path / "bag"
     bag.mkdir()
     write_ros2_log(bag / "bag_0.mcap", n=2)
-    write_ros2_log(bag / "bag_1.mcap", n=2, tf=False, camera_info=False)
+    for k in range(1, 11):
+        write_ros2_log(bag / f"bag_{k}.mcap", n=2, tf=False, camera_info=False)
     with open_source(bag) as source:
         info = source.describe()
-        assert info["format"] == "rosbag2" and [Path(f).name for f in info["files"]] == ["bag_0.mcap", "bag_1.mcap"]
-        assert len(list(source.frames())) == 4
+        assert info["format"] == "rosbag2" and [Path(f).name for f in info["files"]] == [f"bag_{k}.mcap" for k in range(11)]
+        assert len(list(source.frames())) == 22
 
 
 @pytest.mark.parametrize(

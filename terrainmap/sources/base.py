@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 import math
 import numbers
+import re
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -39,6 +40,13 @@ class PairRef:
 def extrinsics_entry(extrinsics: Extrinsics | None) -> dict | str:
     """The ``extrinsics`` entry of ``describe()``: their dict, or a note that they will be estimated."""
     return extrinsics.to_dict() if extrinsics is not None else "none (will be estimated from the ground)"
+
+
+def natural_key(name: str) -> list:
+    """Sort key of a file name in natural order: its runs of digits compare as numbers, so that
+    ``rec_2.mcap`` comes before ``rec_10.mcap`` (as rosbag2 numbers split files, and as image
+    sequences written without leading zeros are numbered)."""
+    return [(0, int(part), "") if part.isdigit() else (1, 0, part) for part in re.split(r"(\d+)", name) if part]
 
 
 def check_selection(start_s: float | None, end_s: float | None, every: int, max_frames: int | None) -> None:

@@ -6,7 +6,7 @@ Generic layout::
       left/   000000.png 000001.png ...   (png, jpg, pgm, ppm, bmp, tif)
       right/  000000.png 000001.png ...   (the same file names)
       calibration.yaml                     (or .yml / .toml; format in terrainmap.sources.calibration)
-      timestamps.txt                       (optional: one integer stamp in nanoseconds per left image, in name order)
+      timestamps.txt                       (optional: one integer stamp in nanoseconds per left image, in natural name order)
 
 Without timestamps, pair ``i`` is stamped ``i × 100 ms``.
 """
@@ -23,7 +23,7 @@ from pathlib import Path
 from ..errors import CalibrationError, DamagedImageError, InputError
 from ..types import Extrinsics, StereoCalibration, StereoFrame
 from . import calibration as calib_io
-from .base import DEFAULT_PERIOD_NS, PairRef, Source, extrinsics_entry
+from .base import DEFAULT_PERIOD_NS, PairRef, Source, extrinsics_entry, natural_key
 from .images import read_image, stereo_pair
 
 logger = logging.getLogger(__name__)
@@ -41,10 +41,12 @@ class ImagePair:
 
 
 def image_names(folder: Path) -> list[str]:
-    """Sorted image file names in ``folder`` (empty when it is not a directory)."""
+    """The image file names in ``folder`` in natural order (:func:`~.base.natural_key`; empty when
+    it is not a directory)."""
     if not folder.is_dir():
         return []
-    return sorted(p.name for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and not p.is_dir())
+    return sorted((p.name for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and not p.is_dir()),
+                  key=natural_key)
 
 
 def matching_pairs(left_dir: Path, right_dir: Path, calibration_for) -> list[ImagePair]:

@@ -27,6 +27,7 @@ from typing import Any
 import yaml
 
 from ..errors import InputError, counted
+from .base import natural_key
 from .messages import normalize_type
 
 logger = logging.getLogger(__name__)
@@ -397,7 +398,7 @@ def mcap_files(path: Path) -> list[Path]:
     """The MCAP files of a log: the file itself, or a rosbag2 directory's files in metadata order."""
     if path.is_file():
         return [path]
-    return [f for f in bag_files(path) if f.suffix == ".mcap"] or sorted(path.glob("*.mcap"))
+    return [f for f in bag_files(path) if f.suffix == ".mcap"] or sorted(path.glob("*.mcap"), key=lambda f: natural_key(f.name))
 
 
 class McapLog:
