@@ -70,7 +70,8 @@ def extract_obstacles(
     config : ObstacleConfig
         Minimum size, height and point count of an obstacle.
     elevation : (m0, m1) float array, optional
-        The surface at the cell centres (the ``elevation`` layer), to avoid evaluating it again.
+        The surface at the cell centres (the ``elevation`` layer), to avoid evaluating it again;
+        finite in every cell.
     cell_counts : (m0, m1) int array, optional
         All points per cell, whatever their label (``HeightGrid.count``): with it, positive
         clusters at least ``config.tall_height_m`` tall must hold ``config.tall_min_share`` of
@@ -91,7 +92,8 @@ def extract_obstacles(
     Raises
     ------
     InputError
-        ``points_vehicle`` is not N×3 or ``point_labels`` does not have one label per point.
+        ``points_vehicle`` is not N×3, ``point_labels`` does not have one label per point, or a
+        layer does not have the grid's shape or ``elevation`` is not finite.
     """
     points_vehicle = as_points(points_vehicle)
     point_labels = np.asarray(point_labels)
@@ -104,6 +106,9 @@ def extract_obstacles(
             raise InputError("obstacles: give the terrain as elevation (or a surface)")
         elevation = surface.on_grid(*cell_centers(grid_config))
     check_shapes("obstacles", grid_config.shape, elevation=elevation, cell_counts=cell_counts, steep=steep)
+    if not np.isfinite(elevation).all():  # a NaN would void the height of every cluster near it
+        raise InputError("obstacles: elevation must be finite in every cell (the surface, as FrameResult.layers "
+                         "holds it; written layers have NaN where no point is, and cannot serve)")
     check_shapes("obstacles", point_labels.shape, index=index)
     kinds = [(Label.OBSTACLE, "positive", config.min_height_m)]
     if config.negative:

@@ -472,7 +472,7 @@ def test_low_clusters_on_steep_ground_are_dropped_tall_ones_stay():
     assert centres(steep=np.zeros(GRID.shape, bool)) == centres()
 
 
-def test_terrain_layers_of_the_wrong_shape_or_none_are_named():
+def test_terrain_layers_of_the_wrong_shape_or_none_or_not_finite_are_named():
     points = np.array([[10.0, 0.0, 1.0]])
     labels = np.array([Label.OBSTACLE], np.uint8)
     with pytest.raises(InputError, match="give the terrain as elevation"):
@@ -482,6 +482,10 @@ def test_terrain_layers_of_the_wrong_shape_or_none_are_named():
     with pytest.raises(InputError, match=r"obstacles: cell_counts must have shape"):
         extract_obstacles(points, labels, GRID, None, ObstacleConfig(), elevation=np.zeros(GRID.shape),
                           cell_counts=np.zeros((3, 3)))
+    holed = np.zeros(GRID.shape)
+    holed[10, 10] = np.nan  # a written layer read back: it would void every cluster near the hole
+    with pytest.raises(InputError, match=r"obstacles: elevation must be finite in every cell"):
+        extract_obstacles(points, labels, GRID, None, ObstacleConfig(), elevation=holed)
 
 
 def test_past_max_points_the_largest_clusters_are_thinned_alike():
