@@ -392,6 +392,9 @@ def test_report_schema_on_a_simulated_log(tiny_log):
     assert common["cells"] > 0 and common["cells"] == report["common_cells"]["ransac_plane"]["all"]["cells"]
     assert common["elevation_rmse_m"] == pytest.approx(tm["elevation_rmse_m"])
     assert plane["coverage"] == 1 and tm["coverage"] < 1
+    assert report["obstacles"]["false_on_steep_ground_per_frame"] is not None
+    alone = acc.evaluate(tiny_log, Config(), methods=["ransac_plane"], max_frames=1)["obstacles"]
+    assert alone["false_on_steep_ground_per_frame"] is None and alone["frames_to_confirmation"] == {}
 
 
 def _strip_truth(src, dst):

@@ -264,7 +264,8 @@ class _Evaluation:
                 "frames_to_confirmation": confirmation,
                 "id_switches": {k: self.id_switches[k] for k in sorted(self.first_matched)},
                 "duplicate_frames": {k: self.duplicate_frames[k] for k in sorted(self.first_matched)},
-                "false_on_steep_ground_per_frame": self.false_on_steep_ground / self.frames if self.frames else None,
+                "false_on_steep_ground_per_frame": self.false_on_steep_ground / self.frames
+                if self.frames and "terrainmap" in self.scores else None,  # (only terrainmap has obstacles)
             },
             "rmse_vs_range": {
                 "range_edges_m": [k * PROFILE_STEP_M for k in range(PROFILE_BINS)] + [None],
