@@ -18,7 +18,8 @@ from contextlib import contextmanager
 
 import click
 
-from terrainmap.errors import TerrainmapError  # first terrainmap import: limits OpenBLAS's threads
+# first terrainmap import: limits OpenBLAS's threads
+from terrainmap.errors import ConfigError, TerrainmapError
 
 from .options import GracefulStop
 
@@ -125,7 +126,7 @@ def main(argv: list[str] | None = None) -> None:
         exc.show()
         sys.exit(exc.exit_code)
     except TerrainmapError as exc:
-        if options.get("verbose"):
+        if options.get("verbose") and not isinstance(exc, ConfigError):  # (a bad option or setting: one line)
             traceback.print_exc()
         else:
             click.echo(f"Error: {exc}", err=True)

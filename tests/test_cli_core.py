@@ -2,6 +2,7 @@ import json
 import os
 import sys
 import tomllib
+from pathlib import Path
 
 import pytest
 from click.testing import CliRunner
@@ -22,10 +23,13 @@ def test_bad_override_is_a_one_line_error(capsys):
     assert exc.value.code == 2
     err = capsys.readouterr().err
     assert err.strip() == "Error: terrain.degree: must be 1..5, got 0"
-    with pytest.raises(SystemExit) as exc:  # --verbose, before the command: the traceback
+    with pytest.raises(SystemExit) as exc:  # --verbose, before the command: a bad option stays one line
         main(["-v", "config", "--set", "terrain.degree=0"])
+    assert exc.value.code == 2 and capsys.readouterr().err == err
+    with pytest.raises(SystemExit) as exc:  # while reading: the traceback
+        main(["-v", "info", str(Path(__file__).parent / "nonexistent.mcap")])
     err = capsys.readouterr().err
-    assert exc.value.code == 2 and "Traceback" in err and "ConfigError: terrain.degree: must be 1..5" in err
+    assert exc.value.code == 2 and "Traceback" in err and "InputError" in err
 
 
 def test_a_file_named_like_the_verbose_flag_is_no_flag(capsys):
