@@ -9,7 +9,7 @@ import click
 
 from terrainmap.sim.scenes import SCENES
 
-from .options import GracefulStop, counted, output_file, wrote_before_stopping
+from .options import Finite, GracefulStop, counted, output_file, wrote_before_stopping
 
 
 @click.command()
@@ -21,16 +21,16 @@ from .options import GracefulStop, counted, output_file, wrote_before_stopping
               help="Output layout [default: mcap when OUT ends in .mcap, else folder].")
 @click.option("--width", type=int, default=640, show_default=True, help="Image width, pixels.")
 @click.option("--height", type=int, default=480, show_default=True, help="Image height, pixels.")
-@click.option("--focal-px", type=float, default=500.0, show_default=True, help="Focal length, pixels.")
-@click.option("--baseline-m", type=float, default=0.3, show_default=True, help="Stereo baseline, metres.")
-@click.option("--camera-height-m", type=float, default=1.8, show_default=True, help="Camera above the ground, metres.")
-@click.option("--pitch-deg", type=float, default=6.0, show_default=True, help="Camera pitch down, degrees.")
-@click.option("--noise", type=float, default=2.0, show_default=True, help="Pixel noise σ, grey levels.")
-@click.option("--vignetting", type=float, default=0.15, show_default=True, help="Darkening at the corners, in [0, 1).")
-@click.option("--texture-detail", type=float, default=1.0, show_default=True,
+@click.option("--focal-px", type=Finite(), default=500.0, show_default=True, help="Focal length, pixels.")
+@click.option("--baseline-m", type=Finite(), default=0.3, show_default=True, help="Stereo baseline, metres.")
+@click.option("--camera-height-m", type=Finite(), default=1.8, show_default=True, help="Camera above the ground, metres.")
+@click.option("--pitch-deg", type=Finite(), default=6.0, show_default=True, help="Camera pitch down, degrees.")
+@click.option("--noise", type=Finite(), default=2.0, show_default=True, help="Pixel noise σ, grey levels.")
+@click.option("--vignetting", type=Finite(), default=0.15, show_default=True, help="Darkening at the corners, in [0, 1).")
+@click.option("--texture-detail", type=Finite(), default=1.0, show_default=True,
               help="Fine texture kept with range (2: about a pixel's box filter, no other blur).")
-@click.option("--speed-mps", type=float, default=4.0, show_default=True, help="Vehicle speed, m/s.")
-@click.option("--fps", type=float, default=10.0, show_default=True, help="Frame rate, Hz.")
+@click.option("--speed-mps", type=Finite(), default=4.0, show_default=True, help="Vehicle speed, m/s.")
+@click.option("--fps", type=Finite(), default=10.0, show_default=True, help="Frame rate, Hz.")
 @click.option("--color/--mono", default=False, show_default=True, help="rgb8 or mono8 images.")
 @click.option("--compressed", is_flag=True, help="MCAP: PNG CompressedImage camera topics instead of raw Image.")
 @click.option("--overwrite", is_flag=True, help="Replace OUT if it exists.")
