@@ -26,10 +26,13 @@ from .source_options import source_options
 
 
 def default_output(log: Path) -> Path:
-    """``run.mcap`` → ``run.terrain.mcap`` beside it; a folder ``d/`` → ``d.terrain.mcap`` beside it."""
+    """``run.mcap`` → ``run.terrain.mcap`` beside it; a folder ``d/`` → ``d.terrain.mcap`` beside it.
+    A file of a rosbag2 folder (one with ``metadata.yaml``) → beside the folder, not in it, where
+    the output would become one more file of the recording."""
     log = log.resolve()
     stem = log.name if log.is_dir() else log.stem
-    return log.parent / f"{stem}.terrain.mcap"
+    folder = log.parent.parent if log.is_file() and (log.parent / "metadata.yaml").is_file() else log.parent
+    return folder / f"{stem}.terrain.mcap"
 
 
 @click.command()
