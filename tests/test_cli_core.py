@@ -299,8 +299,10 @@ def test_an_output_that_cannot_be_written_is_named_and_leaves_no_partial_file(tm
     import errno
     from pathlib import Path
 
+    import cv2
+
     from terrainmap.cli.main import main
-    from terrainmap.sim import mcap_log
+    from terrainmap.sim import folder_log, mcap_log
 
     full = OSError(errno.ENOSPC, "No space left on device")
 
@@ -319,11 +321,23 @@ def test_an_output_that_cannot_be_written_is_named_and_leaves_no_partial_file(tm
         assert exc.value.code == 2
         assert capsys.readouterr().err.splitlines()[-1] == f"Error: cannot write {tmp_path / path}: No space left on device"
         assert list(tmp_path.iterdir()) == []
-    monkeypatch.setattr(mcap_log.McapLog, "write", no_space)
+    # A simulated log, full in its second frame: removed (without its summary, or with frames and
+    # stamps that disagree, it would be damaged; the same command renders it again).
+    sim = ["--frames", "2", "--width", "32", "--height", "24", "--focal-px", "25"]
+    write = mcap_log.McapLog.write
+    monkeypatch.setattr(mcap_log.McapLog, "write", lambda log, frame: no_space() if frame.index else write(log, frame))
     with pytest.raises(SystemExit):
-        main(["simulate", str(tmp_path / "s.mcap"), "--frames", "1", "--width", "32", "--height", "24", "--focal-px", "25"])
+        main(["simulate", str(tmp_path / "s.mcap"), *sim])
+    assert capsys.readouterr().err.splitlines()[-1] == (f"Error: {tmp_path / 's.mcap'}: cannot write the simulated "
+                                                        "log (No space left on device); the part written is removed")
+    imwrite = cv2.imwrite
+    monkeypatch.setattr(folder_log.cv2, "imwrite", lambda path, image: "000001" not in path and imwrite(path, image))
+    with pytest.raises(SystemExit):
+        main(["simulate", str(tmp_path / "drive"), *sim])
     assert capsys.readouterr().err.splitlines()[-1] == (
-        f"Error: {tmp_path / 's.mcap'}: cannot write the simulated log (No space left on device)")
+        f"Error: {tmp_path / 'drive'}: cannot write the simulated log (OpenCV cannot write "
+        f"{tmp_path / 'drive' / 'left' / '000001'}.png); the part written is removed")
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_sigterm_ends_a_command_like_ctrl_c_and_leaves_no_partial_report(tmp_path, monkeypatch, capsys):

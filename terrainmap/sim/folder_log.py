@@ -20,7 +20,9 @@ World frame ``odom``; :func:`terrainmap.sim.truth.open_truth` reads this layout 
 
 from __future__ import annotations
 
+import contextlib
 import json
+import shutil
 from pathlib import Path
 
 import cv2
@@ -75,12 +77,19 @@ class FolderLog:
     def close(self) -> None:
         self._stamps.close()
 
+    def discard(self) -> None:
+        """Remove the folder (after a write failed: its frames and stamps would not agree). It was
+        new, empty or a simulated drive being replaced (checked when it was opened)."""
+        with contextlib.suppress(OSError):
+            self._stamps.close()
+        shutil.rmtree(self.path, ignore_errors=True)
+
     def write(self, frame: SimFrame) -> None:
         name = FRAME_NAME.format(frame.index)
         for side, image in (("left", frame.left), ("right", frame.right)):
             bgr = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2BGR)
             if not cv2.imwrite(str(self.path / side / f"{name}.png"), bgr):  # OpenCV says no more than that
-                raise InputError(f"{self.path / side / name}.png: cannot be written")
+                raise OSError(f"OpenCV cannot write {self.path / side / name}.png")
         self._stamps.write(f"{frame.stamp_ns}\n")
         boxes = frame.obstacles
         truth = self.path / "truth" / f"{name}.npz"

@@ -28,6 +28,7 @@ Message layouts are in :mod:`terrainmap.sim.messages`.
 
 from __future__ import annotations
 
+import contextlib
 import json
 from pathlib import Path
 
@@ -89,8 +90,16 @@ class McapLog:
 
     def close(self) -> None:
         if not self._file.closed:
-            self._writer.finish()
+            try:
+                self._writer.finish()
+            finally:
+                self._file.close()
+
+    def discard(self) -> None:
+        """Remove the file (after a write failed: without its summary it is damaged)."""
+        with contextlib.suppress(OSError):
             self._file.close()
+        self.path.unlink(missing_ok=True)
 
     def _log(self, topic: str, type_name: str, message: dict, stamp_ns: int) -> None:
         if type_name not in self._schemas:

@@ -153,6 +153,7 @@ def simulate(out: str | Path, config: SimConfig, progress: Callable[[int], None]
     rig = renderer.rig
     description = describe(config, scene)
     out = Path(out)
+    log = None
     try:
         if config.format == "mcap":
             log = McapLog(out, scene, rig, description, compressed=config.compressed)
@@ -164,7 +165,11 @@ def simulate(out: str | Path, config: SimConfig, progress: Callable[[int], None]
                 if progress is not None:
                     progress(index)
     except OSError as exc:  # disk full, device gone: the error says where
-        raise InputError(f"{out}: cannot write the simulated log ({exc.strerror or exc})") from exc
+        removed = ""
+        if log is not None:  # a log that cannot be ended is no log; the same command renders it again
+            log.discard()
+            removed = "; the part written is removed"
+        raise InputError(f"{out}: cannot write the simulated log ({exc.strerror or exc}){removed}") from exc
     seconds = time.perf_counter() - start
     size = out.stat().st_size if out.is_file() else sum(p.stat().st_size for p in log.written)
     logger.info("wrote %d frames of %s to %s in %.1f s", config.frames, config.scene, out, seconds)
