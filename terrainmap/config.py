@@ -881,9 +881,9 @@ def _coerce(section: str, name: str, current: Any, value: Any, text: bool) -> An
             value = value.replace("_", "")
         if isinstance(current, bool):
             if isinstance(value, str):
-                if value.lower() not in ("true", "false", "1", "0", "yes", "no"):
+                if value.lower() not in ("true", "false", "1", "0", "yes", "no", "on", "off"):
                     raise ValueError
-                return value.lower() in ("true", "1", "yes")
+                return value.lower() in ("true", "1", "yes", "on")
             if not isinstance(value, bool):
                 raise ValueError
             return value

@@ -267,7 +267,8 @@ def test_the_closed_end_of_a_range_is_accepted(overrides, check):
     assert check(load_config(overrides=overrides))
 
 
-@pytest.mark.parametrize("text, value", [("1", True), ("0", False), ("yes", True), ("no", False), ("TRUE", True)])
+@pytest.mark.parametrize("text, value", [("1", True), ("0", False), ("yes", True), ("no", False), ("TRUE", True),
+                                         ("on", True), ("Off", False)])
 def test_set_reads_a_flag_from_each_of_its_spellings(text, value):
     assert load_config(overrides=[f"grid.fill_empty={text}"]).grid.fill_empty is value
 
