@@ -248,6 +248,8 @@ def test_cli_simulate_writes_a_log_and_guards_existing_output(tmp_path):
     assert (tmp_path / "run" / "calibration.yaml").is_file() and (tmp_path / "run" / "truth" / "000000.npz").is_file()
     bad = CliRunner().invoke(cli, ["simulate", str(tmp_path / "x.mcap"), "--scene", "moon"])
     assert bad.exit_code != 0 and "moon" in bad.output
+    bad = CliRunner().invoke(cli, ["simulate", str(tmp_path / "folder"), "--compressed"])
+    assert bad.exit_code != 0 and "--compressed: applies to an MCAP log only" in str(bad.exception)
     for option in ("--focal-px", "--baseline-m", "--speed-mps", "--texture-detail"):  # named as the option
         bad = CliRunner().invoke(cli, ["simulate", str(tmp_path / "x.mcap"), option, "nan"])
         assert bad.exit_code != 0 and f"Invalid value for '{option}': 'nan' is not a finite number" in bad.output

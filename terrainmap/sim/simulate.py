@@ -70,6 +70,8 @@ class SimConfig:
 
         check(self.scene in SCENES, "scene", f"unknown scene {self.scene!r}; choose one of {', '.join(SCENES)}")
         check(self.format in ("mcap", "folder"), "format", f"must be mcap or folder, got {self.format!r}")
+        check(not (self.compressed and self.format == "folder"), "compressed",
+              "applies to an MCAP log only (a folder's images are PNG files)")
         check(1 <= self.frames <= 100_000, "frames", f"must be in 1..100000, got {self.frames}")
         check(0 <= self.seed < 2**32, "seed", f"must be in 0..2^32-1, got {self.seed}")
         # process's stereo matcher searches at least 16 px of disparity, so at 16 px it has no column
