@@ -114,7 +114,7 @@ def artificial_obstacle(
         results = ao.run(scenarios, grid=grid, terrain=terrain, position_xy=tuple(position), base_points=base_points)
     except ConfigError as exc:  # name the option the user gave, not only the config field it set
         field = str(exc).split(":", 1)[0]
-        option = _FIELD_OPTIONS.get(field.removesuffix("_x").removesuffix("_y"), "--set" if base_log else None)
+        option = next((o for f, o in _FIELD_OPTIONS.items() if field.startswith(f)), "--set" if base_log else None)
         raise ConfigError(f"{option} ({exc})" if option else str(exc)) from exc
     _print_table(results)
     rows = [r.to_dict() for r in results]

@@ -388,6 +388,8 @@ def test_a_report_written_through_a_symbolic_link_keeps_the_link(tmp_path):
 @pytest.mark.parametrize(("argv", "line"), [
     (["eval", "artificial-obstacle", "--nets", "3"],
      "Error: --nets (terrain.control_points_x: must be at least degree + 1 = 4, got 3)"),
+    (["eval", "artificial-obstacle", "--nets", "100"],
+     "Error: --nets (terrain.control_points_x × control_points_y: must be at most 4096 (64×64), got 100×100)"),
     (["eval", "artificial-obstacle", "--cell", "100"],
      "Error: --length/--cell (grid.length_m: must be a whole number of cells of 100.0 m (grid.cell_size_m), got 22.0)"),
     (["eval", "artificial-obstacle", "--frame", "2"],
