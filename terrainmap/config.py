@@ -67,8 +67,9 @@ class GridConfig:
     sigma_factor: float = 1.0
     """k in eq. 1, ``Z = max(min z, mean z − k·σ)``; the paper uses 1. It keeps cars and walls
     sharing cells with the road out of the surface (KITTI 000005: with 0 the lane's slope rises
-    from 3.8° to 5.3°, and the parked cars' points labelled obstacle fall from 68 % to 44 %); the low bias it gives where stereo noise makes σ large is what
-    ``stereo_noise_px`` takes out (docs/accuracy.md)."""
+    from 3.8° to 5.3°, and the parked cars' points labelled obstacle fall from 68 % to 44 %); the
+    low bias it gives where stereo noise makes σ large is what ``stereo_noise_px`` takes out
+    (docs/accuracy.md)."""
     stereo_noise_px: float = 0.5
     """Disparity noise of the stereo matcher (1σ, pixels). Where the pipeline knows the stereo
     rig, eq. 1's σ of a cell is reduced in quadrature by the height spread this noise alone gives
