@@ -12,7 +12,8 @@ obstacles placed in view. All have fine relief (a few cm at 1–8 m) on top of t
   towards the track, stopping beside it after 2 s), a pole, rocks.
 - ``mounds``: gravel mounds (1.5–3.5 m high) beside the track; a pedestrian walking towards the
   track who stops beside it after 2.5 s, a car, rocks and a low wide mound.
-- ``canyon``: a gravel floor between 5 m walls that meander; a truck ahead, a pedestrian, rocks.
+- ``canyon``: a gravel floor between 5 m walls that meander; a truck parked ahead on the track,
+  which drives off at 6 m/s after 2 s, a pedestrian, rocks.
 - ``climb``: a 9 m hill rising from 8 to 53 m ahead (slopes to ~17°) that the camera looks up;
   a drive longer than 20 frames at the default 4 m/s reaches it and climbs it, pitching the
   vehicle and camera (20 frames stop at its foot); a pedestrian walking down towards the
@@ -108,7 +109,9 @@ def _obstacles(name: str, rng: np.random.Generator) -> list[ObstacleSpec]:
     """Hand-placed obstacles of each scene (ids from 1) plus random rocks."""
     # (kind, start xy, yaw, velocity, turns): the walkers that would reach the vehicle's track as
     # it comes near (in a drive of the default 50 frames) stop at the roadside, or step off the
-    # track, after 2 s (so the first 20 frames, those of the README's drives, are as before).
+    # track, after 2 s (so the first 20 frames, those of the README's drives, are as before); the
+    # canyon's truck, parked on the track, drives off ahead of the vehicle after 2 s, faster than
+    # the default 4 m/s (a longer drive would run into it).
     placed = {
         "flat": [("pedestrian", (14, 4.5), 0.0, (0.0, -1.3), ((2.1, (0.0, 0.0)),)),
                  ("car", (24, -3.5), 0.1, None, ()),
@@ -122,7 +125,7 @@ def _obstacles(name: str, rng: np.random.Generator) -> list[ObstacleSpec]:
         "mounds": [("pedestrian", (13, 5.0), 0.0, (0.0, -1.2), ((2.5, (0.0, 0.0)),)),
                    ("car", (26, -5.0), -0.2, None, ()),
                    ("mound", (20, 3.0), 0.4, None, ())],
-        "canyon": [("truck", (32, 0.5), 0.05, None, ()),
+        "canyon": [("truck", (32, 0.5), 0.05, None, ((2.0, (6.0, 0.0)),)),
                    ("pedestrian", (18, -2.0), 0.0, None, ())],
         "climb": [("pedestrian", (26, 1.0), 0.0, (-1.0, 0.0), ((2.0, (0.0, 1.0)), (3.5, (0.0, 0.0)))),
                   ("pole", (16, -3.5), 0.0, None, ())],
