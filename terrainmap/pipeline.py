@@ -142,7 +142,8 @@ class PipelineState:
     ``tracker``: obstacle tracks, of the frames ``tracked_matcher`` matched. A new calibration
     (another camera, or the next scene of a folder of unrelated scenes, each with its calibration
     file) starts the estimated pose and the tracks afresh, and so do new stereo settings (a new
-    matcher), whether in a new config or changed in place.
+    matcher), whether in a new config or changed in place; another config with other tracking or
+    grid settings starts a tracker of its own (one changed in place is followed by the tracker).
     """
 
     config: Config
@@ -232,6 +233,8 @@ def finish_frame(frame: StereoFrame, matched: Matched, config: Config, state: Pi
     if matched.matcher is not state.tracked_matcher:  # another camera or scene: its obstacles are
         state.tracker.reset()  # not these (here, as match_frame may run a frame ahead)
         state.tracked_matcher = matched.matcher
+    if (state.tracker.config, state.tracker.area) != (config.tracking, config.grid):  # another config's tracking
+        state.tracker = make_tracker(config)
     points, camera = matched.points_vehicle, matched.camera
     terrain = _map_points(points, config, watch, camera)  # config checked by match_frame
     if config.segmentation.upright_ratio > 0:

@@ -317,6 +317,22 @@ def small_log(tmp_path_factory):
     return path
 
 
+def test_a_state_given_another_config_tracks_with_that_configs_settings(small_log):
+    """A PipelineState built for one config and given another: the tracking (confirmation after
+    one hit here) and the area are the config's of the call, not the state's."""
+    import dataclasses
+
+    from terrainmap.pipeline import PipelineState, process_frame
+
+    with open_source(small_log) as source:
+        frame = next(source.frames())
+    eager = dataclasses.replace(Config(), tracking=dataclasses.replace(Config().tracking, confirm_hits=1))
+    alone = process_frame(frame, eager, PipelineState(eager))
+    borrowed = process_frame(frame, eager, PipelineState(Config()))
+    assert sum(o.confirmed for o in alone.obstacles) > 0
+    assert [(o.track_id, o.confirmed) for o in borrowed.obstacles] == [(o.track_id, o.confirmed) for o in alone.obstacles]
+
+
 def test_a_new_calibration_starts_the_camera_pose_and_the_tracks_afresh(small_log):
     """A folder of unrelated scenes (KITTI, Middlebury) gives each scene its calibration file: the
     pose estimated on one scene and its tracks must not carry over to the next."""
