@@ -8,6 +8,7 @@ Neither does I/O or printing; per-stage wall times are returned as data
 
 from __future__ import annotations
 
+import numbers
 import time
 from contextlib import contextmanager
 from dataclasses import dataclass, field, fields, replace
@@ -96,6 +97,8 @@ def map_points(
     """
     if not isinstance(config, Config):  # a section would pass its own validate() and fail later
         raise ConfigError(f"map_points: config must be the whole Config, got {type(config).__name__}")
+    if camera is not None and not isinstance(camera, StereoCamera):
+        raise InputError(f"map_points: camera must be a StereoCamera or None, got {type(camera).__name__}")
     return _map_points(points_vehicle, config.validate(), watch or Stopwatch(), camera)
 
 
@@ -156,6 +159,8 @@ class PipelineState:
     once, not every frame, and again when the config is changed (in place too)."""
 
     def __post_init__(self) -> None:
+        if not isinstance(self.config, Config):
+            raise ConfigError(f"PipelineState: config must be the whole Config, got {type(self.config).__name__}")
         self.check(self.config)  # a config built in code: ConfigError here, not a numpy error mid-run
         if self.tracker is None:
             self.tracker = make_tracker(self.config)
@@ -194,9 +199,25 @@ class Matched:
         return rig_camera(self.stereo.pinhole, self.extrinsics)
 
 
+def check_arguments(frame: StereoFrame, config: Config, state: PipelineState) -> None:
+    """:class:`ConfigError` or :class:`InputError` naming the argument of :func:`process_frame`
+    that is not of its type (a library caller's slip, said here rather than as an AttributeError)."""
+    if not isinstance(config, Config):
+        raise ConfigError(f"process_frame: config must be the whole Config, got {type(config).__name__}")
+    for name, value, kind in (("frame", frame, StereoFrame), ("state", state, PipelineState)):
+        if not isinstance(value, kind):
+            raise InputError(f"process_frame: {name} must be a {kind.__name__}, got {type(value).__name__}")
+    if frame.extrinsics is not None and not isinstance(frame.extrinsics, Extrinsics):
+        raise InputError(f"process_frame: frame.extrinsics must be an Extrinsics or None, got "
+                         f"{type(frame.extrinsics).__name__}")
+
+
 def check_stamp(frame: StereoFrame) -> None:
     """:class:`InputError` naming the frame's source when its stamp is no time an MCAP or ROS
     stamp (unsigned 64-bit) can hold, before an output refuses it mid-write (the tracker would take it)."""
+    if isinstance(frame.stamp_ns, bool) or not isinstance(frame.stamp_ns, numbers.Integral):
+        raise InputError(f"{frame.source or 'input'}: frame {frame.index} has stamp {frame.stamp_ns!r}; "
+                         "a stamp is a whole number of nanoseconds")
     if not 0 <= frame.stamp_ns <= 2**63 - 1:
         raise InputError(f"{frame.source or 'input'}: frame {frame.index} has stamp {frame.stamp_ns} ns, "
                          "outside 1970–2262 (0 to 2^63 − 1 ns)")
@@ -205,6 +226,7 @@ def check_stamp(frame: StereoFrame) -> None:
 def match_frame(frame: StereoFrame, config: Config, state: PipelineState) -> Matched:
     """SGM disparity → 3D points in the vehicle frame (uses and updates ``state.matcher`` and
     ``state.extrinsics`` only, so it can run one frame ahead of :func:`finish_frame`)."""
+    check_arguments(frame, config, state)
     check_stamp(frame)
     watch = Stopwatch()
     with watch("stereo"):

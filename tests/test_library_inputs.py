@@ -78,3 +78,32 @@ def test_files_nested_too_deep_and_names_too_long_are_input_errors(tmp_path):
         load_config(toml)
     with pytest.raises(InputError, match="cannot be read"):
         open_source(tmp_path / ("a" * 300))  # OSError (file name too long) before
+
+
+def test_the_pipelines_arguments_of_another_type_are_named():
+    """A library caller's slip in process_frame's, PipelineState's, map_points' or cloud's
+    arguments: terrainmap's error naming the argument, not an AttributeError deep inside."""
+    from terrainmap.pipeline import PipelineState, map_points, process_frame
+    from terrainmap.types import StereoFrame
+
+    image = np.zeros((48, 64), np.uint8)
+    calibration = StereoCalibration(fx=50.0, fy=50.0, cx=32.0, cy=24.0, baseline_m=0.3, width=64, height=48)
+    frame = StereoFrame(index=0, stamp_ns=0, left=image, right=image, calibration=calibration)
+    state = PipelineState(Config())
+    for args, error, message in [
+        ((None, C, state), InputError, "process_frame: frame must be a StereoFrame, got NoneType"),
+        ((frame, {}, state), ConfigError, "process_frame: config must be the whole Config, got dict"),
+        ((frame, C, None), InputError, "process_frame: state must be a PipelineState, got NoneType"),
+        ((dataclasses.replace(frame, extrinsics=(np.eye(3), np.zeros(3))), C, state), InputError,
+         "process_frame: frame.extrinsics must be an Extrinsics or None, got tuple"),
+        ((dataclasses.replace(frame, stamp_ns=1.5e18), C, state), InputError,
+         "frame 0 has stamp 1.5e.18; a stamp is a whole number of nanoseconds"),
+    ]:
+        with pytest.raises(error, match=message):
+            process_frame(*args)
+    with pytest.raises(ConfigError, match="PipelineState: config must be the whole Config, got GridConfig"):
+        PipelineState(GridConfig())
+    with pytest.raises(InputError, match="map_points: camera must be a StereoCamera or None, got str"):
+        map_points(cloud(1000), C, camera="cam")
+    with pytest.raises(InputError, match="cloud: n_points must be a whole number >= 0, got -1"):
+        cloud(-1)
