@@ -607,6 +607,11 @@ def test_bad_arguments(tmp_path):
         open_mcap_sink(tmp_path / "x.mcap", "rosbag", config=Config())
     with pytest.raises(ConfigError, match="compression"):
         open_mcap_sink(tmp_path / "x.mcap", "ros2", config=Config(), compression="gzip")
+    with pytest.raises(ConfigError, match="must be zstd, lz4 or none, got None"):  # (str(None) is 'None')
+        open_mcap_sink(tmp_path / "x.mcap", "foxglove", config=Config(), compression=None)
+    with pytest.raises(ConfigError, match="metadata must be a mapping of names to texts, got list"):
+        open_mcap_sink(tmp_path / "x.mcap", "foxglove", config=Config(), metadata=[("source", "x")])
+    assert not (tmp_path / "x.mcap").exists()
     with pytest.raises(InputError, match="no_such_dir"):
         open_mcap_sink(tmp_path / "no_such_dir" / "x.mcap", config=Config())
 

@@ -48,7 +48,7 @@ def open_mcap_sink(
     """
     if flavor not in MCAP_FLAVORS:
         raise ConfigError(f"MCAP flavor (--flavor): must be one of {', '.join(MCAP_FLAVORS)}, got {flavor!r}")
-    if str(compression).lower() not in ("zstd", "lz4", "none"):
+    if not isinstance(compression, str) or compression.lower() not in ("zstd", "lz4", "none"):
         raise ConfigError(f"MCAP compression (--compression): must be zstd, lz4 or none, got {compression!r}")
     if flavor == "ros2":
         from .mcap_ros2 import Ros2McapSink as cls

@@ -90,6 +90,9 @@ class McapSink:
         config.validate()  # before the file is created: its TOML goes into the metadata at the end
         self.path = Path(path)
         self._config = config
+        if metadata is not None and not isinstance(metadata, Mapping):
+            raise ConfigError(f"MCAP output {path}: metadata must be a mapping of names to texts, got "
+                              f"{type(metadata).__name__}")
         self._metadata = {_utf8(k): _utf8(v) for k, v in (metadata or {}).items()}
         self._extrinsics: Extrinsics | None = None  # the first frame's
         self._extrinsics_changes = 0  # frames whose camera pose differs from the frame before's
