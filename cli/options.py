@@ -94,9 +94,14 @@ def failures(counts: dict[str, int]) -> str:
     return ", ".join(f"{reason} ×{n}" for reason, n in Counter(counts).most_common())
 
 
-def wrote_before_stopping(frames: int, paths) -> str:
-    """``wrote N frame(s) to A, B before stopping``: what a run that ends early leaves behind."""
-    return f"wrote {counted(frames, 'frame')} to {', '.join(map(str, paths))} before stopping"
+def wrote_before_stopping(written) -> str:
+    """``wrote N frame(s) to A, B before stopping`` (``and M to C`` where an output holds another
+    count): what a run that ends early leaves behind, from (frames, path) pairs."""
+    paths: dict[int, list] = {}
+    for frames, path in written:
+        paths.setdefault(frames, []).append(str(path))
+    parts = [f"{counted(n, 'frame') if k == 0 else n} to {', '.join(p)}" for k, (n, p) in enumerate(paths.items())]
+    return f"wrote {' and '.join(parts)} before stopping"
 
 
 def refuse_overwriting_inputs(outputs: dict[str, Path | None], inputs: Iterable[str | Path | None]) -> None:

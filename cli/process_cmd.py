@@ -76,6 +76,7 @@ def process(log, output, flavor, compression, rrd, overwrite, source_opts, confi
         first = next(frames, None)
         if first is None:
             raise Failed(f"no frame of {log} could be processed ({_why_none(source)})")
+        stop.check()  # a signal while the first frame was read: no earlier output is replaced
         frames = itertools.chain([first], frames)
         with stop.outputs_open():
             sinks = [open_mcap_sink(output, flavor, config=config, metadata={"source": str(log)}, compression=compression)]
@@ -90,16 +91,18 @@ def process(log, output, flavor, compression, rrd, overwrite, source_opts, confi
             try:
                 summary = runner.run(frames, config, sinks, on_frame=on_frame)
             except BaseException:
-                finished = [sink.path for sink in sinks if sink.finished]  # what they hold reads back
-                if progress and progress[0].frames_done and finished:
-                    click.echo(wrote_before_stopping(progress[0].frames_done, finished))
-                raise
-            finally:
                 if show:
-                    click.echo(err=True)
+                    click.echo(err=True)  # ends the progress line
+                finished = [sink for sink in sinks if sink.finished]  # what they hold reads back
+                if any(sink.frames_written for sink in finished):  # each its own: one may have failed mid-frame
+                    click.echo(wrote_before_stopping([(sink.frames_written, sink.path) for sink in finished]))
+                raise
+            if show:
+                click.echo(err=True)
     _report(summary, outputs, source.skipped())
     if summary.frames_done == 0:
         raise Failed(f"no frame of {log} could be processed ({failures(summary.failures)})")
+    stop.check()  # a signal while the outputs were being closed: the exit code still says so
 
 
 def _check_outputs(log: Path, output: Path, rrd: Path | None, overwrite: bool, inputs: list) -> None:

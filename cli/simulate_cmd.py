@@ -67,7 +67,7 @@ def simulate(out: Path, fmt: str | None, overwrite: bool, **options) -> None:
             try:
                 summary = run(out, config, progress=progress)
             except KeyboardInterrupt:
-                click.echo("\n" + wrote_before_stopping(written, [out]))
+                click.echo("\n" + wrote_before_stopping([(written, out)]))
                 raise
     click.echo(
         f"wrote {counted(summary['frames'], 'frame')} ({config.width}×{config.height}, scene {config.scene}, seed {config.seed}) "

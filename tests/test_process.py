@@ -430,10 +430,7 @@ def test_a_second_signal_waits_while_outputs_are_open():
 
     from terrainmap.cli.options import GracefulStop
 
-    # As in a terminal: a test run started in the background (`cmd &` in a script) inherits SIGINT
-    # ignored, which GracefulStop leaves so (tested below).
-    foreground = {signal.SIGINT: signal.default_int_handler, signal.SIGTERM: signal.SIG_DFL}
-    previous = {s: signal.signal(s, handler) for s, handler in foreground.items()}
+    previous = _in_foreground()
     try:
         # raise_signal delivers to this thread and runs the handler before it returns; os.kill may hand
         # the signal to another thread of the process (OpenCV's, an executor's), its handler a moment later.
@@ -620,3 +617,74 @@ def test_process_frame_refuses_a_negative_stamp_naming_the_frame():
     frame = dataclasses.replace(sim_frame(), stamp_ns=-1, source="mine.mcap")
     with pytest.raises(InputError, match="^mine.mcap: frame 0 has stamp -1 ns, outside 1970–2262"):
         process_frame(frame, Config(), PipelineState(Config()))
+
+
+def _in_foreground():
+    """SIGINT and SIGTERM handled as in a terminal (a test run in the background inherits SIGINT
+    ignored, which GracefulStop leaves so); returns the handlers to put back."""
+    import signal
+
+    foreground = {signal.SIGINT: signal.default_int_handler, signal.SIGTERM: signal.SIG_DFL}
+    return {s: signal.signal(s, handler) for s, handler in foreground.items()}
+
+
+def test_signals_before_the_outputs_open_or_while_they_close_stop_the_run_as_interrupted(
+        small_log, tmp_path, monkeypatch, capsys):
+    """Ctrl-C while the first frame is read: no output is opened, so an earlier one is kept; Ctrl-C
+    while the outputs are closed: they are whole, and the exit code still says interrupted."""
+    import signal
+
+    from terrainmap.cli.main import main
+    from terrainmap.sinks.base import McapSink
+    from terrainmap.sources.base import Source
+
+    out = tmp_path / "o.mcap"
+    out.write_bytes(b"an earlier run's output")
+    frames, close = Source.frames, McapSink.close
+
+    def interrupted_reading(self, *args, **kwargs):
+        signal.raise_signal(signal.SIGINT)
+        yield from frames(self, *args, **kwargs)
+
+    def interrupted_closing(self):
+        signal.raise_signal(signal.SIGTERM)
+        close(self)
+
+    previous = _in_foreground()
+    try:
+        with monkeypatch.context() as patch:
+            patch.setattr(Source, "frames", interrupted_reading)
+            with pytest.raises(SystemExit) as exc:
+                main(["process", str(small_log), "-o", str(out), "--overwrite"])
+        assert exc.value.code == 130 and out.read_bytes() == b"an earlier run's output"
+        assert capsys.readouterr().err.splitlines()[-1] == "Interrupted."
+        monkeypatch.setattr(McapSink, "close", interrupted_closing)
+        with pytest.raises(SystemExit) as exc:
+            main(["process", str(small_log), "-o", str(out), "--overwrite"])
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, handler)
+    captured = capsys.readouterr()
+    assert exc.value.code == 143 and captured.err.splitlines()[-1] == "Interrupted."
+    assert f"wrote {out}" in captured.out and len(_grids(out)) == 2
+
+
+def test_outputs_that_stop_at_different_frames_are_each_said(small_log, tmp_path, monkeypatch, capsys):
+    """The recording fails in the second frame, after the MCAP has written it: the line says what
+    each output holds."""
+    from terrainmap.cli.main import main
+    from terrainmap.sinks import rerun_recording
+
+    write = rerun_recording.RerunSink.write
+
+    def fails_second(self, frame, result):
+        if frame.index:
+            raise RuntimeError("no more")
+        write(self, frame, result)
+
+    monkeypatch.setattr(rerun_recording.RerunSink, "write", fails_second)
+    out, rrd = tmp_path / "o.mcap", tmp_path / "o.rrd"
+    with pytest.raises(RuntimeError, match="no more"):
+        main(["process", str(small_log), "-o", str(out), "--rrd", str(rrd)])
+    assert f"wrote 2 frames to {out} and 1 to {rrd} before stopping" in capsys.readouterr().out
+    assert len(_grids(out)) == 2
