@@ -318,3 +318,30 @@ def test_the_timelines_are_the_frame_index_and_the_image_stamp(log, tmp_path):
             rows.update(zip(batch.column("frame").to_pylist(), batch.column("stamp").cast("int64").to_pylist(), strict=True))
     assert [f.index for f in frames] == [0, 2]
     assert rows == {f.index: f.stamp_ns for f in frames}
+
+
+def test_a_recording_of_bad_arguments_is_refused_naming_them(log, tmp_path):
+    """As the MCAP sink: a config that is no Config, a folder that does not exist, a stamp that no
+    Rerun time holds or an index that is no whole number are terrainmap's errors, said before
+    anything is logged."""
+    import dataclasses
+
+    from terrainmap.errors import ConfigError, InputError
+    from terrainmap.pipeline import PipelineState, process_frame
+
+    with pytest.raises(ConfigError, match="Rerun output .*: config must be a Config, got NoneType"):
+        RerunSink(tmp_path / "o.rrd", config=None)
+    with pytest.raises(InputError, match="cannot create Rerun output .*: folder .*nowhere does not exist"):
+        RerunSink(tmp_path / "nowhere" / "o.rrd", config=Config())
+    with open_source(log) as source:
+        frame = next(source.frames())
+    result = process_frame(frame, Config(), PipelineState(Config()))
+    sink = RerunSink(tmp_path / "o.rrd", config=Config())
+    for bad, message in ((dataclasses.replace(frame, stamp_ns=2**63), r"stamp must be a whole number of nanoseconds "
+                                                                         r"in \[0, 2\^63\), got 9223372036854775808"),
+                         (dataclasses.replace(frame, index="x"), "the frame index must be a whole number, got 'x'")):
+        with pytest.raises(InputError, match=message):
+            sink.write(bad, result)
+    sink.write(frame, result)
+    sink.close()
+    _verify(tmp_path / "o.rrd")

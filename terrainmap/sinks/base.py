@@ -45,6 +45,24 @@ OBSTACLE_RGBA = {"positive": (1.0, 0.35, 0.1, 0.85), "negative": (0.3, 0.3, 1.0,
 """Box colour by :attr:`Obstacle.kind` (others: grey)."""
 
 
+def check_config(what: str, config: Config) -> None:
+    """:class:`ConfigError` naming ``what`` (an output) unless ``config`` is a valid Config."""
+    if not isinstance(config, Config):
+        raise ConfigError(f"{what}: config must be a Config, got {type(config).__name__}")
+    config.validate()
+
+
+def check_frame(what: str, frame: StereoFrame, result: FrameResult, bits: int) -> None:
+    """:class:`InputError` naming ``what`` (an output) unless the frame's index is a whole number
+    and the frame's and the result's stamps whole numbers of nanoseconds in [0, 2^bits)."""
+    if isinstance(frame.index, bool) or not isinstance(frame.index, numbers.Integral):
+        raise InputError(f"{what}: the frame index must be a whole number, got {frame.index!r}")
+    for stamp in {frame.stamp_ns, result.stamp_ns}:
+        if isinstance(stamp, bool) or not isinstance(stamp, numbers.Integral) or not 0 <= stamp < 2**bits:
+            raise InputError(f"{what}: frame {result.index}: the stamp must be a whole number of nanoseconds in "
+                             f"[0, 2^{bits}), got {stamp!r}")
+
+
 def _to_disk(file) -> None:
     """Flush ``file`` and have the OS write it to the device: the output of a finished (or cut
     back) run then survives a power cut right after, as on a vehicle whose power is switched off."""
@@ -85,9 +103,7 @@ class McapSink:
     """
 
     def __init__(self, path: str | Path, *, config: Config, metadata: Mapping[str, str] | None = None):
-        if not isinstance(config, Config):
-            raise ConfigError(f"MCAP output {path}: config must be a Config, got {type(config).__name__}")
-        config.validate()  # before the file is created: its TOML goes into the metadata at the end
+        check_config(f"MCAP output {path}", config)  # before the file is created: its TOML goes into the metadata
         self.path = Path(path)
         self._config = config
         if metadata is not None and not isinstance(metadata, Mapping):
@@ -137,10 +153,7 @@ class McapSink:
             raise TerrainmapError(f"MCAP output {self.path} is already closed")
         if self._failed is not None:
             raise TerrainmapError(f"MCAP output {self.path} failed in an earlier frame ({self._failed})")
-        for stamp in {frame.stamp_ns, result.stamp_ns}:  # checked before any message of the frame is written
-            if isinstance(stamp, bool) or not isinstance(stamp, numbers.Integral) or not 0 <= stamp < 2**64:
-                raise InputError(f"MCAP output {self.path}: frame {result.index}: the stamp must be a whole number "
-                                 f"of nanoseconds in [0, 2^64), got {stamp!r}")
+        check_frame(f"MCAP output {self.path}", frame, result, 64)  # before any message of the frame is written
         if np.shape(result.point_labels) != (len(result.points_vehicle),):
             raise TerrainmapError(f"frame {result.index}: {len(result.points_vehicle)} points but point labels "
                                   f"of shape {np.shape(result.point_labels)}")

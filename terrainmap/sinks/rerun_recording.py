@@ -47,7 +47,7 @@ from ..grid import cell_centers
 from ..ros2defs import yaw_quaternion
 from ..stereo import rectified_camera
 from ..types import FrameResult, Label, StereoFrame
-from .base import confirmed_obstacles, obstacle_text, point_stride
+from .base import check_config, check_frame, confirmed_obstacles, obstacle_text, point_stride
 
 LABEL_COLORS = {
     Label.UNKNOWN: (140, 140, 140),
@@ -135,7 +135,10 @@ class RerunSink:
     """
 
     def __init__(self, path: str | Path, *, config: Config, application_id: str = "terrainmap"):
+        check_config(f"Rerun output {path}", config)
         self.path = Path(path)
+        if not self.path.parent.is_dir():  # said before a stream exists (Rerun would warn as it drops it)
+            raise InputError(f"cannot create Rerun output {self.path}: folder {self.path.parent} does not exist")
         self._config = config
         self._closed = False
         self.finished = False
@@ -154,6 +157,7 @@ class RerunSink:
     def write(self, frame: StereoFrame, result: FrameResult) -> None:
         if self._closed:
             raise TerrainmapError(f"Rerun output {self.path} is already closed")
+        check_frame(f"Rerun output {self.path}", frame, result, 63)  # (Rerun's timestamps are signed)
         rec = self._rec
         rec.set_time("frame", sequence=frame.index)
         rec.set_time("stamp", timestamp=np.datetime64(frame.stamp_ns, "ns"))
