@@ -19,7 +19,7 @@ from functools import lru_cache
 import numpy as np
 from scipy.linalg import lapack
 
-from .errors import FrameError
+from .errors import FrameError, InputError
 
 
 def clamped_knots(lo: float, hi: float, n_ctrl: int, degree: int) -> np.ndarray:
@@ -102,7 +102,7 @@ class RationalSurface:
 
     def evaluate(self, x, y) -> np.ndarray:
         """Height S(x, y), metres, for broadcastable arrays ``x``, ``y`` (metres)."""
-        x, y = np.broadcast_arrays(np.asarray(x, float), np.asarray(y, float))
+        x, y = _points(x, y)
         Bx = basis_matrix(self.knots_x, self.degree, x)
         By = basis_matrix(self.knots_y, self.degree, y)
         num, den = self._parts(Bx, By)
@@ -110,7 +110,7 @@ class RationalSurface:
 
     def gradient(self, x, y) -> tuple[np.ndarray, np.ndarray]:
         """Analytic ``(∂S/∂x, ∂S/∂y)`` (dimensionless) by the quotient rule."""
-        x, y = np.broadcast_arrays(np.asarray(x, float), np.asarray(y, float))
+        x, y = _points(x, y)
         Bx, dBx = basis_matrix(self.knots_x, self.degree, x, derivative=True)
         By, dBy = basis_matrix(self.knots_y, self.degree, y, derivative=True)
         num, den, num_x, den_x, num_y, den_y = self._parts(Bx, By, dBx, dBy)
@@ -224,6 +224,14 @@ class TensorFit:
 
     def surface(self, Q: np.ndarray, R: np.ndarray) -> RationalSurface:
         return RationalSurface(self.knots_x, self.knots_y, self.degree, Q, R)
+
+
+def _points(x, y) -> tuple[np.ndarray, np.ndarray]:
+    """``x``, ``y`` as broadcast float arrays, or :class:`InputError` saying why they are not."""
+    try:
+        return np.broadcast_arrays(np.asarray(x, float), np.asarray(y, float))
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"surface: x and y must be broadcastable arrays of numbers ({exc})") from None
 
 
 def _shifted_product(B: np.ndarray, offset: int) -> np.ndarray:

@@ -8,7 +8,7 @@ import pytest
 
 from terrainmap.config import Config, GridConfig, StereoConfig, load_config
 from terrainmap.cost import traversability_cost
-from terrainmap.errors import ConfigError, InputError
+from terrainmap.errors import CalibrationError, ConfigError, InputError
 from terrainmap.grid import quantize
 from terrainmap.obstacles import terrain_at
 from terrainmap.sources import open_source
@@ -107,3 +107,26 @@ def test_the_pipelines_arguments_of_another_type_are_named():
         map_points(cloud(1000), C, camera="cam")
     with pytest.raises(InputError, match="cloud: n_points must be a whole number >= 0, got -1"):
         cloud(-1)
+
+
+def test_the_surface_and_the_truth_name_points_that_are_no_arrays_of_numbers(tmp_path):
+    """RationalSurface (and slope_at) and Truth.height: x, y that do not broadcast or are no
+    numbers are InputError; Truth.height gives NaN at a NaN point (not an IndexError from the
+    heightfield's integer cast)."""
+    from terrainmap.sim import SimConfig, open_truth, simulate
+    from terrainmap.slope import slope_at
+
+    surface = estimate_terrain(quantize(cloud(20_000), C.grid), C.terrain).surface
+    for x, y in (([1.0, 2.0, 3.0], [1.0, 2.0]), ("a", "b")):
+        with pytest.raises(InputError, match="surface: x and y must be broadcastable arrays of numbers"):
+            slope_at(surface, x, y)
+    log = simulate(tmp_path / "t.mcap", SimConfig(scene="flat", frames=1, width=32, height=24, focal_px=25.0))["path"]
+    truth = open_truth(log)
+    heights = truth.height([5.0, np.nan, 5.0], [0.0, 0.0, np.inf])
+    assert np.isfinite(heights[0]) and np.isnan(heights[1:]).all()
+    with pytest.raises(InputError, match="Truth.height: x and y must be broadcastable arrays of numbers"):
+        truth.height([1.0, 2.0, 3.0], [1.0, 2.0])
+    with pytest.raises(InputError, match="open_truth: path must be a str or Path, got int"):
+        open_truth(5)
+    with pytest.raises(CalibrationError, match="calibration must be the path of a file, got int"):
+        open_source(log, calibration=5)

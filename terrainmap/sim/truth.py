@@ -95,8 +95,15 @@ class Truth:
         return {m.id: np.array([*m.motion(index / self.config.fps)[1], 0.0]) for m in self._motions}
 
     def height(self, x, y) -> np.ndarray:
-        """Terrain height (m, float32) at world (odom) points, obstacles excluded."""
-        return self.terrain.height(x, y)
+        """Terrain height (m, float32) at world (odom) points ``(x, y)`` (broadcastable arrays, m),
+        obstacles excluded; NaN where x or y is not finite."""
+        try:
+            x, y = np.broadcast_arrays(np.asarray(x, np.float64), np.asarray(y, np.float64))
+        except (TypeError, ValueError) as exc:
+            raise InputError(f"Truth.height: x and y must be broadcastable arrays of numbers ({exc})") from None
+        finite = np.isfinite(x) & np.isfinite(y)
+        height = self.terrain.height(np.where(finite, x, 0.0), np.where(finite, y, 0.0))
+        return np.where(finite, height, np.float32(np.nan))
 
     def frames(self) -> Iterator[TruthFrame]:
         return self._frames_fn(self)
@@ -138,6 +145,8 @@ def open_truth(path: str | Path) -> Truth:
     InputError
         The path does not exist, or its truth is damaged.
     """
+    if not isinstance(path, str | Path):
+        raise InputError(f"open_truth: path must be a str or Path, got {type(path).__name__}")
     path = Path(path)
     if not path.exists():
         raise InputError(f"{path}: does not exist")

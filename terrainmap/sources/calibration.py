@@ -268,6 +268,8 @@ def terrainmap_calibration(path: Path) -> tuple[StereoCalibration, Extrinsics | 
 def load_calibration_file(path: str | Path) -> tuple[StereoCalibration, Extrinsics | None]:
     """Any supported calibration file, chosen by name: ``.yaml/.yml/.toml`` (terrainmap format),
     Middlebury ``calib.txt`` (has ``cam0=``), or a KITTI ``.txt``."""
+    if not isinstance(path, str | Path):
+        raise CalibrationError(f"calibration must be the path of a file, got {type(path).__name__}")
     path = Path(path)
     if not path.is_file():
         raise CalibrationError(f"{path}: calibration file does not exist")
