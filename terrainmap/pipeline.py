@@ -298,6 +298,26 @@ def process_frame(frame: StereoFrame, config: Config, state: PipelineState) -> F
     """The whole pipeline on one stereo pair: SGM disparity → 3D points (vehicle frame) → grid →
     terrain surface → slope, labels → obstacles (tracked) and traversability cost.
 
+    Parameters
+    ----------
+    frame : StereoFrame
+        Left and right images (H×W or H×W×3 uint8/uint16, of one size), their calibration, the
+        stamp (ns) and, where known, the camera's extrinsics (else estimated on the first frame and
+        kept in ``state``) and the vehicle's pose in the odometry frame (tracks then live there).
+    config : Config
+        The settings (``load_config()`` for the paper's defaults).
+    state : PipelineState
+        What the run carries from frame to frame (matcher, estimated camera pose, tracks): one per
+        run, ``PipelineState(config)``, given every frame in stamp order.
+
+    Returns
+    -------
+    FrameResult
+        Points (N×3 float32, vehicle frame, m) with their pixels and labels, the grid's layers
+        (``elevation`` m, ``slope`` rad, ``label``, ``valid``, ``cost`` in [0, 1], indexed
+        ``[ix, iy]``), the tracked obstacles (vehicle frame), the disparity and per-stage timings
+        (ms); see :class:`~terrainmap.types.FrameResult`.
+
     Raises
     ------
     FrameError

@@ -1,6 +1,8 @@
 """Output sinks: each receives ``write(frame, result)`` per frame and ``close()`` at the end.
 
 ``open_mcap_sink`` picks the MCAP flavour: ``"foxglove"`` (protobuf, the default) or ``"ros2"`` (CDR).
+A Rerun recording is :class:`terrainmap.sinks.rerun_recording.RerunSink` (imported on its own:
+it loads the Rerun SDK).
 """
 
 from __future__ import annotations
