@@ -97,12 +97,20 @@ def artificial_obstacle(
                               [base_log, config_path, source_opts.calibration])
     if frame_index and not base_log:
         raise click.UsageError("--frame picks a stereo pair of the --base log; give --base too")
+    ctx = click.get_current_context()
+    given = [f"--{name}" for name in ("length", "width", "cell")
+             if ctx.get_parameter_source(f"{name}_m") is click.core.ParameterSource.COMMANDLINE]
+    if base_log and given:
+        raise click.UsageError(f"{', '.join(given)} set the flat scene's area; with --base the area is the config's "
+                               "grid (--set grid.length_m=... and the like)")
     source_opts.require(base_log, "--base")
     config = load_config(config_path, overrides)
     if base_log:
-        grid, base_points = config.grid, ao.points_from_log(base_log, config, frame_index, **source_opts.open_kwargs())
+        grid, (base_points, camera) = config.grid, ao.points_from_log(base_log, config, frame_index,
+                                                                      **source_opts.open_kwargs())
     else:
-        grid, base_points = GridConfig(x_min_m=0.0, length_m=length_m, width_m=width_m, y_center_m=0.0, cell_size_m=cell_m), None
+        grid = GridConfig(x_min_m=0.0, length_m=length_m, width_m=width_m, y_center_m=0.0, cell_size_m=cell_m)
+        base_points = camera = None
     terrain = config.terrain
     if degree is not None:
         terrain.degree = degree
@@ -111,7 +119,8 @@ def artificial_obstacle(
     scenarios = ao.grid_of_scenarios(net_list, widths, heights)
     try:
         grid.validate()
-        results = ao.run(scenarios, grid=grid, terrain=terrain, position_xy=tuple(position), base_points=base_points)
+        results = ao.run(scenarios, grid=grid, terrain=terrain, position_xy=tuple(position), base_points=base_points,
+                         camera=camera)
     except ConfigError as exc:  # name the option the user gave, not only the config field it set
         field = str(exc).split(":", 1)[0]
         option = next((o for f, o in _FIELD_OPTIONS.items() if field.startswith(f)), "--set" if base_log else None)

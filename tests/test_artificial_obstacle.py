@@ -70,3 +70,31 @@ def test_the_deviation_is_the_largest_over_the_area_as_a_percentage_of_the_heigh
     deviation = np.abs(with_box - without)
     assert result.max_deviation_m == pytest.approx(deviation.max())
     assert result.max_deviation_pct == pytest.approx(100 * deviation.max() / 2.0)
+
+
+def test_a_base_with_gaps_is_scored_on_the_cells_that_hold_its_points_with_its_rig(monkeypatch):
+    """A base scene from a log covers part of the area: the deviation is taken over the cells
+    that hold its points, not over the cells filled from their neighbours, and its rig gives the
+    grid eq. 1's noise discount, as in the pipeline."""
+    from dataclasses import replace
+
+    from terrainmap.config import TerrainConfig
+    from terrainmap.grid import quantize
+    from terrainmap.types import StereoCamera
+
+    base = ao.flat_base(ao.PAPER_GRID)
+    base = base[(base[:, 0] < 15.0) & (np.abs(base[:, 1]) < 6.0)]  # seen nearer than 15 m, 6 m to each side
+    grid = quantize(base, ao.PAPER_GRID)
+    assert (grid.valid & ~grid.observed).any()  # cells filled at the edge of the seen part
+    _, mask = ao._surface_on_lattice(base, ao.PAPER_GRID, replace(TerrainConfig(), control_points_x=5,
+                                                                   control_points_y=5), 5)
+    step = ao.PAPER_GRID.cell_size_m / 5
+    xs = ao.PAPER_GRID.x_min_m + np.arange(mask.shape[0]) * step
+    ys = ao.PAPER_GRID.y_min_m + np.arange(mask.shape[1]) * step
+    assert xs[mask.any(1)].max() < 15.0 and -6.0 <= ys[mask.any(0)].min() and ys[mask.any(0)].max() < 6.0
+    cameras = []
+    monkeypatch.setattr(ao, "quantize", lambda points, grid, camera=None: cameras.append(camera) or
+                        quantize(points, grid, camera=camera))
+    camera = StereoCamera(np.array([0.0, 0.0, 1.8]), np.array([1.0, 0.0, 0.0]), 150.0)
+    (seen,) = ao.run([ao.Scenario(5, 2.0, 1.0)], base_points=base, camera=camera)
+    assert seen.max_deviation_pct > 0 and cameras == [camera, camera]

@@ -388,6 +388,10 @@ def test_a_report_written_through_a_symbolic_link_keeps_the_link(tmp_path):
 @pytest.mark.parametrize(("argv", "line"), [
     (["eval", "artificial-obstacle", "--nets", "3"],
      "Error: --nets (terrain.control_points_x: must be at least degree + 1 = 4, got 3)"),
+    (["eval", "artificial-obstacle", "--base", str(Path(__file__).parents[1] / "examples" / "offroad_demo.mcap"),
+      "--length", "10", "--cell", "0.25"],  # would be ignored: the area is the config's grid then
+     "Error: --length, --cell set the flat scene's area; with --base the area is the config's grid "
+     "(--set grid.length_m=... and the like) (see 'terrainmap eval artificial-obstacle --help')"),
     (["eval", "artificial-obstacle", "--nets", "100"],
      "Error: --nets (terrain.control_points_x × control_points_y: must be at most 4096 (64×64), got 100×100)"),
     (["eval", "artificial-obstacle", "--cell", "100"],

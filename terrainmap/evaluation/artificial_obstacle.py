@@ -23,7 +23,9 @@ import numpy as np
 from ..config import Config, GridConfig, TerrainConfig
 from ..errors import FrameError, InputError
 from ..grid import cell_index, quantize
+from ..stereo import rig_camera
 from ..terrain import estimate_terrain
+from ..types import StereoCamera
 
 
 @dataclass(frozen=True)
@@ -77,17 +79,19 @@ def add_box(points: np.ndarray, center_xy: tuple[float, float], width_m: float, 
     return out
 
 
-def _surface_on_lattice(points: np.ndarray, grid: GridConfig, terrain: TerrainConfig, per_cell: int):
+def _surface_on_lattice(points: np.ndarray, grid: GridConfig, terrain: TerrainConfig, per_cell: int,
+                        camera: StereoCamera | None = None):
     """The estimated surface on a lattice of ``per_cell`` steps per cell, and a mask of the lattice
-    nodes that lie in (or on the edge of) a valid cell of the grid."""
-    height_grid = quantize(points, grid)
+    nodes that lie in (or on the edge of) a cell of the grid that holds points (``camera``: the
+    stereo rig of the points, for eq. 1's noise discount as the pipeline applies it)."""
+    height_grid = quantize(points, grid, camera=camera)
     est = estimate_terrain(height_grid, terrain)
     step = grid.cell_size_m / per_cell
     xs = grid.x_min_m + np.arange(grid.shape[0] * per_cell + 1) * step
     ys = grid.y_min_m + np.arange(grid.shape[1] * per_cell + 1) * step
     ix = np.minimum(np.arange(len(xs)) // per_cell, grid.shape[0] - 1)
     iy = np.minimum(np.arange(len(ys)) // per_cell, grid.shape[1] - 1)
-    return est.surface.on_grid(xs, ys), height_grid.valid[np.ix_(ix, iy)]
+    return est.surface.on_grid(xs, ys), height_grid.observed[np.ix_(ix, iy)]
 
 
 def run(
@@ -97,6 +101,7 @@ def run(
     terrain: TerrainConfig | None = None,
     position_xy: tuple[float, float] = (11.0, 0.0),
     base_points: np.ndarray | None = None,
+    camera: StereoCamera | None = None,
     samples_per_cell: int = 4,
     eval_per_cell: int = 5,
     progress: Callable[[Deviation], None] | None = None,
@@ -104,7 +109,8 @@ def run(
     """Run the protocol for each scenario; returns one :class:`Deviation` per scenario.
 
     ``terrain`` supplies every setting but the control net (default: the paper's); ``base_points``
-    (N×3, vehicle frame) replaces the flat base scene, e.g. points from a real frame.
+    (N×3, vehicle frame) replaces the flat base scene, e.g. points from a real frame, seen by
+    ``camera`` (:func:`points_from_log` gives both).
     """
     terrain = terrain or TerrainConfig()
     grid.validate()
@@ -115,10 +121,10 @@ def run(
         cfg = replace(terrain, control_points_x=sc.control_points, control_points_y=sc.control_points)
         cfg.validate(grid)
         if sc.control_points not in reference:
-            reference[sc.control_points] = _surface_on_lattice(base, grid, cfg, eval_per_cell)
+            reference[sc.control_points] = _surface_on_lattice(base, grid, cfg, eval_per_cell, camera)
         scene = add_box(base, position_xy, sc.width_m, sc.height_m)
-        _check_box_is_seen(base, scene, grid, position_xy, sc)
-        with_box, _ = _surface_on_lattice(scene, grid, cfg, eval_per_cell)
+        _check_box_is_seen(base, scene, grid, position_xy, sc, grid.cell_size_m / samples_per_cell)
+        with_box, _ = _surface_on_lattice(scene, grid, cfg, eval_per_cell, camera)
         surface, observed = reference[sc.control_points]
         dev = float(np.max(np.abs(with_box - surface)[observed]))
         pct = 100.0 * dev / sc.height_m if sc.height_m > 0 else math.nan
@@ -129,7 +135,8 @@ def run(
     return results
 
 
-def _check_box_is_seen(base: np.ndarray, scene: np.ndarray, grid: GridConfig, position_xy, sc: Scenario) -> None:
+def _check_box_is_seen(base: np.ndarray, scene: np.ndarray, grid: GridConfig, position_xy, sc: Scenario,
+                       spacing_m: float) -> None:
     """Raise :class:`InputError` when no raised point of the box reaches the grid (a box outside
     the area, or so tall that its top lies above ``grid.z_max_m``): it would score a silent 0 %."""
     raised = scene[scene[:, 2] != base[:, 2]]
@@ -138,15 +145,16 @@ def _check_box_is_seen(base: np.ndarray, scene: np.ndarray, grid: GridConfig, po
         raise InputError(
             f"a {sc.width_m:g} m wide, {sc.height_m:g} m tall box at ({x:g}, {y:g}) leaves no point in the grid: "
             f"its footprint must overlap the area (x {grid.x_min_m:g}..{grid.x_min_m + grid.length_m:g} m, "
-            f"y {grid.y_min_m:g}..{grid.y_min_m + grid.width_m:g} m, where the base scene has points) and its top "
-            f"must stay below grid.z_max_m = {grid.z_max_m:g} m"
+            f"y {grid.y_min_m:g}..{grid.y_min_m + grid.width_m:g} m, where the base scene has points), be wide enough "
+            f"to hold one of its points (the flat scene's lie {spacing_m:g} m apart) and its top must stay "
+            f"below grid.z_max_m = {grid.z_max_m:g} m"
         )
 
 
-def points_from_log(path, config: Config, frame_index: int = 0, **open_kwargs) -> np.ndarray:
-    """The vehicle-frame stereo points of one frame of a log or folder, as the pipeline sees them
-    (``open_kwargs``: topics, calibration and pairing tolerance, as for
-    :func:`~terrainmap.sources.open_source`).
+def points_from_log(path, config: Config, frame_index: int = 0, **open_kwargs) -> tuple[np.ndarray, StereoCamera]:
+    """The vehicle-frame stereo points (N×3, m) of one frame of a log or folder and the rig that
+    saw them, as the pipeline sees them (``open_kwargs``: topics, calibration and pairing
+    tolerance, as for :func:`~terrainmap.sources.open_source`).
 
     Raises :class:`InputError` if the log has fewer frames or the frame yields no terrain (naming
     the log and the pair), and the pipeline's errors otherwise.
@@ -158,9 +166,10 @@ def points_from_log(path, config: Config, frame_index: int = 0, **open_kwargs) -
         for frame in source.frames(max_frames=frame_index + 1):
             if frame.index == frame_index:
                 try:
-                    return process_frame(frame, config, PipelineState(config)).points_vehicle.astype(float)
+                    result = process_frame(frame, config, PipelineState(config))
                 except FrameError as exc:
                     raise InputError(f"{path}: stereo pair {frame_index}: {exc}") from exc
+                return result.points_vehicle.astype(float), rig_camera(result.pinhole, result.extrinsics)
     raise InputError(f"{path}: has no stereo pair number {frame_index}")
 
 
