@@ -32,6 +32,8 @@ stages on that pair's points as the pipeline makes them, seen from its rig.
 from __future__ import annotations
 
 import copy
+import dataclasses
+import itertools
 import os
 import platform
 import statistics
@@ -45,7 +47,7 @@ import numpy as np
 from .config import Config
 
 if TYPE_CHECKING:
-    from .types import StereoCamera, StereoFrame
+    from .types import FrameResult, StereoCamera, StereoFrame
 
 Stage = Callable[[], object]
 
@@ -60,11 +62,13 @@ def _summary(times: list[float]) -> dict[str, float]:
 
 
 def core_stages(
-    config: Config, n_points: int = 300_000, *, points: np.ndarray | None = None, camera: StereoCamera | None = None
+    config: Config, n_points: int = 300_000, *, points: np.ndarray | None = None, camera: StereoCamera | None = None,
+    labelled: FrameResult | None = None,
 ) -> dict[str, Stage]:
     """Stage name → zero-argument callable, for the terrain core on a synthetic cloud of
     ``n_points``, or on ``points`` ((N, 3), vehicle frame, m) seen by ``camera`` (a
-    :class:`~terrainmap.types.StereoCamera`)."""
+    :class:`~terrainmap.types.StereoCamera`); ``labelled``, the pipeline's result for ``points``,
+    gives the obstacles stage its labels and layers, the upright cue's included."""
     from .grid import cell_index, quantize
     from .obstacle_stage import make_tracker, run_obstacle_stage
     from .pipeline import map_points, map_surface
@@ -75,7 +79,7 @@ def core_stages(
     if points is None:
         points = cloud(n_points, grid=config.grid)
         camera = StereoCamera(np.array([0.0, 0.0, 1.8]), np.array([1.0, 0.0, 0.0]), 150.0)  # the cloud's viewpoint
-    result = map_points(points, config, camera=camera)
+    result = labelled or map_points(points, config, camera=camera)
     grid = quantize(points, config.grid, camera=camera)  # the surface stage's input
     terrain, _, limits = map_surface(grid, config, camera)
     index = cell_index(points, config.grid)  # computed by the grid stage; the pipeline reuses it
@@ -175,7 +179,8 @@ def all_stages(config: Config, frame: StereoFrame | None = None) -> dict[str, St
     except FrameError as exc:
         raise InputError(f"cannot time the first stereo pair: {exc}") from exc
     camera = rig_camera(result.pinhole, result.extrinsics)
-    return {**core_stages(config, points=result.points_vehicle, camera=camera), **frame_stages(config, frame)}
+    return {**core_stages(config, points=result.points_vehicle, camera=camera, labelled=result),
+            **frame_stages(config, frame)}
 
 
 def frame_stages(config: Config, frame: StereoFrame | None = None) -> dict[str, Stage]:
@@ -191,10 +196,15 @@ def frame_stages(config: Config, frame: StereoFrame | None = None) -> dict[str, 
 
     frame = frame if frame is not None else sim_frame()
     state = PipelineState(config)
-    result = process_frame(frame, config, state)
+    # Each call is the next frame, 0.1 s on: with the stamp of the one before, the tracker would
+    # take it for a frame logged twice and skip its update, as process never does.
+    stamps = itertools.count(frame.stamp_ns, 10**8)
+    for _ in range(3):  # by the third frame the obstacles are confirmed tracks, which the MCAP stage writes
+        result = process_frame(dataclasses.replace(frame, stamp_ns=next(stamps)), config, state)
     every_row = copy.deepcopy(config)  # a frame with no rows of only sky: SGBM matches them all
     every_row.stereo.drop_sky = False
     every_row_state = PipelineState(every_row)
+    every_row_stamps = itertools.count(frame.stamp_ns, 10**8)
     grey = [to_grey(im) for im in (frame.left, frame.right)]
     # The file is removed with its folder at once: the open sink writes on into it, and nothing is
     # left behind however the benchmark ends.
@@ -208,8 +218,9 @@ def frame_stages(config: Config, frame: StereoFrame | None = None) -> dict[str, 
 
     return {
         "sgbm_alone": lambda: state.matcher.sgbm.compute(*grey),
-        "frame_total": lambda: process_frame(frame, config, state),
-        "frame_every_row": lambda: process_frame(frame, every_row, every_row_state),
+        "frame_total": lambda: process_frame(dataclasses.replace(frame, stamp_ns=next(stamps)), config, state),
+        "frame_every_row": lambda: process_frame(dataclasses.replace(frame, stamp_ns=next(every_row_stamps)),
+                                                 every_row, every_row_state),
         "upright": upright_stage,
         "mcap_write": lambda: sink.write(frame, result),
     }

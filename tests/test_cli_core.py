@@ -227,6 +227,23 @@ def test_bench_stages_take_turns_and_goals_follow_the_medians():
     assert floor[1] == ("grid + labels, ms (numpy's floor for their passes: 3.25)", 4.5, 5.0)
 
 
+def test_the_whole_frame_stages_are_each_a_new_frame_to_the_tracker(monkeypatch):
+    """Each timed call of frame_total and frame_every_row is the next frame (a later stamp): the
+    tracker runs its whole update and confirms obstacles, as in process, instead of taking a
+    repeated stamp for a frame logged twice."""
+    from terrainmap import bench
+    from terrainmap.config import Config
+    from terrainmap.tracking import ObstacleTracker
+
+    stamps, update = {}, ObstacleTracker.update
+    monkeypatch.setattr(ObstacleTracker, "update", lambda self, obstacles, stamp_ns, *args: (
+        stamps.setdefault(id(self), []).append(stamp_ns), update(self, obstacles, stamp_ns, *args))[1])
+    stages = bench.frame_stages(Config())
+    results = [stages[name]() for name in ("frame_total", "frame_every_row", "frame_total")]
+    assert all(len(s) == len(set(s)) and s == sorted(s) for s in stamps.values()) and len(stamps) == 2
+    assert any(o.confirmed for o in results[-1].obstacles)
+
+
 def test_the_numpy_floor_labels_every_point():
     from terrainmap import bench
     from terrainmap.config import Config
