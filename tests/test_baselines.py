@@ -64,22 +64,22 @@ def test_gradient_of_a_grid_with_empty_cells_has_a_slope_wherever_a_neighbour_ha
 
 @pytest.mark.parametrize("how", ["missing", "broken"])
 def test_optional_methods_are_listed_only_when_installed_and_importable(monkeypatch, how):
+    """Not installed (the import raises ModuleNotFoundError) or a broken build (found, then an
+    OSError for a missing shared library): the method is not listed, and nothing raises."""
     import importlib
-    import importlib.util
 
     from terrainmap.evaluation import baselines
 
     optional = ("CSF", "pypatchworkpp")
+    error = {"missing": lambda name: ModuleNotFoundError(f"No module named {name!r}", name=name),
+             "broken": lambda name: OSError(f"{name}: cannot open shared object file")}[how]
 
-    def broken(name, real=importlib.import_module):
+    def fails(name, real=importlib.import_module):
         if name in optional:
-            raise OSError(f"{name}: cannot open shared object file")
+            raise error(name)
         return real(name)
 
-    found = {"missing": None, "broken": object()}[how]  # a broken install is found, then fails to import
-    real = importlib.util.find_spec
-    monkeypatch.setattr(importlib.util, "find_spec", lambda name: found if name in optional else real(name))
-    monkeypatch.setattr(importlib, "import_module", broken)
+    monkeypatch.setattr(importlib, "import_module", fails)
     baselines._importable.cache_clear()  # what an earlier call found
     try:
         assert available_methods() == ["terrainmap", "bspline_single", "ransac_plane", "lowest_point"]
