@@ -212,6 +212,8 @@ class TerrainConfig:
         _check(self.min_valid_cells >= 0, "terrain.min_valid_cells", "must be >= 0")
         if grid is not None:
             m0, m1 = grid.shape
+            _check(self.min_valid_cells <= m0 * m1, "terrain.min_valid_cells",
+                   f"({self.min_valid_cells}) exceeds the grid's {m0}×{m1} = {m0 * m1} cells")
             for name, n, m, axis in (
                 ("control_points_x", self.control_points_x, m0, "x"),
                 ("control_points_y", self.control_points_y, m1, "y"),
@@ -525,6 +527,10 @@ class StereoConfig:
         _check(self.pass_tolerance_px > 0, "stereo.pass_tolerance_px", "must be > 0")
         _check(self.vertical_passes_min_range_m >= 0, "stereo.vertical_passes_min_range_m", "must be >= 0")
         _check(self.vertical_passes_max_range_m >= 0, "stereo.vertical_passes_max_range_m", "must be >= 0")
+        low, high = self.vertical_passes_min_range_m, self.vertical_passes_max_range_m
+        _check(not (low > 0 and high > 0 and low >= high), "stereo.vertical_passes_min_range_m",
+               f"({low:g} m) must be below stereo.vertical_passes_max_range_m ({high:g} m) where both are set: "
+               "no row would be matched twice")
 
 
 @dataclass
@@ -768,6 +774,9 @@ class Config:
                 raise ConfigError(f"{section.name}: must be a {section.default_factory.__name__}, "
                                   f"got {type(value).__name__}")
             check_section(value, self.grid)
+        cells = self.grid.shape[0] * self.grid.shape[1]
+        _check(self.obstacles.min_cells <= cells, "obstacles.min_cells",
+               f"({self.obstacles.min_cells}) exceeds the grid's {cells} cells: no obstacle could be found")
         return self
 
     def to_dict(self) -> dict[str, dict[str, Any]]:
@@ -826,14 +835,23 @@ and of its grid."""
 
 def _passed_before(section: Any, grid: GridConfig | None) -> bool:
     passed = _PASSED.get(type(section))
-    if passed is None:
+    return passed is not None and same_values(passed, (section, grid))
+
+
+def same_values(a: Any, b: Any) -> bool:
+    """Whether ``a`` and ``b`` (configs, sections, or tuples of them) hold equal values of the same
+    types: ``True``, ``1`` and ``1+0j`` equal ``1.0`` to Python but are no float setting, and a
+    field holding an array cannot be compared: neither is the same as what was checked."""
+    if type(a) is not type(b):
         return False
+    if dataclasses.is_dataclass(a):
+        return all(same_values(getattr(a, f.name), getattr(b, f.name)) for f in fields(a))
+    if isinstance(a, tuple):
+        return len(a) == len(b) and all(same_values(x, y) for x, y in zip(a, b, strict=True))
     try:
-        same = passed == (section, grid)
-    except (TypeError, ValueError):  # a field holding an array: not comparable, so checked
+        return bool(a == b)
+    except (TypeError, ValueError):  # a field holding an array
         return False
-    kinds = (type(getattr(section, f.name)) is type(getattr(passed[0], f.name)) for f in fields(section))
-    return same and all(kinds)
 
 
 def check_kinds(name: str, section: Any) -> None:

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
 
-from .config import Config
+from .config import Config, same_values
 from .errors import ConfigError, InputError
 from .extrinsics import estimate_extrinsics, extrinsics_from_calibration
 from .grid import HeightGrid, cell_index, quantize
@@ -170,7 +170,7 @@ class PipelineState:
         pose that is no rigid motion, naming where the frame and the extrinsics come from), each
         only when it is not the one checked last."""
         checked, extrinsics = self.checked[0], frame.extrinsics if frame is not None else None
-        if config != checked:
+        if not same_values(config, checked):  # (a value of another type, True for 1.0, is checked too)
             config.validate()
             checked = replace(config, **{f.name: replace(getattr(config, f.name)) for f in fields(config)})
         if extrinsics is not None and extrinsics is not self.checked[1]:

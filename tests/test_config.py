@@ -87,6 +87,19 @@ def test_bad_values_name_the_field(override, message):
         load_config(overrides=[override])
 
 
+@pytest.mark.parametrize("overrides, message", [
+    (["stereo.vertical_passes=2", "stereo.vertical_passes_min_range_m=30", "stereo.vertical_passes_max_range_m=8"],
+     r"stereo.vertical_passes_min_range_m: \(30 m\) must be below stereo.vertical_passes_max_range_m \(8 m\)"),
+    (["obstacles.min_cells=3000"], r"obstacles.min_cells: \(3000\) exceeds the grid's 2992 cells"),
+    (["terrain.min_valid_cells=3000"], r"terrain.min_valid_cells: \(3000\) exceeds the grid's 68×44 = 2992 cells"),
+])
+def test_settings_that_cannot_work_together_or_with_the_grid_are_refused(overrides, message):
+    """Accepted before, they silently did nothing (the second pass), found no obstacle or failed
+    every frame."""
+    with pytest.raises(ConfigError, match=message):
+        load_config(overrides=overrides)
+
+
 def test_set_reads_numbers_as_toml_writes_them():
     assert load_config(overrides=["rerun.max_points=100_000"]).rerun.max_points == 100_000  # as in a TOML file
     assert load_config(overrides=["grid.sigma_factor=.5"]).grid.sigma_factor == 0.5
@@ -106,7 +119,7 @@ def test_a_whole_number_written_with_a_point_is_an_integer_in_set_as_in_toml(tmp
     assert load_config(path).terrain.degree == 3 == load_config(overrides=["terrain.degree=3.0"]).terrain.degree
     # An integer written as one is read exactly, not through a float (which gives ...992)
     with pytest.raises(ConfigError, match="must be within -2147483648..2147483647, got 9007199254740993$"):
-        load_config(overrides=["terrain.min_valid_cells=9007199254740993"])
+        load_config(overrides=["rerun.max_points=9007199254740993"])
     with pytest.raises(ConfigError, match="terrain.degree: cannot use '3.5', expected an integer"):
         load_config(overrides=["terrain.degree=3.5"])
 
@@ -203,6 +216,16 @@ def test_a_config_changed_in_place_between_frames_is_checked_and_used():
     config.grid.cell_size_m = 0.0
     with pytest.raises(ConfigError, match="grid.cell_size_m: must be > 0"):
         process_frame(frame, config, state)
+    config.grid.cell_size_m = 0.5
+    # values equal to the ones checked, but of another kind: checked too
+    for section, name, value, message in (("stereo", "drop_sky", 1 + 0j, "stereo.drop_sky: must be true or false"),
+                                          ("grid", "z_max_m", np.array([10.0, 10.0]), "grid.z_max_m: must be a number"),
+                                          ("segmentation", "obstacle_height_m", True, "must be a number, got True")):
+        before = getattr(getattr(config, section), name)
+        setattr(getattr(config, section), name, value)
+        with pytest.raises(ConfigError, match=message):
+            process_frame(frame, config, state)
+        setattr(getattr(config, section), name, before)
 
 
 def test_another_degree_needs_no_other_setting():
