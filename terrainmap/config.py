@@ -842,16 +842,22 @@ def same_values(a: Any, b: Any) -> bool:
     """Whether ``a`` and ``b`` (configs, sections, or tuples of them) hold equal values of the same
     types: ``True``, ``1`` and ``1+0j`` equal ``1.0`` to Python but are no float setting, and a
     field holding an array cannot be compared: neither is the same as what was checked."""
-    if type(a) is not type(b):
-        return False
-    if dataclasses.is_dataclass(a):
-        return all(same_values(getattr(a, f.name), getattr(b, f.name)) for f in fields(a))
-    if isinstance(a, tuple):
-        return len(a) == len(b) and all(same_values(x, y) for x, y in zip(a, b, strict=True))
     try:
-        return bool(a == b)
+        if a != b:
+            return False
     except (TypeError, ValueError):  # a field holding an array
         return False
+    return _kinds(a) == _kinds(b)
+
+
+def _kinds(value: Any) -> Any:
+    """The types of ``value``'s fields, nested as a config's sections and tuples are (for
+    :func:`same_values`; a section's fields are numbers, flags and texts)."""
+    if isinstance(value, tuple | Config):
+        return tuple(map(_kinds, value if isinstance(value, tuple) else vars(value).values()))
+    if hasattr(value, "__dataclass_fields__"):
+        return type(value), *map(type, vars(value).values())
+    return type(value)
 
 
 def check_kinds(name: str, section: Any) -> None:
