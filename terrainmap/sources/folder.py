@@ -101,7 +101,7 @@ class FolderSource(Source):
         if backwards:  # outputs stamped so would overlay or reorder frames in a viewer
             logger.warning("%s: %d of %d pair stamps are not later than the one before (repeated or out of order)",
                            self.path, backwards, len(self.pairs))
-        self._calibrations: dict[Path, tuple[StereoCalibration, Extrinsics | None]] = {}
+        self._calibration: tuple[Path, tuple[StereoCalibration, Extrinsics | None]] | None = None  # the last file read
 
     def _stamps_of_pairs(self, stamps: list[int]) -> list[int]:
         """The pairs' stamps from a stamp file of one line per left image in name order: where a
@@ -130,9 +130,9 @@ class FolderSource(Source):
         if pair.calibration is None or not pair.calibration.is_file():
             where = pair.calibration or self.path
             raise CalibrationError(f"{where}: no calibration found (need {self.calibration_hint}, or pass --calibration)")
-        if pair.calibration not in self._calibrations:
-            self._calibrations[pair.calibration] = self._read_calibration(pair.calibration)
-        return self._calibrations[pair.calibration]
+        if self._calibration is None or self._calibration[0] != pair.calibration:  # pairs of one file come in a row
+            self._calibration = pair.calibration, self._read_calibration(pair.calibration)
+        return self._calibration[1]
 
     def _load(self, index: int) -> StereoFrame | None:
         pair = self.pairs[index]
