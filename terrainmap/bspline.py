@@ -102,7 +102,7 @@ class RationalSurface:
 
     def evaluate(self, x, y) -> np.ndarray:
         """Height S(x, y), metres, for broadcastable arrays ``x``, ``y`` (metres)."""
-        x, y = _points(x, y)
+        x, y = xy_arrays("surface", x, y)
         Bx = basis_matrix(self.knots_x, self.degree, x)
         By = basis_matrix(self.knots_y, self.degree, y)
         num, den = self._parts(Bx, By)
@@ -110,7 +110,7 @@ class RationalSurface:
 
     def gradient(self, x, y) -> tuple[np.ndarray, np.ndarray]:
         """Analytic ``(∂S/∂x, ∂S/∂y)`` (dimensionless) by the quotient rule."""
-        x, y = _points(x, y)
+        x, y = xy_arrays("surface", x, y)
         Bx, dBx = basis_matrix(self.knots_x, self.degree, x, derivative=True)
         By, dBy = basis_matrix(self.knots_y, self.degree, y, derivative=True)
         num, den, num_x, den_x, num_y, den_y = self._parts(Bx, By, dBx, dBy)
@@ -226,12 +226,13 @@ class TensorFit:
         return RationalSurface(self.knots_x, self.knots_y, self.degree, Q, R)
 
 
-def _points(x, y) -> tuple[np.ndarray, np.ndarray]:
-    """``x``, ``y`` as broadcast float arrays, or :class:`InputError` saying why they are not."""
+def xy_arrays(what: str, x, y) -> tuple[np.ndarray, np.ndarray]:
+    """``x``, ``y`` (m) as broadcast float64 arrays, or :class:`InputError` naming ``what`` and
+    saying why they are not."""
     try:
         return np.broadcast_arrays(np.asarray(x, float), np.asarray(y, float))
     except (TypeError, ValueError) as exc:
-        raise InputError(f"surface: x and y must be broadcastable arrays of numbers ({exc})") from None
+        raise InputError(f"{what}: x and y must be broadcastable arrays of numbers ({exc})") from None
 
 
 def _shifted_product(B: np.ndarray, offset: int) -> np.ndarray:

@@ -7,11 +7,18 @@ skips, while the other errors end the run (after the outputs are finalised).
 
 from __future__ import annotations
 
+import numbers
 import reprlib
 
 _BRIEF = reprlib.Repr()  # (keyword arguments only from Python 3.12)
 _BRIEF.maxlevel, _BRIEF.maxlist, _BRIEF.maxtuple, _BRIEF.maxdict, _BRIEF.maxset = 2, 4, 4, 4, 4
 _BRIEF.maxstring = _BRIEF.maxother = 60
+
+
+def is_whole(value) -> bool:
+    """Whether ``value`` is a whole number (any integer type, numpy's too), not a bool: what a
+    stamp, an index or a count must be."""
+    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
 
 
 def counted(count: int, noun: str) -> str:

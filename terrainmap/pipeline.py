@@ -8,7 +8,6 @@ Neither does I/O or printing; per-stage wall times are returned as data
 
 from __future__ import annotations
 
-import numbers
 import time
 from contextlib import contextmanager
 from dataclasses import dataclass, field, fields, replace
@@ -16,7 +15,7 @@ from dataclasses import dataclass, field, fields, replace
 import numpy as np
 
 from .config import Config, same_values
-from .errors import ConfigError, InputError
+from .errors import ConfigError, InputError, is_whole
 from .extrinsics import estimate_extrinsics, extrinsics_from_calibration
 from .grid import HeightGrid, cell_index, quantize
 from .obstacle_stage import make_tracker, run_obstacle_stage
@@ -95,8 +94,7 @@ def map_points(
     FrameError
         No terrain can be found (no points in the area, too few cells, fit failure).
     """
-    if not isinstance(config, Config):  # a section would pass its own validate() and fail later
-        raise ConfigError(f"map_points: config must be the whole Config, got {type(config).__name__}")
+    _whole_config("map_points", config)  # a section would pass its own validate() and fail later
     if camera is not None and not isinstance(camera, StereoCamera):
         raise InputError(f"map_points: camera must be a StereoCamera or None, got {type(camera).__name__}")
     return _map_points(points_vehicle, config.validate(), watch or Stopwatch(), camera)
@@ -159,8 +157,7 @@ class PipelineState:
     once, not every frame, and again when the config is changed (in place too)."""
 
     def __post_init__(self) -> None:
-        if not isinstance(self.config, Config):
-            raise ConfigError(f"PipelineState: config must be the whole Config, got {type(self.config).__name__}")
+        _whole_config("PipelineState", self.config)
         self.check(self.config)  # a config built in code: ConfigError here, not a numpy error mid-run
         if self.tracker is None:
             self.tracker = make_tracker(self.config)
@@ -202,8 +199,7 @@ class Matched:
 def check_arguments(frame: StereoFrame, config: Config, state: PipelineState) -> None:
     """:class:`ConfigError` or :class:`InputError` naming the argument of :func:`process_frame`
     that is not of its type (a library caller's slip, said here rather than as an AttributeError)."""
-    if not isinstance(config, Config):
-        raise ConfigError(f"process_frame: config must be the whole Config, got {type(config).__name__}")
+    _whole_config("process_frame", config)
     for name, value, kind in (("frame", frame, StereoFrame), ("state", state, PipelineState)):
         if not isinstance(value, kind):
             raise InputError(f"process_frame: {name} must be a {kind.__name__}, got {type(value).__name__}")
@@ -212,10 +208,16 @@ def check_arguments(frame: StereoFrame, config: Config, state: PipelineState) ->
                          f"{type(frame.extrinsics).__name__}")
 
 
+def _whole_config(what: str, config) -> None:
+    """:class:`ConfigError` naming ``what`` unless ``config`` is a :class:`Config` (not a section)."""
+    if not isinstance(config, Config):
+        raise ConfigError(f"{what}: config must be the whole Config, got {type(config).__name__}")
+
+
 def check_stamp(frame: StereoFrame) -> None:
     """:class:`InputError` naming the frame's source when its stamp is no time an MCAP or ROS
     stamp (unsigned 64-bit) can hold, before an output refuses it mid-write (the tracker would take it)."""
-    if isinstance(frame.stamp_ns, bool) or not isinstance(frame.stamp_ns, numbers.Integral):
+    if not is_whole(frame.stamp_ns):
         raise InputError(f"{frame.source or 'input'}: frame {frame.index} has stamp {frame.stamp_ns!r}; "
                          "a stamp is a whole number of nanoseconds")
     if not 0 <= frame.stamp_ns <= 2**63 - 1:

@@ -8,12 +8,10 @@ and empty cells, the setting of the core accuracy target.
 
 from __future__ import annotations
 
-import numbers
-
 import numpy as np
 
 from .config import GridConfig
-from .errors import InputError
+from .errors import InputError, is_whole
 from .grid import HeightGrid, _fill, cell_centers
 
 
@@ -35,7 +33,7 @@ def cloud(n_points: int = 300_000, *, grid: GridConfig | None = None, noise_m: f
     each read left to right: runs of consecutive points share a grid cell as in a real frame,
     which matters to the speed of the per-cell sums (:data:`terrainmap.grid._LANES`).
     """
-    if isinstance(n_points, bool) or not isinstance(n_points, numbers.Integral) or n_points < 0:
+    if not is_whole(n_points) or n_points < 0:
         raise InputError(f"cloud: n_points must be a whole number >= 0, got {n_points!r}")
     grid = grid or GridConfig()
     rng = np.random.default_rng(seed)

@@ -48,14 +48,13 @@ over ground with one, in vehicle axes.
 from __future__ import annotations
 
 import logging
-import numbers
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 from scipy.spatial import cKDTree
 
 from .config import GridConfig, TrackingConfig, check_section
-from .errors import ConfigError, InputError
+from .errors import ConfigError, InputError, is_whole
 from .extrinsics import is_rotation
 from .types import Obstacle, StereoCamera
 
@@ -415,7 +414,7 @@ centre would otherwise only fail in a later frame, deep in the association's k-d
 def _detection_centers(obstacles, stamp_ns) -> np.ndarray:
     """The detections' centres, (n, 3) vehicle frame; :class:`InputError` unless ``stamp_ns`` is a
     whole number and every detection's centre, size and yaw are finite (centre within ±1e6 m)."""
-    if isinstance(stamp_ns, bool) or not isinstance(stamp_ns, numbers.Integral):
+    if not is_whole(stamp_ns):
         raise InputError(f"tracking: the stamp must be a whole number of nanoseconds, got {stamp_ns!r}")
     try:
         items = list(obstacles)

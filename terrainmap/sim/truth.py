@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..bspline import xy_arrays
 from ..errors import InputError
 from ..sources.readers import summary_section
 from ..sources.tf import quaternion_to_matrix, usable
@@ -97,10 +98,7 @@ class Truth:
     def height(self, x, y) -> np.ndarray:
         """Terrain height (m, float32) at world (odom) points ``(x, y)`` (broadcastable arrays, m),
         obstacles excluded; NaN where x or y is not finite."""
-        try:
-            x, y = np.broadcast_arrays(np.asarray(x, np.float64), np.asarray(y, np.float64))
-        except (TypeError, ValueError) as exc:
-            raise InputError(f"Truth.height: x and y must be broadcastable arrays of numbers ({exc})") from None
+        x, y = xy_arrays("Truth.height", x, y)
         finite = np.isfinite(x) & np.isfinite(y)
         height = self.terrain.height(np.where(finite, x, 0.0), np.where(finite, y, 0.0))
         return np.where(finite, height, np.float32(np.nan))

@@ -16,7 +16,6 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
-import numbers
 import os
 from collections.abc import Mapping
 from pathlib import Path
@@ -28,7 +27,7 @@ from mcap.records import DataEnd, Footer, Metadata
 from mcap.writer import MCAP0_MAGIC
 
 from ..config import Config
-from ..errors import ConfigError, InputError, TerrainmapError, counted
+from ..errors import ConfigError, InputError, TerrainmapError, counted, is_whole
 from ..ros2defs import quaternion_from_matrix
 from ..types import Extrinsics, FrameResult, Obstacle, StereoFrame
 
@@ -55,10 +54,10 @@ def check_config(what: str, config: Config) -> None:
 def check_frame(what: str, frame: StereoFrame, result: FrameResult, bits: int) -> None:
     """:class:`InputError` naming ``what`` (an output) unless the frame's index is a whole number
     and the frame's and the result's stamps whole numbers of nanoseconds in [0, 2^bits)."""
-    if isinstance(frame.index, bool) or not isinstance(frame.index, numbers.Integral):
+    if not is_whole(frame.index):
         raise InputError(f"{what}: the frame index must be a whole number, got {frame.index!r}")
     for stamp in {frame.stamp_ns, result.stamp_ns}:
-        if isinstance(stamp, bool) or not isinstance(stamp, numbers.Integral) or not 0 <= stamp < 2**bits:
+        if not is_whole(stamp) or not 0 <= stamp < 2**bits:
             raise InputError(f"{what}: frame {result.index}: the stamp must be a whole number of nanoseconds in "
                              f"[0, 2^{bits}), got {stamp!r}")
 

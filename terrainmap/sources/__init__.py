@@ -33,11 +33,10 @@ message naming the path or topic.
 
 from __future__ import annotations
 
-import numbers
 import os
 from pathlib import Path
 
-from ..errors import ConfigError, InputError
+from ..errors import ConfigError, InputError, is_whole
 from .base import Source
 from .folder import GenericFolder
 from .kitti import KittiOdometryFolder, KittiRawFolder, KittiStereoFolder
@@ -118,7 +117,7 @@ def open_source(
     pair_tolerance_ns : int
         Largest stamp difference of a left/right pair in a log, nanoseconds (≥ 0).
     """
-    if isinstance(pair_tolerance_ns, bool) or not isinstance(pair_tolerance_ns, numbers.Integral) or pair_tolerance_ns < 0:
+    if not is_whole(pair_tolerance_ns) or pair_tolerance_ns < 0:
         raise ConfigError(f"pair tolerance must be a whole number of nanoseconds ≥ 0, got {pair_tolerance_ns!r}")
     path = log_path(path)
     cls = source_class(path)

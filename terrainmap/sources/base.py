@@ -11,7 +11,7 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
-from ..errors import ConfigError, InputError
+from ..errors import ConfigError, InputError, is_whole
 from ..types import Extrinsics, StereoFrame
 
 logger = logging.getLogger(__name__)
@@ -56,7 +56,7 @@ def check_selection(start_s: float | None, end_s: float | None, every: int, max_
                                   or not math.isfinite(value)):
             raise ConfigError(f"{name}: must be a finite number of seconds, got {value!r}")
     for name, value in (("every", every), ("max_frames", max_frames)):
-        if value is not None and (isinstance(value, bool) or not isinstance(value, numbers.Integral)):
+        if value is not None and not is_whole(value):
             raise ConfigError(f"{name}: must be a whole number, got {value!r}")
     if every < 1:
         raise ConfigError(f"every: must be >= 1, got {every}")
