@@ -12,7 +12,7 @@
 =================  ===================================================================
 ``mcap``           an ``.mcap`` file, or a rosbag2 directory (``metadata.yaml`` + .mcap)
 ``rosbag2``        a rosbag2 directory in sqlite3 storage (.db3) or compressed (zstd), via ``rosbags``
-``ros1-bag``       a ROS 1 ``.bag`` (read through ``rosbags``)
+``ros1-bag``       a ROS 1 ``.bag`` (read chunk by chunk by :mod:`~terrainmap.sources.ros1bag`)
 ``kitti-raw``      ``image_02/data``, ``image_03/data``, ``calib_cam_to_cam.txt`` up to two levels up
 ``kitti-odometry`` ``image_2``, ``image_3`` (or grey ``image_0``, ``image_1``), ``calib.txt``, ``times.txt``
 ``kitti-stereo``   ``image_2|colored_0|image_0`` + partner, ``calib_cam_to_cam/`` or ``calib/``

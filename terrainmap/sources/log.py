@@ -34,7 +34,9 @@ from . import messages as msgs
 from .base import PairRef, Source, extrinsics_entry
 from .images import stereo_pair
 from .pairing import StereoPairer
-from .readers import McapLog, Ros1Bag, Rosbag2Bag, bag_metadata
+from .readers import McapLog, Rosbag2Bag, bag_metadata
+from .ros1bag import MAGIC as ROS1_MAGIC
+from .ros1bag import Ros1Bag
 from .tf import TransformTree, VehiclePoses
 from .topics import calibration_topic, rectified_name, side_tokens, stereo_topics
 
@@ -51,7 +53,6 @@ UNSTAMPED_PREFIX = 5
 """Images whose topic's first this many messages are stamped 0 are taken as never stamped."""
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
-ROS1_MAGIC = b"#ROSBAG V2.0"
 
 
 def _starts_with(path: Path, magic: bytes) -> bool:

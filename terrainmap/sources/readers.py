@@ -1,6 +1,7 @@
 """Message readers under :class:`~terrainmap.sources.log.LogSource`: MCAP files (a single file or
 a rosbag2 directory of them), and through ``rosbags`` the rosbag2 directories the mcap reader
-cannot read (sqlite3 storage, zstd-compressed files or messages) and ROS 1 bags.
+cannot read (sqlite3 storage, zstd-compressed files or messages); ROS 1 bags are read by
+:mod:`~terrainmap.sources.ros1bag`.
 
 A reader knows its files (``paths``), its topics (``types``: topic → message type, ``counts``:
 topic → number of messages), ``damage`` (what is damaged in the file as a whole, or None) and ``skipped`` (the
@@ -19,7 +20,7 @@ import struct
 import zlib
 from collections import Counter
 from collections.abc import Iterator
-from contextlib import contextmanager, redirect_stderr
+from contextlib import redirect_stderr
 from functools import lru_cache, partial
 from pathlib import Path
 from typing import Any
@@ -460,71 +461,7 @@ def _topics(connections) -> tuple[dict[str, str], dict[str, int]]:
     return {c.topic: normalize_type(c.msgtype) for c in connections}, counts
 
 
-class _RosbagsLog(_SkipsDamage):
-    """A log read with ``rosbags`` (:class:`Ros1Bag`, :class:`Rosbag2Bag`)."""
-
-    def _messages(self, bag, topics: list[str], deserialize) -> Iterator[tuple[str, int, Any]]:
-        """(topic, log time, message) of ``topics`` in an open ``rosbags`` reader, each decoded by
-        ``deserialize(raw, msgtype)`` (:meth:`_SkipsDamage._decoded`)."""
-        def records():  # a generator, so that rosbags' errors too are met inside _decoded
-            connections = [c for c in bag.connections if c.topic in topics]
-            for c, log_time, raw in bag.messages(connections=connections):
-                yield c.topic, log_time, c.msgtype, partial(deserialize, raw, c.msgtype)
-
-        return self._decoded(records(), topics, "bag")
-
-
-class Ros1Bag(_RosbagsLog):
-    """A ROS 1 bag (v2.0), read with ``rosbags``. A message that cannot be decoded is skipped
-    (:meth:`_undecodable`); other damage ends the messages there."""
-
-    format = "ros1-bag"
-
-    def __init__(self, path: Path):
-        self.path = path
-        self.skipped_parts: dict[tuple, str] = {}
-        self.damage: str | None = None  # rosbags reads the index at open and fails there on most damage
-        self.paths = [path]
-        self._typestore = ros1_typestore()
-        with self._open() as bag:
-            for c in bag.connections:
-                try:
-                    register_ros1_type(self._typestore, c.msgtype, c.msgdef.data)
-                except Exception as exc:  # a definition rosbags cannot parse: only its topic is unreadable
-                    logger.info("%s: topic %s: cannot parse the definition of %s (%s)", path, c.topic, c.msgtype,
-                                _reason(exc))
-            self.types, self.counts = _topics(bag.connections)
-            self.span_ns = _rosbags_span(bag, self.counts)
-            ids = {c.id for c in bag.connections}
-            for chunk in bag.chunk_infos:  # an index that names no connection of the bag lost the messages it held
-                if unknown := sorted(set(chunk.connection_counts) - ids):
-                    self.damage = (f"{path}: the index of the chunk at byte {chunk.pos} names connection "
-                                   f"{', '.join(map(str, unknown))}, which the bag does not define")
-                    logger.warning("%s: messages of that chunk may be lost", self.damage)
-                    break
-
-    @contextmanager
-    def _open(self):
-        from rosbags.rosbag1 import Reader
-
-        try:
-            reader = Reader(self.path)
-            reader.open()
-        except Exception as exc:  # rosbags raises ReaderError, but also struct/OS/assertion errors on garbage
-            hint = "; a bag cut short has no index: `rosbag reindex` rebuilds it" if "index" in str(exc).lower() else ""
-            why = _reason(exc) if str(exc) else f"its header or index does not add up: {_reason(exc)}"
-            raise InputError(f"{self.path}: not a readable ROS 1 bag ({why}){hint}") from exc
-        try:
-            yield reader
-        finally:
-            reader.close()
-
-    def messages(self, topics: list[str]) -> Iterator[tuple[str, int, Any]]:
-        with self._open() as bag:
-            yield from self._messages(bag, topics, self._typestore.deserialize_ros1)
-
-
-class Rosbag2Bag(_RosbagsLog):
+class Rosbag2Bag(_SkipsDamage):
     """A rosbag2 directory in sqlite3 storage (``.db3``, the default before ROS 2 Iron), or one whose
     files or messages rosbag2 compressed (zstd), read with ``rosbags``; CDR messages are decoded
     with its type store of standard ROS 2 messages, and one that cannot be decoded is skipped. The
@@ -557,5 +494,11 @@ class Rosbag2Bag(_RosbagsLog):
             self._bag.close()
 
     def messages(self, topics: list[str]) -> Iterator[tuple[str, int, Any]]:
-        yield from self._messages(self._bag, topics, self._typestore.deserialize_cdr)
+        """(topic, log time, message) of ``topics`` in log-time order (:meth:`_SkipsDamage._decoded`)."""
+        def records():  # a generator, so that rosbags' errors too are met inside _decoded
+            connections = [c for c in self._bag.connections if c.topic in topics]
+            for c, log_time, raw in self._bag.messages(connections=connections):
+                yield c.topic, log_time, c.msgtype, partial(self._typestore.deserialize_cdr, raw, c.msgtype)
+
+        return self._decoded(records(), topics, "bag")
 

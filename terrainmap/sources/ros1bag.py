@@ -1,0 +1,328 @@
+"""ROS 1 bags (format v2.0), read one chunk at a time so that memory stays flat in log length.
+
+A bag is a sequence of records, each a header (``name=value`` fields, ``op`` giving the kind)
+and a data block: the bag header (where the index begins), chunks (compressed runs of
+connection and message records) each followed by its index records, and at the end the index:
+every connection, then one chunk-info record per chunk (its byte offset, first and last message
+time and message count per connection). The index is read at open; messages are then read chunk
+by chunk in log-time order, merged as the chunks overlap in time, without the per-message index
+records (about 175 bytes a message in ``rosbags``' reader, which reads them all at open). A bag
+without a usable index (a recording cut short, which ``rosbag reindex`` would repair) is scanned
+from start to end at open instead, and its messages read up to where the scan stopped.
+
+Messages are decoded by ``rosbags``' ROS 1 type store, which learns the types it lacks from the
+definitions the bag carries.
+"""
+
+from __future__ import annotations
+
+import bz2
+import heapq
+import logging
+import struct
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from functools import partial
+from pathlib import Path
+from typing import Any, BinaryIO
+
+from ..errors import InputError, counted
+from .messages import normalize_type
+from .readers import _reason, _SkipsDamage, _widened, register_ros1_type, ros1_typestore
+
+logger = logging.getLogger(__name__)
+
+MAGIC = b"#ROSBAG V2.0\n"
+
+_MESSAGE, _BAG_HEADER, _INDEX, _CHUNK, _CHUNK_INFO, _CONNECTION = 2, 3, 4, 5, 6, 7
+_U32, _U64, _TIME = struct.Struct("<I"), struct.Struct("<Q"), struct.Struct("<II")
+
+
+class BagError(Exception):
+    """A record of the bag that does not parse (the reader turns it into :class:`InputError`)."""
+
+
+@dataclass
+class _Chunk:
+    """A chunk as its chunk-info record (or a scan) describes it: byte offset, first and last
+    message time (ns) and message count per connection id."""
+
+    pos: int
+    start_ns: int
+    end_ns: int
+    counts: dict[int, int] = field(default_factory=dict)
+
+
+def _fields(header: bytes) -> dict[str, bytes]:
+    """A record header's ``name=value`` fields (each preceded by its uint32 length)."""
+    fields, pos = {}, 0
+    header = bytes(header)
+    while pos < len(header):
+        if pos + 4 > len(header):
+            raise BagError("a header field's length is cut off")
+        (size,) = _U32.unpack_from(header, pos)
+        pos += 4
+        name, sep, value = header[pos: pos + size].partition(b"=")
+        if not sep or pos + size > len(header):
+            raise BagError("a header field does not parse")
+        fields[name.decode(errors="replace")] = value
+        pos += size
+    return fields
+
+
+def _get(fields: dict[str, bytes], name: str, kind: struct.Struct) -> int:
+    try:
+        value = kind.unpack(fields[name])
+    except (KeyError, struct.error):
+        raise BagError(f"a record without a readable {name!r} field") from None
+    return value[0] * 1_000_000_000 + value[1] if kind is _TIME else value[0]
+
+
+def _text(fields: dict[str, bytes], name: str) -> str:
+    try:
+        return fields[name].decode()
+    except (KeyError, UnicodeDecodeError):
+        raise BagError(f"a record without a readable {name!r} field") from None
+
+
+def _read(stream: BinaryIO, size: int) -> bytes:
+    data = stream.read(size)
+    if len(data) != size:
+        raise BagError(f"cut off: {len(data)} of {size} bytes")
+    return data
+
+
+def _record(stream: BinaryIO) -> tuple[dict[str, bytes], int, int] | None:
+    """The next record's header fields, its op and the length of its data, which follows in
+    ``stream`` (None at the end of the stream)."""
+    head = stream.read(4)
+    if not head:
+        return None
+    if len(head) < 4:
+        raise BagError("cut off in a record's length")
+    fields = _fields(_read(stream, _U32.unpack(head)[0]))
+    size = _U32.unpack(_read(stream, 4))[0]
+    op = fields.get("op", b"")
+    if len(op) != 1:
+        raise BagError("a record without its op")
+    return fields, op[0], size
+
+
+def _parse_records(data: bytes) -> Iterator[tuple[dict[str, bytes], int, memoryview]]:
+    """(header fields, op, data) of the records in a chunk's uncompressed data."""
+    view, pos = memoryview(data), 0
+    while pos < len(data):
+        if pos + 4 > len(data):
+            raise BagError("a record's length is cut off")
+        (size,) = _U32.unpack_from(data, pos)
+        fields = _fields(data[pos + 4: pos + 4 + size])
+        pos += 4 + size
+        if pos + 4 > len(data):
+            raise BagError("a record's data length is cut off")
+        (length,) = _U32.unpack_from(data, pos)
+        pos += 4
+        if pos + length > len(data):
+            raise BagError("a record's data is cut off")
+        op = fields.get("op", b"")
+        if len(op) != 1:
+            raise BagError("a record without its op")
+        yield fields, op[0], view[pos: pos + length]
+        pos += length
+
+
+def _decompress(compression: str, data: bytes, size: int) -> bytes:
+    """A chunk's records, decompressed (``size``: their length, as its header gives it)."""
+    if compression not in ("none", "bz2", "lz4"):
+        raise BagError(f"chunk compression {compression!r} is not bz2, lz4 or none")
+    try:
+        if compression == "bz2":
+            data = bz2.decompress(data)
+        elif compression == "lz4":
+            import lz4.frame  # installed with rosbags
+
+            data = lz4.frame.decompress(data)
+    except Exception as exc:  # OSError from bz2, RuntimeError from lz4
+        raise BagError(f"a chunk does not decompress ({_reason(exc)})") from None
+    if len(data) != size:
+        raise BagError(f"a chunk holds {len(data)} bytes, its header says {size}")
+    return data
+
+
+@dataclass
+class _Connection:
+    id: int
+    topic: str
+    msgtype: str
+    definition: str
+
+
+def _connection(fields: dict[str, bytes], data: bytes) -> _Connection:
+    """A connection record: its id and topic in the header, the type and definition in its data."""
+    details = _fields(bytes(data))
+    topic = _text(fields, "topic")
+    return _Connection(_get(fields, "conn", _U32), topic if topic.startswith("/") else f"/{topic}",
+                       normalize_type(_text(details, "type")), details.get("message_definition", b"").decode(errors="replace"))
+
+
+class Ros1Bag(_SkipsDamage):
+    """A ROS 1 bag (v2.0). Interface of the readers in :mod:`~terrainmap.sources.readers`: its
+    ``paths``, ``types`` (topic → message type), ``counts`` (topic → messages), ``span_ns``,
+    ``damage`` and ``skipped``, and :meth:`messages` in log-time order.
+
+    With an index, a chunk that cannot be read or decompressed is skipped with a warning (and
+    noted in :attr:`skipped`), as an indexed MCAP's is; without one, damage ends the messages
+    where the scan at open stopped. A message that cannot be decoded is skipped, in any bag."""
+
+    format = "ros1-bag"
+
+    def __init__(self, path: Path):
+        self.path = path
+        self.paths = [path]
+        self.skipped_parts: dict[Any, str] = {}
+        self.damage: str | None = None
+        self._connections: dict[int, _Connection] = {}
+        self._chunks: list[_Chunk] = []
+        self._scan_error: str | None = None  # where a bag without an index stops being readable
+        try:
+            with open(path, "rb") as stream:
+                if stream.read(len(MAGIC)) != MAGIC:
+                    raise BagError("no '#ROSBAG V2.0' line at its start")
+                fields, op, size = _record(stream) or ({}, 0, 0)
+                if op != _BAG_HEADER:
+                    raise BagError("no bag header record after the version line")
+                index_pos = _get(fields, "index_pos", _U64)
+                _read(stream, size)  # its padding
+                data_start = stream.tell()
+                if not self._read_index(stream, fields, index_pos):
+                    stream.seek(data_start)
+                    self._scan(stream)
+        except OSError as exc:
+            raise InputError(f"{path}: cannot read the bag ({exc.strerror or exc})") from None
+        except BagError as exc:
+            raise InputError(f"{path}: not a readable ROS 1 bag ({exc})") from None
+        self._typestore = ros1_typestore()
+        for c in self._connections.values():
+            try:
+                register_ros1_type(self._typestore, c.msgtype, c.definition)
+            except Exception as exc:  # a definition rosbags cannot parse: only its topic is unreadable
+                logger.info("%s: topic %s: cannot parse the definition of %s (%s)", path, c.topic, c.msgtype,
+                            _reason(exc))
+        self.types = {c.topic: c.msgtype for c in self._connections.values()}
+        self.counts = dict.fromkeys(self.types, 0)
+        self.span_ns: tuple[int, int] | None = None
+        for chunk in self._chunks:
+            for cid, n in chunk.counts.items():
+                if cid in self._connections:  # a message of a connection the bag never defines cannot be read
+                    self.counts[self._connections[cid].topic] += n
+            if chunk.counts:
+                self.span_ns = _widened(self.span_ns, chunk.start_ns, chunk.end_ns)
+
+    def _read_index(self, stream: BinaryIO, header: dict[str, bytes], index_pos: int) -> bool:
+        """Connections and chunk infos from the index at ``index_pos``; False (and a note in
+        the log) when there is none or it does not parse, for :meth:`_scan` to take over."""
+        end = stream.seek(0, 2)
+        if not 0 < index_pos < end:
+            logger.info("%s: no index (the recording was cut short); scanning the bag", self.path)
+            return False
+        try:
+            stream.seek(index_pos)
+            for _ in range(_get(header, "conn_count", _U32)):
+                fields, op, size = _record(stream) or ({}, 0, 0)
+                if op != _CONNECTION:
+                    raise BagError("the index holds a record other than a connection")
+                c = _connection(fields, _read(stream, size))
+                self._connections.setdefault(c.id, c)
+            for _ in range(_get(header, "chunk_count", _U32)):
+                fields, op, size = _record(stream) or ({}, 0, 0)
+                if op != _CHUNK_INFO or _get(fields, "ver", _U32) != 1:
+                    raise BagError("the index holds a record other than a chunk info (version 1)")
+                data = _read(stream, size)
+                counts = dict(struct.iter_unpack("<II", data[: len(data) // 8 * 8]))
+                self._chunks.append(_Chunk(_get(fields, "chunk_pos", _U64), _get(fields, "start_time", _TIME),
+                                           _get(fields, "end_time", _TIME), counts))
+        except BagError as exc:
+            self.damage = f"{self.path}: its index is damaged ({exc}); reading the bag from start to end"
+            logger.warning("%s", self.damage)
+            self._connections, self._chunks = {}, []
+            return False
+        for chunk in self._chunks:  # an index that names no connection of the bag lost the messages it held
+            if unknown := sorted(set(chunk.counts) - self._connections.keys()):
+                self.damage = (f"{self.path}: the index of the chunk at byte {chunk.pos} names connection "
+                               f"{', '.join(map(str, unknown))}, which the bag does not define")
+                logger.warning("%s: messages of that chunk may be lost", self.damage)
+                for cid in unknown:
+                    del chunk.counts[cid]
+        return True
+
+    def _scan(self, stream: BinaryIO) -> None:
+        """Connections and chunks of a bag without a usable index, read from the first record
+        after the bag header to the end or to the first record that does not read (noted in
+        :attr:`damage`; :meth:`messages` ends there)."""
+        messages = 0
+        try:
+            while True:
+                pos = stream.tell()
+                if (record := _record(stream)) is None:
+                    break
+                fields, op, size = record
+                data = _read(stream, size)
+                if op == _CONNECTION:
+                    c = _connection(fields, data)
+                    self._connections.setdefault(c.id, c)
+                elif op == _CHUNK:
+                    chunk = _Chunk(pos, 0, 0)
+                    for inner, kind, body in _chunk_records(fields, data):
+                        if kind == _CONNECTION:
+                            c = _connection(inner, body)
+                            self._connections.setdefault(c.id, c)
+                        elif kind == _MESSAGE:
+                            t, cid = _get(inner, "time", _TIME), _get(inner, "conn", _U32)
+                            chunk.start_ns, chunk.end_ns = _widened(
+                                (chunk.start_ns, chunk.end_ns) if chunk.counts else None, t, t)
+                            chunk.counts[cid] = chunk.counts.get(cid, 0) + 1
+                            messages += 1
+                    self._chunks.append(chunk)
+        except BagError as exc:
+            self._scan_error = f"truncated or corrupt after {counted(messages, 'message')} ({exc})"
+            self.damage = f"{self.path}: {self._scan_error}"
+            logger.info("%s", self.damage)  # not a warning: ``info`` shows it, reading the messages raises it
+
+    def messages(self, topics: list[str]) -> Iterator[tuple[str, int, Any]]:
+        """(topic, log_time_ns, decoded message) of ``topics`` in log-time order (:meth:`_SkipsDamage._decoded`)."""
+        return self._decoded(self._records(topics), topics, "bag")
+
+    def _records(self, topics: list[str]) -> Iterator[tuple[str, int, str, Any]]:
+        """(topic, log time, type, decode) of ``topics``, from the chunks that hold them. A heap of
+        chunks (keyed by their first message's time) and of the messages of the chunks opened so
+        far: a chunk opens before any message at or after its start time is yielded, so only the
+        chunks that overlap in time are held at once."""
+        wanted = {cid for cid, c in self._connections.items() if c.topic in topics}
+        heap: list[tuple] = [(c.start_ns, 0, c.pos, -1, c) for c in self._chunks if wanted & c.counts.keys()]
+        heapq.heapify(heap)
+        with open(self.path, "rb") as stream:
+            while heap:
+                *_, pos, index, item = heapq.heappop(heap)
+                if index >= 0:
+                    yield item
+                    continue
+                try:
+                    stream.seek(pos)
+                    fields, op, size = _record(stream) or ({}, 0, 0)
+                    if op != _CHUNK:
+                        raise BagError("no chunk record where the index points")
+                    records = list(_chunk_records(fields, _read(stream, size)))
+                except BagError as exc:
+                    self._skip(pos, f"chunk at byte {pos}, log time {item.start_ns / 1e9:.3f}–{item.end_ns / 1e9:.3f} s", exc)
+                    continue
+                for i, (inner, kind, body) in enumerate(records):
+                    if kind == _MESSAGE and (cid := _get(inner, "conn", _U32)) in wanted:
+                        c, t = self._connections[cid], _get(inner, "time", _TIME)
+                        decode = partial(self._typestore.deserialize_ros1, bytes(body), c.msgtype)
+                        heapq.heappush(heap, (t, 1, pos, i, (c.topic, t, c.msgtype, decode)))
+        if self._scan_error is not None:
+            raise BagError(self._scan_error)
+
+
+def _chunk_records(fields: dict[str, bytes], data: bytes) -> list[tuple[dict[str, bytes], int, memoryview]]:
+    """(header fields, op, data) of the records in a chunk record (its header ``fields`` and data)."""
+    return list(_parse_records(_decompress(_text(fields, "compression"), data, _get(fields, "size", _U32))))
