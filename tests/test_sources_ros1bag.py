@@ -153,8 +153,15 @@ def test_an_index_that_names_an_unknown_connection_is_damage(tmp_path, caplog):
     assert "names connection 4294967295" in bag.damage and "messages of that chunk may be lost" in caplog.text
 
 
+def _record(**fields: bytes) -> bytes:
+    """A record with these header fields and no data."""
+    header = b"".join(struct.pack("<I", len(k) + 1 + len(v)) + k.encode() + b"=" + v for k, v in fields.items())
+    return struct.pack("<I", len(header)) + header + struct.pack("<I", 0)
+
+
 @pytest.mark.parametrize("data, why", [(b"", "no '#ROSBAG V2.0' line"), (b"#ROSBAG V1.2\n", "no '#ROSBAG V2.0' line"),
-                                       (b"#ROSBAG V2.0\n\x10\x00\x00\x00abc", "cut off")])
+                                       (b"#ROSBAG V2.0\n\x10\x00\x00\x00abc", "cut off"),
+                                       (b"#ROSBAG V2.0\n" + _record(op=b"\x03", encryptor=b"aes"), r"encrypted \(aes\)")])
 def test_what_is_no_bag_is_named(tmp_path, data, why):
     path = tmp_path / "x.bag"
     path.write_bytes(data)

@@ -190,6 +190,8 @@ class Ros1Bag(_SkipsDamage):
                 fields, op, size = _record(stream) or ({}, 0, 0)
                 if op != _BAG_HEADER:
                     raise BagError("no bag header record after the version line")
+                if encryptor := fields.get("encryptor", b"").decode(errors="replace"):
+                    raise BagError(f"encrypted ({encryptor}); `rosbag decrypt` writes a plain copy")
                 index_pos = _get(fields, "index_pos", _U64)
                 _read(stream, size)  # its padding
                 data_start = stream.tell()
