@@ -140,6 +140,20 @@ def test_a_damaged_chunk_of_an_indexed_bag_is_skipped(tmp_path, caplog):
     assert line.startswith(f"{tmp_path / 'bad.bag'}: chunk at byte {third}, log time ") and "damaged, skipped" in caplog.text
 
 
+def test_a_chunk_is_decompressed_no_further_than_its_header_says(tmp_path, caplog):
+    """A chunk that holds more than its header's ``size`` (a crafted one could fill the memory)
+    is damage: decompression stops one byte past it."""
+    path = write_bag(tmp_path / "x.bag", 200, compression=Writer.CompressionFormat.BZ2, chunk_bytes=4096)
+    data = bytearray(path.read_bytes())
+    at = data.index(b"\x09\x00\x00\x00size=") + 9  # the first chunk's uncompressed size
+    data[at: at + 4] = struct.pack("<I", 100)
+    (tmp_path / "bad.bag").write_bytes(data)
+    bad = Ros1Bag(tmp_path / "bad.bag")
+    assert 0 < len(expected(path)) - len(read(bad)) < 200
+    (line,) = bad.skipped
+    assert "a chunk holds 101 bytes, its header says 100" in line
+
+
 def test_an_index_that_names_an_unknown_connection_is_damage(tmp_path, caplog):
     """A chunk-info record whose data is garbage names connections the bag lacks: that chunk's
     counts would be lost without a word."""

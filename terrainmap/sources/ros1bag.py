@@ -134,13 +134,13 @@ def _decompress(compression: str, data: bytes, size: int) -> bytes:
     """A chunk's records, decompressed (``size``: their length, as its header gives it)."""
     if compression not in ("none", "bz2", "lz4"):
         raise BagError(f"chunk compression {compression!r} is not bz2, lz4 or none")
-    try:
+    try:  # at most one byte more than the header says, so that a crafted chunk cannot fill the memory
         if compression == "bz2":
-            data = bz2.decompress(data)
+            data = bz2.BZ2Decompressor().decompress(data, max_length=size + 1)
         elif compression == "lz4":
             import lz4.frame  # installed with rosbags
 
-            data = lz4.frame.decompress(data)
+            data = lz4.frame.LZ4FrameDecompressor().decompress(data, max_length=size + 1)
     except Exception as exc:  # OSError from bz2, RuntimeError from lz4
         raise BagError(f"a chunk does not decompress ({_reason(exc)})") from None
     if len(data) != size:
