@@ -668,6 +668,12 @@ class TrackingConfig:
     """Process noise of the constant-velocity model: white acceleration, m/s². With tracks in the
     odometry frame, where most obstacles stand still, 1 (was 2) confirmed more true obstacles
     and fewer false ones on the simulated drives."""
+    max_extrapolation_s: float = 1.0
+    """A track's velocity moves its predicted centre over at most this many seconds between two
+    frames. Over a longer gap in the log (a recording paused, frames dropped) a constant velocity
+    says nothing: a static obstacle's velocity of noise, 0.1 m/s, would carry it 6 m in 60 s, out
+    of the gate, and it would come back under a new id. Its uncertainty still grows with the
+    whole gap."""
     initial_velocity_std_mps: float = 2.0
     """Standard deviation of the (zero) velocity a new track starts with, m/s. Larger values let
     the second detection set the velocity: at 20 m a pedestrian smeared 2 m in depth gave a new
@@ -700,7 +706,8 @@ class TrackingConfig:
             "tracking.report_misses",
             f"must be in 0..tracking.max_misses ({self.max_misses}), got {self.report_misses}",
         )
-        for name in ("gate_m", "measurement_std_m", "acceleration_std_mps2", "initial_velocity_std_mps"):
+        for name in ("gate_m", "measurement_std_m", "acceleration_std_mps2", "max_extrapolation_s",
+                     "initial_velocity_std_mps"):
             value = getattr(self, name)
             _check(value > 0, f"tracking.{name}", f"must be > 0, got {value}")
         _check(self.disparity_std_px >= 0, "tracking.disparity_std_px", f"must be >= 0, got {self.disparity_std_px}")

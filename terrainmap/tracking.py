@@ -11,7 +11,8 @@ are reported back in the current vehicle frame either way.
 
 Per frame (:meth:`ObstacleTracker.update`):
 
-1. predict every track by ``dt`` (from the stamps) with white-acceleration process noise;
+1. predict every track by ``dt`` (from the stamps) with white-acceleration process noise, its
+   velocity moving it over at most ``max_extrapolation_s`` of a longer gap;
 2. associate detections to tracks of the same kind by the matching of least total distance
    between predicted and detected centres, a track or detection left unmatched costing
    ``gate_m / 2`` (:meth:`ObstacleTracker._associate`), so pairs farther than ``gate_m`` never match;
@@ -207,7 +208,7 @@ class ObstacleTracker:
         if dt <= 0 or not len(self._ids):
             return
         F = np.eye(4)
-        F[0, 2] = F[1, 3] = dt
+        F[0, 2] = F[1, 3] = min(dt, self.config.max_extrapolation_s)  # over a long gap, no velocity holds
         q = self.config.acceleration_std_mps2**2
         block = q * np.array([[dt**4 / 4, dt**3 / 2], [dt**3 / 2, dt**2]])
         Q = np.zeros((4, 4))

@@ -55,6 +55,7 @@ def test_toml_round_trip_and_overrides(tmp_path):
         ("segmentation.below_tolerance_px=-1", "segmentation.below_tolerance_px: must be >= 0"),
         ("tracking.report_misses=11", "tracking.report_misses: must be in 0..tracking.max_misses"),
         ("tracking.reconfirm_misses=-1", "tracking.reconfirm_misses: must be >= 0"),
+        ("tracking.max_extrapolation_s=0", "tracking.max_extrapolation_s: must be > 0"),
         ("stereo.texture_measure=sobel", "stereo.texture_measure: must be variance or x_gradient"),
         ("stereo.texture_margin_px=-1", "stereo.texture_margin_px: must be in 0..100"),
         ("stereo.left_margin_px=-1", "stereo.left_margin_px: must be in 0..1024"),

@@ -168,6 +168,18 @@ def test_track_back_after_a_long_gap_keeps_its_id_and_is_confirmed_again(gap):
     assert again.track_id == first.track_id and again.confirmed
 
 
+@pytest.mark.parametrize("gap_s", [1.0, 60.0, 3600.0])
+def test_a_static_obstacle_keeps_its_id_over_a_gap_in_the_log(gap_s):
+    """Its centre drifting 0.1 m/s while seen (the view changes), then no frame for ``gap_s``: the
+    velocity carries its prediction over 1 s at most (``max_extrapolation_s``), not 6 m in 60 s."""
+    tracker = ObstacleTracker(TrackingConfig())
+    for k in range(10):
+        (out,) = tracker.update([detection(10.0 + 0.01 * k, 0)], k * DT_NS)
+    assert out.confirmed and out.velocity_mps[0] == pytest.approx(0.1, abs=0.03)
+    (back,) = tracker.update([detection(10.09, 0)], 9 * DT_NS + int(gap_s * 1e9))
+    assert back.track_id == out.track_id and back.center_m[0] == pytest.approx(10.09, abs=0.05)
+
+
 def test_coasting_track_is_not_reported_by_default_but_keeps_its_id():
     tracker = ObstacleTracker(TrackingConfig(confirm_hits=2, max_misses=2))
     for k in range(3):
