@@ -112,6 +112,20 @@ def test_a_bag_without_its_index_is_scanned(tmp_path):
     assert read(bag) == expected(path) and bag.counts == {"/a": 100, "/b": 100} and bag.damage is None
 
 
+def test_a_bag_whose_index_is_damaged_is_scanned_up_to_the_index(tmp_path, caplog):
+    """Every chunk is whole: all messages are read, and the scan stops where the index begins."""
+    path = write_bag(tmp_path / "x.bag", 200, shuffle=3)
+    data = bytearray(path.read_bytes())
+    at = _index_pos_field(data)
+    index = int.from_bytes(data[at: at + 8], "little")
+    data[index + 4: index + 40] = b"\xee" * 36  # the first connection record's header
+    (tmp_path / "bad.bag").write_bytes(data)
+    bag = Ros1Bag(tmp_path / "bad.bag")
+    assert bag.damage.startswith(f"{tmp_path / 'bad.bag'}: its index is damaged (")
+    assert bag.damage.endswith("reading the bag from start to end") and "its index is damaged" in caplog.text
+    assert read(bag) == expected(path) and bag.counts == {"/a": 100, "/b": 100}
+
+
 def test_a_bag_cut_short_is_read_up_to_the_cut_then_named(tmp_path):
     path = write_bag(tmp_path / "x.bag", 200)
     cut = tmp_path / "cut.bag"

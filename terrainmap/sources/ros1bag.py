@@ -194,10 +194,13 @@ class Ros1Bag(_SkipsDamage):
                     raise BagError(f"encrypted ({encryptor}); `rosbag decrypt` writes a plain copy")
                 index_pos = _get(fields, "index_pos", _U64)
                 _read(stream, size)  # its padding
-                data_start = stream.tell()
-                if not self._read_index(stream, fields, index_pos):
+                data_start, end = stream.tell(), stream.seek(0, 2)
+                if not 0 < index_pos < end:
+                    logger.info("%s: no index (the recording was cut short); scanning the bag", path)
+                    index_pos = end
+                if index_pos == end or not self._read_index(stream, fields, index_pos):
                     stream.seek(data_start)
-                    self._scan(stream)
+                    self._scan(stream, index_pos)
         except OSError as exc:
             raise InputError(f"{path}: cannot read the bag ({exc.strerror or exc})") from None
         except BagError as exc:
@@ -221,11 +224,7 @@ class Ros1Bag(_SkipsDamage):
 
     def _read_index(self, stream: BinaryIO, header: dict[str, bytes], index_pos: int) -> bool:
         """Connections and chunk infos from the index at ``index_pos``; False (and a note in
-        the log) when there is none or it does not parse, for :meth:`_scan` to take over."""
-        end = stream.seek(0, 2)
-        if not 0 < index_pos < end:
-            logger.info("%s: no index (the recording was cut short); scanning the bag", self.path)
-            return False
+        :attr:`damage`) when it does not parse, for :meth:`_scan` to take over."""
         try:
             stream.seek(index_pos)
             for _ in range(_get(header, "conn_count", _U32)):
@@ -256,14 +255,14 @@ class Ros1Bag(_SkipsDamage):
                     del chunk.counts[cid]
         return True
 
-    def _scan(self, stream: BinaryIO) -> None:
+    def _scan(self, stream: BinaryIO, end: int) -> None:
         """Connections and chunks of a bag without a usable index, read from the first record
-        after the bag header to the end or to the first record that does not read (noted in
-        :attr:`damage`; :meth:`messages` ends there)."""
+        after the bag header to byte ``end`` (where a damaged index begins, else the file's end)
+        or to the first record that does not read (noted in :attr:`damage`; :meth:`messages`
+        ends there)."""
         messages = 0
         try:
-            while True:
-                pos = stream.tell()
+            while (pos := stream.tell()) < end:
                 if (record := _record(stream)) is None:
                     break
                 fields, op, size = record
