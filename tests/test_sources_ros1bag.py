@@ -168,6 +168,53 @@ def test_a_chunk_is_decompressed_no_further_than_its_header_says(tmp_path, caplo
     assert "a chunk holds 101 bytes, its header says 100" in line
 
 
+def test_a_damaged_length_allocates_nothing_like_it(tmp_path):
+    """A record header's length of 4 GiB (4 bytes changed): named as cut off, without reading
+    (``read(n)`` sets n bytes aside first)."""
+    path = write_bag(tmp_path / "x.bag", 20)
+    data = bytearray(path.read_bytes())
+    data[13:17] = struct.pack("<I", 0xFFFFFFF0)  # the bag header record's header length
+    (tmp_path / "bad.bag").write_bytes(data)
+    tracemalloc.start()
+    try:
+        with pytest.raises(InputError, match=r"bad.bag: not a readable ROS 1 bag \(cut off: \d+ of 4294967280 bytes\)"):
+            Ros1Bag(tmp_path / "bad.bag")
+        assert tracemalloc.get_traced_memory()[1] < 1_000_000
+    finally:
+        tracemalloc.stop()
+
+
+def _changed(path: Path, dst: Path, find: bytes, nth: int, at: int, value: int) -> Path:
+    """``path`` with byte ``at`` after the ``nth`` occurrence of ``find`` set to ``value``."""
+    data = bytearray(path.read_bytes())
+    where = -1
+    for _ in range(nth + 1):
+        where = data.index(find, where + 1)
+    data[where + at] = value
+    dst.write_bytes(data)
+    return dst
+
+
+def test_a_message_record_without_its_fields_loses_its_chunk_only(tmp_path, caplog):
+    path = write_bag(tmp_path / "x.bag", 60)
+    bad = Ros1Bag(_changed(path, tmp_path / "bad.bag", b"conn=", 30, 1, ord("X")))  # 'cXnn=' in a message
+    got = read(bad)
+    assert 0 < len(expected(path)) - len(got) < 20 and set(got) < set(expected(path))
+    (line,) = bad.skipped
+    assert "chunk at byte" in line and "a record without a readable 'conn' field" in line
+
+
+def test_a_message_stamped_outside_its_chunks_span_is_skipped(tmp_path, caplog):
+    """Its time changed (1 s earlier): messages after it would have come out before it, so it is
+    skipped, named, and the rest keep their log-time order (:func:`read` checks it)."""
+    path = write_bag(tmp_path / "x.bag", 60)
+    bad = Ros1Bag(_changed(path, tmp_path / "bad.bag", b"time=", 30, 5, 0xE7))  # its seconds' low byte: 1000 → 999
+    got = read(bad)
+    assert len(got) == 59 and set(got) < set(expected(path))
+    (line,) = bad.skipped
+    assert "message at log time 999." in line and "outside its chunk's span in the index" in line
+
+
 def test_an_index_that_names_an_unknown_connection_is_damage(tmp_path, caplog):
     """A chunk-info record whose data is garbage names connections the bag lacks: that chunk's
     counts would be lost without a word."""

@@ -19,6 +19,7 @@ from __future__ import annotations
 import bz2
 import heapq
 import logging
+import os
 import struct
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -86,10 +87,12 @@ def _text(fields: dict[str, bytes], name: str) -> str:
 
 
 def _read(stream: BinaryIO, size: int) -> bytes:
-    data = stream.read(size)
-    if len(data) != size:
-        raise BagError(f"cut off: {len(data)} of {size} bytes")
-    return data
+    """``size`` bytes of the file, checked against what is left of it first: a damaged length
+    must not have ``read`` set aside gigabytes."""
+    left = os.fstat(stream.fileno()).st_size - stream.tell()
+    if size > left:
+        raise BagError(f"cut off: {max(left, 0)} of {size} bytes")
+    return stream.read(size)
 
 
 def _record(stream: BinaryIO) -> tuple[dict[str, bytes], int, int] | None:
@@ -271,18 +274,16 @@ class Ros1Bag(_SkipsDamage):
                     c = _connection(fields, data)
                     self._connections.setdefault(c.id, c)
                 elif op == _CHUNK:
-                    chunk = _Chunk(pos, 0, 0)
-                    for inner, kind, body in _chunk_records(fields, data):
-                        if kind == _CONNECTION:
-                            c = _connection(inner, body)
-                            self._connections.setdefault(c.id, c)
-                        elif kind == _MESSAGE:
-                            t, cid = _get(inner, "time", _TIME), _get(inner, "conn", _U32)
-                            chunk.start_ns, chunk.end_ns = _widened(
-                                (chunk.start_ns, chunk.end_ns) if chunk.counts else None, t, t)
+                    connections, contents = _chunk_contents(fields, data)
+                    for c in connections:
+                        self._connections.setdefault(c.id, c)
+                    if contents:
+                        times = [t for _, t, _ in contents]
+                        chunk = _Chunk(pos, min(times), max(times))
+                        for cid, _, _ in contents:
                             chunk.counts[cid] = chunk.counts.get(cid, 0) + 1
-                            messages += 1
-                    self._chunks.append(chunk)
+                        self._chunks.append(chunk)
+                        messages += len(contents)
         except BagError as exc:
             self._scan_error = f"truncated or corrupt after {counted(messages, 'message')} ({exc})"
             self.damage = f"{self.path}: {self._scan_error}"
@@ -311,19 +312,32 @@ class Ros1Bag(_SkipsDamage):
                     fields, op, size = _record(stream) or ({}, 0, 0)
                     if op != _CHUNK:
                         raise BagError("no chunk record where the index points")
-                    records = list(_chunk_records(fields, _read(stream, size)))
+                    _, contents = _chunk_contents(fields, _read(stream, size))
                 except BagError as exc:
                     self._skip(pos, f"chunk at byte {pos}, log time {item.start_ns / 1e9:.3f}–{item.end_ns / 1e9:.3f} s", exc)
                     continue
-                for i, (inner, kind, body) in enumerate(records):
-                    if kind == _MESSAGE and (cid := _get(inner, "conn", _U32)) in wanted:
-                        c, t = self._connections[cid], _get(inner, "time", _TIME)
-                        decode = partial(self._typestore.deserialize_ros1, bytes(body), c.msgtype)
-                        heapq.heappush(heap, (t, 1, pos, i, (c.topic, t, c.msgtype, decode)))
+                for i, (cid, t, body) in enumerate(contents):
+                    if cid not in wanted:
+                        continue
+                    c = self._connections[cid]
+                    if not item.start_ns <= t <= item.end_ns:  # messages before it have been yielded already
+                        self._skip(("message", c.topic, t), f"{c.topic} message at log time {t / 1e9:.3f} s",
+                                   BagError(f"outside its chunk's span in the index, {item.start_ns / 1e9:.3f}–"
+                                            f"{item.end_ns / 1e9:.3f} s"))
+                        continue
+                    decode = partial(self._typestore.deserialize_ros1, bytes(body), c.msgtype)
+                    heapq.heappush(heap, (t, 1, pos, i, (c.topic, t, c.msgtype, decode)))
         if self._scan_error is not None:
             raise BagError(self._scan_error)
 
 
-def _chunk_records(fields: dict[str, bytes], data: bytes) -> list[tuple[dict[str, bytes], int, memoryview]]:
-    """(header fields, op, data) of the records in a chunk record (its header ``fields`` and data)."""
-    return list(_parse_records(_decompress(_text(fields, "compression"), data, _get(fields, "size", _U32))))
+def _chunk_contents(fields: dict[str, bytes], data: bytes) -> tuple[list[_Connection], list[tuple[int, int, memoryview]]]:
+    """The connections and the messages (connection id, log time in ns, data) of a chunk record
+    (its header ``fields`` and data)."""
+    connections, messages = [], []
+    for inner, kind, body in _parse_records(_decompress(_text(fields, "compression"), data, _get(fields, "size", _U32))):
+        if kind == _CONNECTION:
+            connections.append(_connection(inner, body))
+        elif kind == _MESSAGE:
+            messages.append((_get(inner, "conn", _U32), _get(inner, "time", _TIME), body))
+    return connections, messages
