@@ -51,6 +51,21 @@ def expected(path: Path, topics=TOPICS) -> list[tuple[str, int, str]]:
                 for c, t, raw in reader.messages([c for c in reader.connections if c.topic in topics])]
 
 
+def test_topics_are_named_as_written(tmp_path):
+    """``a`` and ``/a`` are two topics (the old reader, rosbags', kept them apart too)."""
+    path = tmp_path / "x.bag"
+    writer = Writer(path)
+    writer.open()
+    connections = [writer.add_connection(t, "std_msgs/msg/String", typestore=STORE) for t in ("a", "/a", "//b/")]
+    for k in range(6):
+        writer.write(connections[k % 3], 10**12 + k, STORE.serialize_ros1(STRING(data=f"m{k}"), STRING.__msgtype__))
+    writer.close()
+    bag = Ros1Bag(path)
+    assert bag.counts == {"a": 2, "/a": 2, "/b": 2}
+    for topic in bag.counts:
+        assert read(bag, [topic]) == expected(path, [topic])
+
+
 @pytest.mark.parametrize("compression", [None, Writer.CompressionFormat.BZ2, Writer.CompressionFormat.LZ4])
 def test_messages_types_counts_and_span_as_rosbags_reads_them(tmp_path, compression):
     path = write_bag(tmp_path / "x.bag", 400, compression=compression, shuffle=5)

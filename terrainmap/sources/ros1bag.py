@@ -162,9 +162,10 @@ class _Connection:
 def _connection(fields: dict[str, bytes], data: bytes) -> _Connection:
     """A connection record: its id and topic in the header, the type and definition in its data."""
     details = _fields(bytes(data))
-    topic = _text(fields, "topic")
-    return _Connection(_get(fields, "conn", _U32), topic if topic.startswith("/") else f"/{topic}",
-                       normalize_type(_text(details, "type")), details.get("message_definition", b"").decode(errors="replace"))
+    topic = _text(fields, "topic")  # as written, empty levels dropped (as rosbags and ROS's names do)
+    topic = "/" * topic.startswith("/") + "/".join(level for level in topic.split("/") if level)
+    return _Connection(_get(fields, "conn", _U32), topic, normalize_type(_text(details, "type")),
+                       details.get("message_definition", b"").decode(errors="replace"))
 
 
 class Ros1Bag(_SkipsDamage):
