@@ -180,7 +180,7 @@ def test_a_chunk_is_decompressed_no_further_than_its_header_says(tmp_path, caplo
     bad = Ros1Bag(tmp_path / "bad.bag")
     assert 0 < len(expected(path)) - len(read(bad)) < 200
     (line,) = bad.skipped
-    assert "a chunk holds 101 bytes, its header says 100" in line
+    assert "a chunk holds more than the 100 bytes its header says" in line
 
 
 def test_a_damaged_length_allocates_nothing_like_it(tmp_path):

@@ -133,22 +133,43 @@ def _parse_records(data: bytes) -> Iterator[tuple[dict[str, bytes], int, memoryv
         pos += length
 
 
+_STEP = 1 << 24
+"""Bytes a chunk is decompressed by at a time (lz4 sets its output limit aside at once)."""
+
+
 def _decompress(compression: str, data: bytes, size: int) -> bytes:
-    """A chunk's records, decompressed (``size``: their length, as its header gives it)."""
-    if compression not in ("none", "bz2", "lz4"):
-        raise BagError(f"chunk compression {compression!r} is not bz2, lz4 or none")
-    try:  # at most one byte more than the header says, so that a crafted chunk cannot fill the memory
+    """A chunk's records, decompressed (``size``: their length, as its header gives it). Output
+    comes :data:`_STEP` bytes at a time and stops once past ``size``, so that neither a crafted
+    chunk nor a damaged ``size`` can fill the memory."""
+    if compression == "none":
+        out = data
+    elif compression in ("bz2", "lz4"):
         if compression == "bz2":
-            data = bz2.BZ2Decompressor().decompress(data, max_length=size + 1)
-        elif compression == "lz4":
+            decompressor = bz2.BZ2Decompressor()
+        else:
             import lz4.frame  # installed with rosbags
 
-            data = lz4.frame.LZ4FrameDecompressor().decompress(data, max_length=size + 1)
-    except Exception as exc:  # OSError from bz2, RuntimeError from lz4
-        raise BagError(f"a chunk does not decompress ({_reason(exc)})") from None
-    if len(data) != size:
-        raise BagError(f"a chunk holds {len(data)} bytes, its header says {size}")
-    return data
+            decompressor = lz4.frame.LZ4FrameDecompressor()
+        parts, produced, pending = [], 0, data
+        try:
+            while not decompressor.eof and produced <= size:
+                parts.append(decompressor.decompress(pending, max_length=_STEP))
+                produced += len(parts[-1])
+                if decompressor.needs_input and not decompressor.eof:
+                    raise BagError("a chunk's compressed data is cut off")
+                pending = b""
+        except BagError:
+            raise
+        except Exception as exc:  # OSError from bz2, RuntimeError from lz4
+            raise BagError(f"a chunk does not decompress ({_reason(exc)})") from None
+        out = b"".join(parts)
+    else:
+        raise BagError(f"chunk compression {compression!r} is not bz2, lz4 or none")
+    if len(out) > size:
+        raise BagError(f"a chunk holds more than the {size} bytes its header says")
+    if len(out) < size:
+        raise BagError(f"a chunk holds {len(out)} bytes, its header says {size}")
+    return out
 
 
 @dataclass
