@@ -133,8 +133,9 @@ def _parse_records(data: bytes) -> Iterator[tuple[dict[str, bytes], int, memoryv
         pos += length
 
 
-_STEP = 1 << 24
-"""Bytes a chunk is decompressed by at a time (lz4 sets its output limit aside at once)."""
+_STEP = 1 << 22
+"""Bytes a chunk is decompressed by at a time (lz4 sets its output limit aside at once: a 4 GB size
+field read as the limit took 4 GB; 4 MB costs a 24 MB chunk 9 ms more than decompressing it whole)."""
 
 
 def _decompress(compression: str, data: bytes, size: int) -> bytes:
