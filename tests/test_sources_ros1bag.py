@@ -1,6 +1,7 @@
 """The streaming ROS 1 bag reader, against ``rosbags``' reader and writer (an independent
 implementation of the format)."""
 
+import bz2
 import random
 import struct
 import tracemalloc
@@ -16,6 +17,12 @@ from terrainmap.sources.ros1bag import Ros1Bag
 STORE = get_typestore(Stores.ROS1_NOETIC)
 STRING = STORE.types["std_msgs/msg/String"]
 TOPICS = ["/a", "/b"]
+
+
+def _record(data: bytes = b"", **fields: bytes) -> bytes:
+    """A record with these header fields and ``data``."""
+    header = b"".join(struct.pack("<I", len(k) + 1 + len(v)) + k.encode() + b"=" + v for k, v in fields.items())
+    return struct.pack("<I", len(header)) + header + struct.pack("<I", len(data)) + data
 
 
 def write_bag(path: Path, n: int, *, compression=None, chunk_bytes: int = 300, shuffle: int = 0, seed: int = 0) -> Path:
@@ -230,6 +237,23 @@ def test_a_message_stamped_outside_its_chunks_span_is_skipped(tmp_path, caplog):
     assert "message at log time 999." in line and "outside its chunk's span in the index" in line
 
 
+def test_a_decompression_bomb_is_refused_before_it_is_decompressed(tmp_path):
+    """A chunk of a few hundred bytes of bz2 that says (and holds) 128 MB of zeros."""
+    size = 128 << 20
+    compressor = bz2.BZ2Compressor(9)
+    payload = b"".join(compressor.compress(bytes(16 << 20)) for _ in range(8)) + compressor.flush()
+    path = tmp_path / "bomb.bag"
+    path.write_bytes(b"#ROSBAG V2.0\n" + _record(op=b"\x03", index_pos=bytes(8), conn_count=bytes(4), chunk_count=bytes(4))
+                     + _record(op=b"\x05", compression=b"bz2", size=struct.pack("<I", size), data=payload))
+    tracemalloc.start()
+    try:
+        bag = Ros1Bag(path)
+        assert tracemalloc.get_traced_memory()[1] < 10_000_000
+    finally:
+        tracemalloc.stop()
+    assert f"a chunk of {len(payload)} compressed bytes says it holds {size}, more than 1000 times as many" in bag.damage
+
+
 def test_an_index_that_names_an_unknown_connection_is_damage(tmp_path, caplog):
     """A chunk-info record whose data is garbage names connections the bag lacks: that chunk's
     counts would be lost without a word."""
@@ -241,12 +265,6 @@ def test_an_index_that_names_an_unknown_connection_is_damage(tmp_path, caplog):
     bag = Ros1Bag(tmp_path / "bad.bag")
     assert bag.damage.startswith(f"{tmp_path / 'bad.bag'}: the index of the chunk at byte ")
     assert "names connection 4294967295" in bag.damage and "messages of that chunk may be lost" in caplog.text
-
-
-def _record(**fields: bytes) -> bytes:
-    """A record with these header fields and no data."""
-    header = b"".join(struct.pack("<I", len(k) + 1 + len(v)) + k.encode() + b"=" + v for k, v in fields.items())
-    return struct.pack("<I", len(header)) + header + struct.pack("<I", 0)
 
 
 @pytest.mark.parametrize("data, why", [(b"", "no '#ROSBAG V2.0' line"), (b"#ROSBAG V1.2\n", "no '#ROSBAG V2.0' line"),

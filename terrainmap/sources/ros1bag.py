@@ -137,25 +137,32 @@ _STEP = 1 << 22
 """Bytes a chunk is decompressed by at a time (lz4 sets its output limit aside at once: a 4 GB size
 field read as the limit took 4 GB; 4 MB costs a 24 MB chunk 9 ms more than decompressing it whole)."""
 
+_MAX_RATIO = 1000
+"""A compressed chunk may say it holds at most this many times its compressed bytes (or 64 MB,
+whichever is more): bz2 turns 1.4 KB of a crafted file into 3 GB of zeros. Real chunks hold about
+768 KB; images and point clouds compress far less than this."""
 
-def _decompress(compression: str, data: bytes, size: int) -> bytes:
+
+def _decompress(compression: str, data: bytes, size: int) -> bytes | bytearray:
     """A chunk's records, decompressed (``size``: their length, as its header gives it). Output
-    comes :data:`_STEP` bytes at a time and stops once past ``size``, so that neither a crafted
-    chunk nor a damaged ``size`` can fill the memory."""
+    comes :data:`_STEP` bytes at a time and stops once past ``size``, and ``size`` is held to
+    :data:`_MAX_RATIO`, so that neither a crafted chunk nor a damaged ``size`` fills the memory."""
     if compression == "none":
         out = data
     elif compression in ("bz2", "lz4"):
+        if size > max(64 << 20, _MAX_RATIO * len(data)):
+            raise BagError(f"a chunk of {len(data)} compressed bytes says it holds {size}, more than "
+                           f"{_MAX_RATIO} times as many")
         if compression == "bz2":
             decompressor = bz2.BZ2Decompressor()
         else:
             import lz4.frame  # installed with rosbags
 
             decompressor = lz4.frame.LZ4FrameDecompressor()
-        parts, produced, pending = [], 0, data
+        out, pending = bytearray(), data
         try:
-            while not decompressor.eof and produced <= size:
-                parts.append(decompressor.decompress(pending, max_length=_STEP))
-                produced += len(parts[-1])
+            while not decompressor.eof and len(out) <= size:
+                out += decompressor.decompress(pending, max_length=_STEP)
                 if decompressor.needs_input and not decompressor.eof:
                     raise BagError("a chunk's compressed data is cut off")
                 pending = b""
@@ -163,7 +170,6 @@ def _decompress(compression: str, data: bytes, size: int) -> bytes:
             raise
         except Exception as exc:  # OSError from bz2, RuntimeError from lz4
             raise BagError(f"a chunk does not decompress ({_reason(exc)})") from None
-        out = b"".join(parts)
     else:
         raise BagError(f"chunk compression {compression!r} is not bz2, lz4 or none")
     if len(out) > size:
