@@ -320,7 +320,15 @@ def test_ros_image_encodings(tmp_path, encode, expect):
 def test_unsupported_encoding_names_topic_and_encoding(tmp_path):
     depth = lambda a: (a[:, :, 0].astype(np.float32), "32FC1")  # noqa: E731 (a depth image, not a camera's)
     path = write_ros2_log(tmp_path / "depth.mcap", n=1, encode=depth)
-    with pytest.raises(InputError, match="/cam/left/image_rect: unsupported image encoding '32FC1'"):
+    with pytest.raises(InputError, match=f"^{path}: /cam/left/image_rect: unsupported image encoding '32FC1'"):
+        list(open_source(path).frames())
+
+
+def test_left_and_right_images_of_two_sizes_name_the_log_and_both_topics(tmp_path):
+    right_side = iter([False, False, True])  # the pair's left image, an unpaired left one, then the right
+    path = write_ros2_log(tmp_path / "sizes.mcap", n=1, encode=lambda a: (a[:-1] if next(right_side) else a, "rgb8"))
+    with pytest.raises(InputError, match=f"^{path}: left and right images differ in size: /cam/left/image_rect is "
+                                         "8×6, /cam/right/image_rect is 8×5$"):
         list(open_source(path).frames())
 
 

@@ -282,10 +282,12 @@ class LogSource(Source):
         try:
             left = msgs.image_array(left_msg, types[self.left_topic], self.left_topic)
             right = msgs.image_array(right_msg, types[self.right_topic], self.right_topic)
+            left, right = stereo_pair(left, right, self.left_topic, self.right_topic)
         except DamagedImageError as exc:  # one bad image: that pair is lost, the run goes on
             self._skip_damaged(f"{self.path}: stereo pair at {stamp_ns / 1e9:.3f} s", exc)
             return None
-        left, right = stereo_pair(left, right, self.left_topic, self.right_topic)
+        except InputError as exc:  # an encoding or size it cannot read, images of two sizes
+            raise InputError(f"{self.path}: {exc}") from exc
         try:
             calibration = calib_io.fit_to_image(calibration, left.shape, self.left_topic)
         except CalibrationError as exc:
