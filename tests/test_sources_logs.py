@@ -376,7 +376,7 @@ def test_raw_images_with_a_camera_info_that_cannot_rectify_them_are_refused_wher
     path = write_ros2_log(tmp_path / "raw.mcap", n=1, topics=("/cam/left/image_raw", "/cam/right/image_raw"), d=d, r=r)
     with open_source(path) as source:
         assert source.calibration is None
-        with pytest.raises(CalibrationError, match=message):
+        with pytest.raises(CalibrationError, match=f"^{path}: /cam/left/camera_info \\+ /cam/right/camera_info: {message}"):
             next(source.frames())
 
 
@@ -1143,8 +1143,8 @@ def test_images_that_change_size_part_way_skip_the_one_pair_logged_before_its_in
 
 def test_images_whose_new_size_never_gets_its_calibration_end_the_run_naming_both_sizes(tmp_path):
     path = _write_resized(tmp_path / "resized.mcap", [(6, 8)] * 3 + [(12, 16)] * 3, infos=3)
-    with open_source(path) as source, pytest.raises(CalibrationError, match="calibration is for 8×6 images but "
-                                                                                 "/cam/left/image_rect is 16×12"):
+    with open_source(path) as source, pytest.raises(CalibrationError, match=f"^{path}: .*calibration is for 8×6 images "
+                                                                                 "but /cam/left/image_rect is 16×12"):
         list(source.frames())
 
 

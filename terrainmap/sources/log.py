@@ -151,7 +151,10 @@ class LogSource(Source):
             infos = [self._first(t) for t in (left, right)]
             if not all(infos):
                 raise CalibrationError(f"{self.path}: {left} or {right} holds no readable message; pass --calibration")
-            return self._calibration_of(infos[0][0], infos[1][0])
+            try:
+                return self._calibration_of(infos[0][0], infos[1][0])
+            except CalibrationError as exc:  # it names the topic: name the log too
+                raise CalibrationError(f"{self.path}: {exc}") from exc
         except CalibrationError as exc:
             self.calibration_error = exc
             return None
@@ -295,7 +298,7 @@ class LogSource(Source):
             # still holds the old calibration. One such pair is skipped; a second, or a size that
             # never fitted, means the calibration does not follow the images.
             if self._fitted_shape in (None, left.shape) or self._stale_shape == left.shape:
-                raise
+                raise CalibrationError(f"{self.path}: {exc}") from exc
             self._stale_shape = left.shape
             self._skip_damaged(f"{self.path}: stereo pair at {stamp_ns / 1e9:.3f} s", exc, "images of a new size "
                                "before their camera infos")
