@@ -35,7 +35,7 @@ logger = logging.getLogger(__name__)
 
 MAGIC = b"#ROSBAG V2.0\n"
 
-_MESSAGE, _BAG_HEADER, _INDEX, _CHUNK, _CHUNK_INFO, _CONNECTION = 2, 3, 4, 5, 6, 7
+_MESSAGE, _BAG_HEADER, _CHUNK, _CHUNK_INFO, _CONNECTION = 2, 3, 5, 6, 7  # record ops (4, index data, is not read)
 _U32, _U64, _TIME = struct.Struct("<I"), struct.Struct("<Q"), struct.Struct("<II")
 
 
@@ -181,6 +181,8 @@ def _decompress(compression: str, data: bytes, size: int) -> bytes | bytearray:
 
 @dataclass
 class _Connection:
+    """A connection record: id, topic, message type (``pkg/msg/Type``) and its full definition."""
+
     id: int
     topic: str
     msgtype: str
@@ -214,7 +216,7 @@ class Ros1Bag(_SkipsDamage):
         self.damage: str | None = None
         self._connections: dict[int, _Connection] = {}
         self._chunks: list[_Chunk] = []
-        self._scan_error: str | None = None  # where a bag without an index stops being readable
+        self._scan_error: str | None = None  # why the scan of a bag without an index stopped
         try:
             with open(path, "rb") as stream:
                 if stream.read(len(MAGIC)) != MAGIC:
@@ -314,8 +316,8 @@ class Ros1Bag(_SkipsDamage):
                         self._chunks.append(chunk)
                         messages += len(contents)
         except BagError as exc:
-            self._scan_error = f"truncated or corrupt after {counted(messages, 'message')} ({exc})"
-            self.damage = f"{self.path}: {self._scan_error}"
+            self._scan_error = str(exc)
+            self.damage = f"{self.path}: truncated or corrupt after {counted(messages, 'message')} ({exc})"
             logger.info("%s", self.damage)  # not a warning: ``info`` shows it, reading the messages raises it
 
     def messages(self, topics: list[str]) -> Iterator[tuple[str, int, Any]]:
