@@ -669,8 +669,9 @@ class TrackingConfig:
     odometry frame, where most obstacles stand still, 1 (was 2) confirmed more true obstacles
     and fewer false ones on the simulated drives."""
     max_extrapolation_s: float = 1.0
-    """A track's velocity moves its predicted centre over at most this many seconds between two
-    frames. Over a longer gap in the log (a recording paused, frames dropped) a constant velocity
+    """A track's velocity moves its predicted centre over at most this many seconds, or the
+    interval between the two frames before if that is longer (a log at 0.5 Hz, ``--every``), of
+    a gap in the log (a recording paused, frames dropped). Over such a gap a constant velocity
     says nothing: a static obstacle's velocity of noise, 0.1 m/s, would carry it 6 m in 60 s, out
     of the gate, and it would come back under a new id. Its uncertainty still grows with the
     whole gap."""

@@ -12,7 +12,8 @@ are reported back in the current vehicle frame either way.
 Per frame (:meth:`ObstacleTracker.update`):
 
 1. predict every track by ``dt`` (from the stamps) with white-acceleration process noise, its
-   velocity moving it over at most ``max_extrapolation_s`` of a longer gap;
+   velocity moving it over at most ``max_extrapolation_s`` (or the frame interval before, if
+   longer) of a longer gap;
 2. associate detections to tracks of the same kind by the matching of least total distance
    between predicted and detected centres, a track or detection left unmatched costing
    ``gate_m / 2`` (:meth:`ObstacleTracker._associate`), so pairs farther than ``gate_m`` never match;
@@ -105,6 +106,7 @@ class ObstacleTracker:
         # per track: last detection, its centre z and its yaw in the tracking frame
         self._shape: list[tuple[Obstacle, float, float]] = []
         self._stamp_ns = None
+        self._interval_s: float | None = None  # between the last two frames
 
     @property
     def _confirmed(self) -> np.ndarray:
@@ -205,10 +207,16 @@ class ObstacleTracker:
         return dt
 
     def _predict(self, dt: float) -> None:
-        if dt <= 0 or not len(self._ids):
+        # Over a gap much longer than the log's frame interval no velocity holds: it moves the
+        # track for max_extrapolation_s, or the interval before the gap if longer, at most.
+        if dt <= 0:
+            return
+        horizon = dt if self._interval_s is None else max(self.config.max_extrapolation_s, self._interval_s)
+        self._interval_s = dt
+        if not len(self._ids):
             return
         F = np.eye(4)
-        F[0, 2] = F[1, 3] = min(dt, self.config.max_extrapolation_s)  # over a long gap, no velocity holds
+        F[0, 2] = F[1, 3] = min(dt, horizon)
         q = self.config.acceleration_std_mps2**2
         block = q * np.array([[dt**4 / 4, dt**3 / 2], [dt**3 / 2, dt**2]])
         Q = np.zeros((4, 4))

@@ -180,6 +180,20 @@ def test_a_static_obstacle_keeps_its_id_over_a_gap_in_the_log(gap_s):
     assert back.track_id == out.track_id and back.center_m[0] == pytest.approx(10.09, abs=0.05)
 
 
+@pytest.mark.parametrize("interval_s, speed", [(0.1, 0.8), (1.0, 0.8), (2.0, 0.8), (5.0, 0.3)])
+def test_a_log_slower_than_the_extrapolation_limit_is_tracked_as_without_it(interval_s, speed):
+    """Frames 2 or 5 s apart (a 0.5 Hz log, ``--every 20``) are no gap: the limit changes nothing
+    (with it, an obstacle walking 0.8 m/s 2 s apart got 1.6 m/s: twice the distance a second)."""
+    for config in (TrackingConfig(), TrackingConfig(max_extrapolation_s=1e6)):
+        tracker = ObstacleTracker(config)
+        for k in range(12):
+            (out,) = tracker.update([detection(10.0 + speed * interval_s * k, 0)], k * int(interval_s * 1e9))
+        if config.max_extrapolation_s == 1.0:
+            limited = out
+    assert limited.track_id == out.track_id == 1 and limited.velocity_mps[0] == out.velocity_mps[0]
+    assert out.velocity_mps[0] == pytest.approx(speed, rel=0.15)
+
+
 def test_coasting_track_is_not_reported_by_default_but_keeps_its_id():
     tracker = ObstacleTracker(TrackingConfig(confirm_hits=2, max_misses=2))
     for k in range(3):
