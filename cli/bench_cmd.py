@@ -41,7 +41,9 @@ def bench(
     for name, r in results.items():
         click.echo(f"{name:<18}{r['median_ms']:10.2f}{r['min_ms']:10.2f}{r['max_ms']:10.2f}{r['runs']:6d}")
     for what, value, limit in lib.goals(results):
-        shown = f"{value:.2f}" if (value <= limit) == (round(value, 2) <= limit) else f"{value:.4f}"  # "1.60 MISSES 1.6" reads wrong
+        # as many decimals as show why it meets or misses: not "1.60 (MISSES the goal of at most 1.6)"
+        digits = next((d for d in range(2, 10) if (value <= limit) == (round(value, d) <= limit)), None)
+        shown = repr(value) if digits is None else f"{value:.{digits}f}"
         click.echo(f"{what}: {shown} ({'meets' if value <= limit else 'MISSES'} the goal of at most {limit:g})")
     if json_path:
         write_text(json_path, json.dumps(results, indent=2) + "\n")

@@ -167,18 +167,19 @@ def test_bench_reports_every_stage(tmp_path, monkeypatch):
 
 
 def test_bench_goal_lines_show_the_digits_that_decide(monkeypatch):
-    """A ratio of 1.6004 misses 1.6: printed as 1.6004, not "1.60 (MISSES ...)"."""
+    """A ratio of 1.6004 misses 1.6: printed with the digits that show it, not "1.60 (MISSES ...)"."""
     from terrainmap import bench as lib
 
     monkeypatch.setattr(lib, "all_stages", lambda config, frame: {})
     monkeypatch.setattr(lib, "run", lambda config, runs, stages: {})
     monkeypatch.setattr(lib, "goals", lambda results: [("a", 1.6004, 1.6), ("b", 1.5996, 1.6), ("c", 1.6, 1.6),
-                                                       ("d", 1.2345, 1.6)])
+                                                       ("d", 1.2345, 1.6), ("e", 1.60004, 1.6)])
     result = CliRunner().invoke(cli, ["bench", "--runs", "1"])
     assert result.exit_code == 0, result.output
     assert "a: 1.6004 (MISSES the goal of at most 1.6)" in result.output
     assert "b: 1.60 (meets the goal of at most 1.6)" in result.output
     assert "c: 1.60 (meets" in result.output and "d: 1.23 (meets" in result.output
+    assert "e: 1.60004 (MISSES" in result.output
 
 
 def test_bench_times_the_first_pair_of_a_log(tmp_path):
