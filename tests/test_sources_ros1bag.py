@@ -148,6 +148,43 @@ def test_a_bag_whose_index_is_damaged_is_scanned_up_to_the_index(tmp_path, caplo
     assert read(bag) == expected(path) and bag.counts == {"/a": 100, "/b": 100}
 
 
+def _fields_bytes(**fields: bytes) -> bytes:
+    return b"".join(struct.pack("<I", len(k) + 1 + len(v)) + k.encode() + b"=" + v for k, v in fields.items())
+
+
+def _killed_recording(path: Path, closed: int, open_: int) -> Path:
+    """A recording killed as C++ rosbag leaves it: index_pos 0, ``closed`` messages in a closed
+    (uncompressed) chunk, then the open chunk: its header with size 0 and no data, and its
+    records (a connection, ``open_`` messages) written raw after it."""
+    definition = STORE.generate_msgdef("std_msgs/msg/String", ros_version=1)[0].encode()
+    connection = _record(_fields_bytes(topic=b"/a", type=b"std_msgs/String", md5sum=b"0" * 32,
+                                       message_definition=definition), op=b"\x07", conn=struct.pack("<I", 0), topic=b"/a")
+    def message(k):
+        data = STORE.serialize_ros1(STRING(data=f"m{k}"), STRING.__msgtype__)
+        return _record(data, op=b"\x02", conn=struct.pack("<I", 0), time=struct.pack("<II", 1000, k * 1_000_000))
+    closed_records = connection + b"".join(message(k) for k in range(closed))
+    path.write_bytes(b"#ROSBAG V2.0\n" + _record(op=b"\x03", index_pos=bytes(8), conn_count=bytes(4), chunk_count=bytes(4))
+                     + _record(closed_records, op=b"\x05", compression=b"none", size=struct.pack("<I", len(closed_records)))
+                     + _record(op=b"\x05", compression=b"none", size=bytes(4))
+                     + b"".join(message(k) for k in range(closed, closed + open_)))
+    return path
+
+
+def test_a_recording_killed_keeps_the_messages_of_its_open_chunk(tmp_path):
+    bag = Ros1Bag(_killed_recording(tmp_path / "killed.bag", 5, 4))
+    assert bag.damage is None and bag.counts == {"/a": 9}
+    assert [m.data for _, _, m in bag.messages(["/a"])] == [f"m{k}" for k in range(9)]
+    cut = tmp_path / "cut.bag"  # cut inside the open chunk's last message: the three before it are read
+    cut.write_bytes((tmp_path / "killed.bag").read_bytes()[:-5])
+    bag = Ros1Bag(cut)
+    assert bag.counts == {"/a": 8} and "truncated or corrupt after 8 messages" in bag.damage
+    got = []
+    with pytest.raises(InputError, match="cut off"):
+        for _, _, m in bag.messages(["/a"]):
+            got.append(m.data)
+    assert got == [f"m{k}" for k in range(8)]
+
+
 def test_a_bag_cut_short_is_read_up_to_the_cut_then_named(tmp_path):
     path = write_bag(tmp_path / "x.bag", 200)
     cut = tmp_path / "cut.bag"
@@ -267,7 +304,8 @@ def test_an_index_that_names_an_unknown_connection_is_damage(tmp_path, caplog):
     assert "names connection 4294967295" in bag.damage and "messages of that chunk may be lost" in caplog.text
 
 
-@pytest.mark.parametrize("data, why", [(b"", "no '#ROSBAG V2.0' line"), (b"#ROSBAG V1.2\n", "no '#ROSBAG V2.0' line"),
+@pytest.mark.parametrize("data, why", [(b"", "an empty file"), (b"#ROSBAG V1.2\n", r"format 1.2, not 2.0"),
+                                       (b"<html>\n", "no '#ROSBAG V2.0' line at its start"),
                                        (b"#ROSBAG V2.0\n\x10\x00\x00\x00abc", "cut off"),
                                        (b"#ROSBAG V2.0\n" + _record(op=b"\x03", encryptor=b"aes"), r"encrypted \(aes\)")])
 def test_what_is_no_bag_is_named(tmp_path, data, why):

@@ -8,7 +8,8 @@ time and message count per connection). The index is read at open; messages are 
 by chunk in log-time order, merged as the chunks overlap in time, without the per-message index
 records (about 175 bytes a message in ``rosbags``' reader, which reads them all at open). A bag
 without a usable index (a recording cut short, which ``rosbag reindex`` would repair) is scanned
-from start to end at open instead, and its messages read up to where the scan stopped.
+from start to end at open instead, the records of the chunk it was still writing included, and
+its messages read up to where the scan stopped.
 
 Messages are decoded by ``rosbags``' ROS 1 type store, which learns the types it lacks from the
 definitions the bag carries.
@@ -18,8 +19,8 @@ from __future__ import annotations
 
 import bz2
 import heapq
+import io
 import logging
-import os
 import struct
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -52,6 +53,8 @@ class _Chunk:
     start_ns: int
     end_ns: int
     counts: dict[int, int] = field(default_factory=dict)
+    end: int | None = None
+    """Where the records of a chunk left open end (they start at ``pos``); None for a chunk record."""
 
 
 def _fields(header: bytes) -> dict[str, bytes]:
@@ -86,51 +89,64 @@ def _text(fields: dict[str, bytes], name: str) -> str:
         raise BagError(f"a record without a readable {name!r} field") from None
 
 
+@dataclass
+class _Connection:
+    """A connection record: id, topic, message type (``pkg/msg/Type``) and its full definition."""
+
+    id: int
+    topic: str
+    msgtype: str
+    definition: str
+
+
+def _connection(fields: dict[str, bytes], data: bytes) -> _Connection:
+    """A connection record: its id and topic in the header, the type and definition in its data."""
+    details = _fields(bytes(data))
+    topic = _text(fields, "topic")  # as written, empty levels dropped (as rosbags and ROS's names do)
+    topic = "/" * topic.startswith("/") + "/".join(level for level in topic.split("/") if level)
+    return _Connection(_get(fields, "conn", _U32), topic, normalize_type(_text(details, "type")),
+                       details.get("message_definition", b"").decode(errors="replace"))
+
+
 def _read(stream: BinaryIO, size: int) -> bytes:
-    """``size`` bytes of the file, checked against what is left of it first: a damaged length
-    must not have ``read`` set aside gigabytes."""
-    left = os.fstat(stream.fileno()).st_size - stream.tell()
+    """``size`` bytes of ``stream`` (a file, or a chunk's records in memory), checked against
+    what is left of it first: a damaged length must not have ``read`` set aside gigabytes."""
+    here = stream.tell()
+    left = stream.seek(0, 2) - here
+    stream.seek(here)
     if size > left:
         raise BagError(f"cut off: {max(left, 0)} of {size} bytes")
     return stream.read(size)
 
 
-def _record(stream: BinaryIO) -> tuple[dict[str, bytes], int, int] | None:
-    """The next record's header fields, its op and the length of its data, which follows in
-    ``stream`` (None at the end of the stream)."""
-    head = stream.read(4)
-    if not head:
-        return None
-    if len(head) < 4:
-        raise BagError("cut off in a record's length")
-    fields = _fields(_read(stream, _U32.unpack(head)[0]))
-    size = _U32.unpack(_read(stream, 4))[0]
+def _record(stream: BinaryIO) -> tuple[dict[str, bytes], int, bytes]:
+    """The next record of ``stream``: its header fields, its op and its data."""
+    fields = _fields(_read(stream, _U32.unpack(_read(stream, 4))[0]))
+    data = _read(stream, _U32.unpack(_read(stream, 4))[0])
     op = fields.get("op", b"")
     if len(op) != 1:
         raise BagError("a record without its op")
-    return fields, op[0], size
+    return fields, op[0], data
 
 
-def _parse_records(data: bytes) -> Iterator[tuple[dict[str, bytes], int, memoryview]]:
-    """(header fields, op, data) of the records in a chunk's uncompressed data."""
-    view, pos = memoryview(data), 0
-    while pos < len(data):
-        if pos + 4 > len(data):
-            raise BagError("a record's length is cut off")
-        (size,) = _U32.unpack_from(data, pos)
-        fields = _fields(data[pos + 4: pos + 4 + size])
-        pos += 4 + size
-        if pos + 4 > len(data):
-            raise BagError("a record's data length is cut off")
-        (length,) = _U32.unpack_from(data, pos)
-        pos += 4
-        if pos + length > len(data):
-            raise BagError("a record's data is cut off")
-        op = fields.get("op", b"")
-        if len(op) != 1:
-            raise BagError("a record without its op")
-        yield fields, op[0], view[pos: pos + length]
-        pos += length
+def _contents(stream: BinaryIO, end: int) -> tuple[list[_Connection], list[tuple[int, int, bytes]]]:
+    """The connections and the messages (connection id, log time in ns, data) of the records
+    from ``stream``'s position to byte ``end``: a chunk's records, or those of a chunk still open
+    when the recording stopped, which C++ rosbag writes uncompressed after the chunk's header."""
+    connections, messages = [], []
+    while stream.tell() < end:
+        fields, op, data = _record(stream)
+        if op == _CONNECTION:
+            connections.append(_connection(fields, data))
+        elif op == _MESSAGE:
+            messages.append((_get(fields, "conn", _U32), _get(fields, "time", _TIME), data))
+    return connections, messages
+
+
+def _chunk_contents(fields: dict[str, bytes], data: bytes) -> tuple[list[_Connection], list[tuple[int, int, bytes]]]:
+    """:func:`_contents` of a chunk record (its header ``fields`` and data)."""
+    records = _decompress(_text(fields, "compression"), data, _get(fields, "size", _U32))
+    return _contents(io.BytesIO(records), len(records))
 
 
 _STEP = 1 << 22
@@ -179,25 +195,6 @@ def _decompress(compression: str, data: bytes, size: int) -> bytes | bytearray:
     return out
 
 
-@dataclass
-class _Connection:
-    """A connection record: id, topic, message type (``pkg/msg/Type``) and its full definition."""
-
-    id: int
-    topic: str
-    msgtype: str
-    definition: str
-
-
-def _connection(fields: dict[str, bytes], data: bytes) -> _Connection:
-    """A connection record: its id and topic in the header, the type and definition in its data."""
-    details = _fields(bytes(data))
-    topic = _text(fields, "topic")  # as written, empty levels dropped (as rosbags and ROS's names do)
-    topic = "/" * topic.startswith("/") + "/".join(level for level in topic.split("/") if level)
-    return _Connection(_get(fields, "conn", _U32), topic, normalize_type(_text(details, "type")),
-                       details.get("message_definition", b"").decode(errors="replace"))
-
-
 class Ros1Bag(_SkipsDamage):
     """A ROS 1 bag (v2.0). Interface of the readers in :mod:`~terrainmap.sources.readers`: its
     ``paths``, ``types`` (topic → message type), ``counts`` (topic → messages), ``span_ns``,
@@ -219,15 +216,16 @@ class Ros1Bag(_SkipsDamage):
         self._scan_error: str | None = None  # why the scan of a bag without an index stopped
         try:
             with open(path, "rb") as stream:
-                if stream.read(len(MAGIC)) != MAGIC:
-                    raise BagError("no '#ROSBAG V2.0' line at its start")
-                fields, op, size = _record(stream) or ({}, 0, 0)
+                if (magic := stream.readline(64)) != MAGIC:
+                    version = magic[len(b"#ROSBAG V"):].strip().decode(errors="replace")
+                    raise BagError(f"format {version}, not 2.0" if magic.startswith(b"#ROSBAG V") else
+                                   "an empty file" if not magic else "no '#ROSBAG V2.0' line at its start")
+                fields, op, _ = _record(stream)  # its data: padding
                 if op != _BAG_HEADER:
                     raise BagError("no bag header record after the version line")
                 if encryptor := fields.get("encryptor", b"").decode(errors="replace"):
                     raise BagError(f"encrypted ({encryptor}); `rosbag decrypt` writes a plain copy")
                 index_pos = _get(fields, "index_pos", _U64)
-                _read(stream, size)  # its padding
                 data_start, end = stream.tell(), stream.seek(0, 2)
                 if not 0 < index_pos < end:
                     logger.info("%s: no index (the recording was cut short); scanning the bag", path)
@@ -262,16 +260,15 @@ class Ros1Bag(_SkipsDamage):
         try:
             stream.seek(index_pos)
             for _ in range(_get(header, "conn_count", _U32)):
-                fields, op, size = _record(stream) or ({}, 0, 0)
+                fields, op, data = _record(stream)
                 if op != _CONNECTION:
                     raise BagError("the index holds a record other than a connection")
-                c = _connection(fields, _read(stream, size))
+                c = _connection(fields, data)
                 self._connections.setdefault(c.id, c)
             for _ in range(_get(header, "chunk_count", _U32)):
-                fields, op, size = _record(stream) or ({}, 0, 0)
+                fields, op, data = _record(stream)
                 if op != _CHUNK_INFO or _get(fields, "ver", _U32) != 1:
                     raise BagError("the index holds a record other than a chunk info (version 1)")
-                data = _read(stream, size)
                 counts = dict(struct.iter_unpack("<II", data[: len(data) // 8 * 8]))
                 self._chunks.append(_Chunk(_get(fields, "chunk_pos", _U64), _get(fields, "start_time", _TIME),
                                            _get(fields, "end_time", _TIME), counts))
@@ -293,28 +290,38 @@ class Ros1Bag(_SkipsDamage):
         """Connections and chunks of a bag without a usable index, read from the first record
         after the bag header to byte ``end`` (where a damaged index begins, else the file's end)
         or to the first record that does not read (noted in :attr:`damage`; :meth:`messages`
-        ends there)."""
-        messages = 0
+        ends there). The records of a chunk still open when the recording stopped, which C++
+        rosbag writes uncompressed after the chunk's header, make chunks of their own
+        (``_Chunk.end``), of up to :data:`_STEP` bytes each."""
+        messages, loose = 0, None
         try:
             while (pos := stream.tell()) < end:
-                if (record := _record(stream)) is None:
-                    break
-                fields, op, size = record
-                data = _read(stream, size)
+                fields, op, data = _record(stream)
                 if op == _CONNECTION:
                     c = _connection(fields, data)
                     self._connections.setdefault(c.id, c)
-                elif op == _CHUNK:
+                    continue  # within an open chunk's records too
+                if op == _MESSAGE:
+                    if loose is None or stream.tell() - loose.pos > _STEP:
+                        loose = _Chunk(pos, 0, 0)
+                        self._chunks.append(loose)
+                    loose.end = stream.tell()
+                    contents = [(_get(fields, "conn", _U32), _get(fields, "time", _TIME), data)]
+                else:
+                    loose = None
+                    if op != _CHUNK:
+                        continue
                     connections, contents = _chunk_contents(fields, data)
                     for c in connections:
                         self._connections.setdefault(c.id, c)
-                    if contents:
-                        times = [t for _, t, _ in contents]
-                        chunk = _Chunk(pos, min(times), max(times))
-                        for cid, _, _ in contents:
-                            chunk.counts[cid] = chunk.counts.get(cid, 0) + 1
-                        self._chunks.append(chunk)
-                        messages += len(contents)
+                    if not contents:
+                        continue
+                    self._chunks.append(_Chunk(pos, 0, 0))
+                chunk = self._chunks[-1]
+                for cid, t, _ in contents:
+                    chunk.start_ns, chunk.end_ns = _widened((chunk.start_ns, chunk.end_ns) if chunk.counts else None, t, t)
+                    chunk.counts[cid] = chunk.counts.get(cid, 0) + 1
+                messages += len(contents)
         except BagError as exc:
             self._scan_error = str(exc)
             self.damage = f"{self.path}: truncated or corrupt after {counted(messages, 'message')} ({exc})"
@@ -340,10 +347,13 @@ class Ros1Bag(_SkipsDamage):
                     continue
                 try:
                     stream.seek(pos)
-                    fields, op, size = _record(stream) or ({}, 0, 0)
-                    if op != _CHUNK:
-                        raise BagError("no chunk record where the index points")
-                    _, contents = _chunk_contents(fields, _read(stream, size))
+                    if item.end is not None:  # the records of a chunk left open
+                        _, contents = _contents(stream, item.end)
+                    else:
+                        fields, op, data = _record(stream)
+                        if op != _CHUNK:
+                            raise BagError("no chunk record where the index points")
+                        _, contents = _chunk_contents(fields, data)
                 except BagError as exc:
                     self._skip(pos, f"chunk at byte {pos}, log time {item.start_ns / 1e9:.3f}–{item.end_ns / 1e9:.3f} s", exc)
                     continue
@@ -356,19 +366,7 @@ class Ros1Bag(_SkipsDamage):
                                    BagError(f"outside its chunk's span in the index, {item.start_ns / 1e9:.3f}–"
                                             f"{item.end_ns / 1e9:.3f} s"))
                         continue
-                    decode = partial(self._typestore.deserialize_ros1, bytes(body), c.msgtype)
+                    decode = partial(self._typestore.deserialize_ros1, body, c.msgtype)
                     heapq.heappush(heap, (t, 1, pos, i, (c.topic, t, c.msgtype, decode)))
         if self._scan_error is not None:
             raise BagError(self._scan_error)
-
-
-def _chunk_contents(fields: dict[str, bytes], data: bytes) -> tuple[list[_Connection], list[tuple[int, int, memoryview]]]:
-    """The connections and the messages (connection id, log time in ns, data) of a chunk record
-    (its header ``fields`` and data)."""
-    connections, messages = [], []
-    for inner, kind, body in _parse_records(_decompress(_text(fields, "compression"), data, _get(fields, "size", _U32))):
-        if kind == _CONNECTION:
-            connections.append(_connection(inner, body))
-        elif kind == _MESSAGE:
-            messages.append((_get(inner, "conn", _U32), _get(inner, "time", _TIME), body))
-    return connections, messages
