@@ -19,9 +19,14 @@ STRING = STORE.types["std_msgs/msg/String"]
 TOPICS = ["/a", "/b"]
 
 
+def _fields_bytes(**fields: bytes) -> bytes:
+    """``name=value`` fields, each preceded by its length: a record's header, a connection's data."""
+    return b"".join(struct.pack("<I", len(k) + 1 + len(v)) + k.encode() + b"=" + v for k, v in fields.items())
+
+
 def _record(data: bytes = b"", **fields: bytes) -> bytes:
     """A record with these header fields and ``data``."""
-    header = b"".join(struct.pack("<I", len(k) + 1 + len(v)) + k.encode() + b"=" + v for k, v in fields.items())
+    header = _fields_bytes(**fields)
     return struct.pack("<I", len(header)) + header + struct.pack("<I", len(data)) + data
 
 
@@ -146,10 +151,6 @@ def test_a_bag_whose_index_is_damaged_is_scanned_up_to_the_index(tmp_path, caplo
     assert bag.damage.startswith(f"{tmp_path / 'bad.bag'}: its index is damaged (")
     assert bag.damage.endswith("reading the bag from start to end") and "its index is damaged" in caplog.text
     assert read(bag) == expected(path) and bag.counts == {"/a": 100, "/b": 100}
-
-
-def _fields_bytes(**fields: bytes) -> bytes:
-    return b"".join(struct.pack("<I", len(k) + 1 + len(v)) + k.encode() + b"=" + v for k, v in fields.items())
 
 
 def _killed_recording(path: Path, closed: int, open_: int) -> Path:
