@@ -207,16 +207,16 @@ class ObstacleTracker:
         return dt
 
     def _predict(self, dt: float) -> None:
-        # Over a gap much longer than the log's frame interval no velocity holds: it moves the
-        # track for max_extrapolation_s, or the interval before the gap if longer, at most.
         if dt <= 0:
             return
-        horizon = dt if self._interval_s is None else max(self.config.max_extrapolation_s, self._interval_s)
+        # Over a gap much longer than the log's frame interval no velocity holds: it moves the
+        # track for max_extrapolation_s, or the interval before the gap if longer, at most.
+        moved = dt if self._interval_s is None else min(dt, max(self.config.max_extrapolation_s, self._interval_s))
         self._interval_s = dt
         if not len(self._ids):
             return
         F = np.eye(4)
-        F[0, 2] = F[1, 3] = min(dt, horizon)
+        F[0, 2] = F[1, 3] = moved
         q = self.config.acceleration_std_mps2**2
         block = q * np.array([[dt**4 / 4, dt**3 / 2], [dt**3 / 2, dt**2]])
         Q = np.zeros((4, 4))

@@ -60,7 +60,6 @@ class _Chunk:
 def _fields(header: bytes) -> dict[str, bytes]:
     """A record header's ``name=value`` fields (each preceded by its uint32 length)."""
     fields, pos = {}, 0
-    header = bytes(header)
     while pos < len(header):
         if pos + 4 > len(header):
             raise BagError("a header field's length is cut off")
@@ -101,7 +100,7 @@ class _Connection:
 
 def _connection(fields: dict[str, bytes], data: bytes) -> _Connection:
     """A connection record: its id and topic in the header, the type and definition in its data."""
-    details = _fields(bytes(data))
+    details = _fields(data)
     topic = _text(fields, "topic")  # as written, empty levels dropped (as rosbags and ROS's names do)
     topic = "/" * topic.startswith("/") + "/".join(level for level in topic.split("/") if level)
     return _Connection(_get(fields, "conn", _U32), topic, normalize_type(_text(details, "type")),
@@ -227,12 +226,12 @@ class Ros1Bag(_SkipsDamage):
                     raise BagError(f"encrypted ({encryptor}); `rosbag decrypt` writes a plain copy")
                 index_pos = _get(fields, "index_pos", _U64)
                 data_start, end = stream.tell(), stream.seek(0, 2)
-                if not 0 < index_pos < end:
+                indexed = 0 < index_pos < end
+                if not indexed:
                     logger.info("%s: no index (the recording was cut short); scanning the bag", path)
-                    index_pos = end
-                if index_pos == end or not self._read_index(stream, fields, index_pos):
+                if not (indexed and self._read_index(stream, fields, index_pos)):
                     stream.seek(data_start)
-                    self._scan(stream, index_pos)
+                    self._scan(stream, index_pos if indexed else end)
         except OSError as exc:
             raise InputError(f"{path}: cannot read the bag ({exc.strerror or exc})") from None
         except BagError as exc:
