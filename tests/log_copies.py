@@ -7,10 +7,12 @@ from __future__ import annotations
 from pathlib import Path
 
 
-def rewrite_rosbag2(src: Path, dst: Path, *, storage: str = "sqlite3", compression: str = "none") -> Path:
+def rewrite_rosbag2(src: Path, dst: Path, *, storage: str = "sqlite3", compression: str = "none",
+                    keep=lambda i: True) -> Path:
     """``src`` (an MCAP log or rosbag2) copied message by message into a new rosbag2 by ``rosbags``'
     own writer (not terrainmap's), in ``storage`` and with rosbag2's zstd ``compression`` (none,
-    file or message). Topics of types the standard ROS 2 messages lack (a simulated log's truth) stay out."""
+    file or message); only the messages whose number in log-time order passes ``keep(i)``, but all
+the topics. Topics of types the standard ROS 2 messages lack (a simulated log's truth) stay out."""
     from rosbags.rosbag2 import CompressionFormat, CompressionMode, Reader, StoragePlugin, Writer
     from rosbags.typesys import Stores, get_typestore
 
@@ -20,8 +22,40 @@ def rewrite_rosbag2(src: Path, dst: Path, *, storage: str = "sqlite3", compressi
     with Reader(src) as reader, writer:
         out = {c.id: writer.add_connection(c.topic, c.msgtype, typestore=typestore)
                for c in reader.connections if c.msgtype in typestore.fielddefs}
-        for connection, stamp, data in reader.messages([c for c in reader.connections if c.id in out]):
-            writer.write(out[connection.id], stamp, data)
+        messages = reader.messages([c for c in reader.connections if c.id in out])
+        for i, (connection, stamp, data) in enumerate(messages):
+            if keep(i):
+                writer.write(out[connection.id], stamp, data)
+    return dst
+
+
+def split_rosbag2(src: Path, dst: Path, parts: int, *, storage: str = "sqlite3", compression: str = "none") -> Path:
+    """``src`` copied by ``rosbags``' writer into a rosbag2 split into ``parts`` files of consecutive
+    messages, as ``ros2 bag record --max-bag-size`` splits one: ``dst/{dst.name}_{k}`` files, and a
+    ``metadata.yaml`` listing them in order with the whole bag's topics and message counts."""
+    import shutil
+
+    import yaml
+    from rosbags.rosbag2 import Reader
+
+    whole = rewrite_rosbag2(src, dst.parent / f"{dst.name}_whole", storage=storage, compression=compression)
+    with Reader(whole) as reader:
+        total = reader.message_count
+    info = yaml.safe_load((whole / "metadata.yaml").read_text())
+    per_file = -(-total // parts)
+    names, files = [], []
+    for k in range(parts):  # part k: the messages numbered k·per_file .. (k+1)·per_file − 1 of the whole
+        part = rewrite_rosbag2(whole, dst.parent / f"{dst.name}_{k}", storage=storage, compression=compression,
+                               keep=lambda i, k=k: k * per_file <= i < (k + 1) * per_file)
+        entry = yaml.safe_load((part / "metadata.yaml").read_text())["rosbag2_bagfile_information"]["files"][0]
+        names.append(entry["path"])
+        files.append(entry)
+        dst.mkdir(exist_ok=True)
+        shutil.move(part / entry["path"], dst / entry["path"])
+        shutil.rmtree(part)
+    shutil.rmtree(whole)
+    info["rosbag2_bagfile_information"].update(relative_file_paths=names, files=files)
+    (dst / "metadata.yaml").write_text(yaml.safe_dump(info))
     return dst
 
 

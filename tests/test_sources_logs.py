@@ -1,5 +1,7 @@
 """Log sources: real rosbag2/ROS 1 logs, ROS 2 and Foxglove logs written here, bad logs."""
 
+import contextlib
+import os
 import shutil
 from pathlib import Path
 
@@ -11,7 +13,7 @@ from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
 from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
 from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
-from log_copies import YAML_BOMB, rewrite_mcap, rewrite_rosbag2, ros1_bag, ros1_mcap
+from log_copies import YAML_BOMB, rewrite_mcap, rewrite_rosbag2, ros1_bag, ros1_mcap, split_rosbag2
 from mcap.reader import make_reader
 from mcap_protobuf.writer import Writer as ProtobufWriter
 from mcap_ros2.writer import Writer as Ros2Writer
@@ -587,6 +589,40 @@ def test_rosbag2_in_sqlite3_storage_or_compressed_reads_like_the_mcap_log(tmp_pa
         assert list(strict.frames()) == []  # and the pairing tolerance (the right images are 2 ms late)
     assert info["format"] == "rosbag2" and info["frames"] == 6 and info["odometry_topics"] == []
     assert [Path(f).parent for f in info["files"]] == [bag]
+
+
+def _open_bag_files() -> list[str]:
+    """The files named ``bag_*.db3`` or ``bag_*.mcap`` this process has open (a split bag's, or
+    their decompressed copies)."""
+    fds = Path("/proc/self/fd")
+    if not fds.is_dir():
+        pytest.skip("no /proc/self/fd to count open files in")
+    names = []
+    for fd in fds.iterdir():
+        with contextlib.suppress(OSError):  # the listing's own descriptor is gone by now
+            name = Path(os.readlink(fd)).name
+            if name.startswith("bag_") and name.endswith((".db3", ".mcap")):
+                names.append(name)
+    return names
+
+
+@pytest.mark.parametrize("storage, compression", [("sqlite3", "none"), ("sqlite3", "file"), ("mcap", "message")])
+def test_a_split_rosbag2_is_read_with_one_file_open_at_a_time(tmp_path, storage, compression):
+    """rosbags opens every file of a split bag at once and keeps them open (a bag of more files
+    than the open-file limit could not be read); terrainmap reads them one at a time, and gives
+    the frames of the same bag unsplit."""
+    log = write_ros2_log(tmp_path / "run.mcap", n=8)
+    bag = split_rosbag2(log, tmp_path / "bag", 6, storage=storage, compression=compression)
+    with open_source(rewrite_rosbag2(log, tmp_path / "whole", storage=storage, compression=compression)) as whole:
+        expected = list(whole.frames())
+    frames, most_open = [], 0
+    with open_source(bag) as source:
+        assert len(source.describe()["files"]) == 6
+        for frame in source.frames():
+            most_open = max(most_open, len(_open_bag_files()))
+            frames.append(frame)
+    _same_frames(frames, expected)
+    assert most_open == 1 and _open_bag_files() == []
 
 
 def test_rosbag2_sqlite3_of_the_real_log_gives_its_frames(tmp_path):

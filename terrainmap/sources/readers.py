@@ -461,18 +461,68 @@ def _topics(connections) -> tuple[dict[str, str], dict[str, int]]:
     return {c.topic: normalize_type(c.msgtype) for c in connections}, counts
 
 
+class _OpenWhileRead:
+    """A ``rosbags`` storage reader of one file of a rosbag2 (``plugin``: sqlite3's or MCAP's),
+    open only while it is being read: ``rosbags`` opens every file of a split bag at once and
+    keeps them open (memory, and the open-file limit), we one at a time."""
+
+    plugin: type
+
+    def __init__(self, path: Path):
+        self.path = path
+        self.connections: list = []
+        self.metadata = None
+        self._reading: list = []  # the plugin's readers now open in :meth:`messages`
+
+    def open(self) -> None:
+        """Check the file and take its connections and metadata (rosbags asks as the bag opens)."""
+        storage = self.plugin(self.path)
+        storage.open()
+        self.connections, self.metadata = list(storage.connections), storage.metadata
+        storage.close()  # which empties storage.connections, hence the copy
+
+    def close(self) -> None:
+        while self._reading:
+            self._reading.pop().close()
+
+    def messages(self, connections, start=None, stop=None) -> Iterator:
+        storage = self.plugin(self.path)  # one per call: two reads may be under way
+        storage.open()
+        self._reading.append(storage)
+        try:
+            yield from storage.messages(connections, start, stop)
+        finally:
+            if storage in self._reading:  # not yet closed by close()
+                self._reading.remove(storage)
+                storage.close()
+
+
+def _rosbags_reader(path: Path):
+    """``rosbags``' reader of a rosbag2 directory, with its storage files opened one at a time
+    (:class:`_OpenWhileRead`; ``rosbags`` is pinned to the minor version this is written for)."""
+    from rosbags.rosbag2.reader import DirectoryReader, Reader
+
+    class Directory(DirectoryReader):
+        STORAGE_PLUGINS = {name: type(f"{plugin.__name__}OpenWhileRead", (_OpenWhileRead,), {"plugin": plugin})
+                           for name, plugin in DirectoryReader.STORAGE_PLUGINS.items()}
+
+    class OneFileAtATime(Reader):
+        STORAGE_PLUGINS = {**Reader.STORAGE_PLUGINS, "dir": Directory}
+
+    return OneFileAtATime(path)
+
+
 class Rosbag2Bag(_SkipsDamage):
     """A rosbag2 directory in sqlite3 storage (``.db3``, the default before ROS 2 Iron), or one whose
-    files or messages rosbag2 compressed (zstd), read with ``rosbags``; CDR messages are decoded
-    with its type store of standard ROS 2 messages, and one that cannot be decoded is skipped. The
-    bag stays open until :meth:`close`: a compressed file is decompressed once, into a temporary
-    folder, when it opens."""
+    files or messages rosbag2 compressed (zstd), read with ``rosbags``, one file open at a time;
+    CDR messages are decoded with its type store of standard ROS 2 messages, and one that cannot
+    be decoded is skipped. A compressed file is decompressed once, into a temporary folder, when
+    the bag opens; the folder goes at :meth:`close`."""
 
     format = "rosbag2"
     damage: str | None = None  # rosbags reads the storage's index at open and fails there
 
     def __init__(self, path: Path):
-        from rosbags.rosbag2 import Reader
         from rosbags.typesys import Stores, get_typestore
 
         self.path = path
@@ -482,7 +532,7 @@ class Rosbag2Bag(_SkipsDamage):
         self.paths = bag_files(path)
         self._typestore = get_typestore(Stores.LATEST)
         try:
-            self._bag = Reader(path)
+            self._bag = _rosbags_reader(path)
             self._bag.open()
         except Exception as exc:  # ReaderError, but also sqlite3, YAML and zstd errors on damaged files
             raise InputError(f"{path}: not a readable rosbag2 ({_reason(exc)})") from exc
