@@ -7,6 +7,7 @@ from pathlib import Path
 
 import click
 
+from terrainmap.errors import ConfigError
 from terrainmap.sim.scenes import SCENES
 
 from .options import Finite, GracefulStop, counted, output_file, wrote_before_stopping
@@ -52,6 +53,11 @@ def simulate(out: Path, fmt: str | None, overwrite: bool, **options) -> None:
     if fmt == "folder" and out.is_file():
         raise click.UsageError(f"{out} is a file; a folder output must be a folder")
     config = SimConfig(format=fmt, **options)
+    try:
+        config.validate()
+    except ConfigError as exc:  # SimConfig's fields are the options: name the option the user gave
+        field, _, reason = str(exc).partition(": ")
+        raise ConfigError(f"--{field.removeprefix('SimConfig.').replace('_', '-')}: {reason}") from None
 
     written = 0
 

@@ -202,13 +202,13 @@ def test_log_without_truth_is_an_input_error_naming_the_topics(tmp_path):
 
 
 def test_bad_options_raise_config_errors_naming_them():
-    with pytest.raises(ConfigError, match="--frames"):
+    with pytest.raises(ConfigError, match="^SimConfig.frames: must be in 1..100000, got 0$"):
         SimConfig(frames=0).validate()
-    with pytest.raises(ConfigError, match="--scene"):
+    with pytest.raises(ConfigError, match="^SimConfig.scene: unknown scene 'moon'"):
         SimConfig(scene="moon").validate()
-    with pytest.raises(ConfigError, match="--baseline-m"):
+    with pytest.raises(ConfigError, match="^SimConfig.baseline_m: must be > 0"):
         SimConfig(baseline_m=-1).validate()
-    with pytest.raises(ConfigError, match="--texture-detail"):
+    with pytest.raises(ConfigError, match="^SimConfig.texture_detail: must be within"):
         SimConfig(texture_detail=0).validate()
     # A config built in code with a value of the wrong kind, or no config at all
     with pytest.raises(ConfigError, match="SimConfig.color: must be true or false, got 'no'"):
@@ -218,12 +218,12 @@ def test_bad_options_raise_config_errors_naming_them():
     with pytest.raises(ConfigError, match="simulate: expected a SimConfig, got NoneType"):
         simulate(Path("unused.mcap"), None)
     # What process would refuse in the log's camera infos is refused before rendering it
-    with pytest.raises(ConfigError, match=r"--baseline-m: must be within 0.001..100 m, got 0.0005"):
+    with pytest.raises(ConfigError, match=r"SimConfig.baseline_m: must be within 0.001..100 m, got 0.0005"):
         SimConfig(baseline_m=0.0005).validate()
-    with pytest.raises(ConfigError, match=r"--focal-px: must be within 1..1e\+06 pixels, got 0.5"):
+    with pytest.raises(ConfigError, match=r"SimConfig.focal_px: must be within 1..1e\+06 pixels, got 0.5"):
         SimConfig(focal_px=0.5).validate()
     # ... and so are images too narrow for its stereo matcher (16 px of disparity at least)
-    with pytest.raises(ConfigError, match=r"--width: must be 32..4096 pixels, got 16"):
+    with pytest.raises(ConfigError, match=r"SimConfig.width: must be 32..4096 pixels, got 16"):
         SimConfig(width=16, height=16).validate()
     SimConfig(width=32, height=16).validate()
 
@@ -248,6 +248,10 @@ def test_cli_simulate_writes_a_log_and_guards_existing_output(tmp_path):
     assert (tmp_path / "run" / "calibration.yaml").is_file() and (tmp_path / "run" / "truth" / "000000.npz").is_file()
     bad = CliRunner().invoke(cli, ["simulate", str(tmp_path / "x.mcap"), "--scene", "moon"])
     assert bad.exit_code != 0 and "moon" in bad.output
+    bad = CliRunner().invoke(cli, ["simulate", str(tmp_path / "x.mcap"), "--frames", "0"])  # the library names the field
+    assert bad.exit_code != 0 and "--frames: must be in 1..100000, got 0" in str(bad.exception)
+    bad = CliRunner().invoke(cli, ["simulate", str(tmp_path / "x.mcap"), "--baseline-m", "0.0005"])
+    assert bad.exit_code != 0 and "--baseline-m: must be within 0.001..100 m" in str(bad.exception)
     bad = CliRunner().invoke(cli, ["simulate", str(tmp_path / "folder"), "--compressed"])
     assert bad.exit_code != 0 and "--compressed: applies to an MCAP log only" in str(bad.exception)
     for option in ("--focal-px", "--baseline-m", "--speed-mps", "--texture-detail"):  # named as the option
@@ -312,10 +316,10 @@ def test_the_bundled_example_is_regenerated_byte_for_byte(tmp_path):
                                      {"frames": 100_000, "speed_mps": 40.0}])
 def test_a_drive_too_long_to_hold_is_refused_before_anything_is_built(options):
     """The scene's terrain spans the whole drive: one that would not fit in memory is refused."""
-    with pytest.raises(ConfigError, match=r"--frames: a drive of .* m .* more than the 5e\+06 the simulator holds"):
+    with pytest.raises(ConfigError, match=r"SimConfig.frames: a drive of .* m .* more than the 5e\+06 the simulator holds"):
         SimConfig(**options).validate()
     SimConfig(frames=5000, speed_mps=4.0).validate()  # 2 km at 0.2 m: built
-    with pytest.raises(ConfigError, match=r"--terrain-resolution-m: 0.01 m gives a terrain of 9.2e\+07 cells"):
+    with pytest.raises(ConfigError, match=r"SimConfig.terrain_resolution_m: 0.01 m gives a terrain of 9.2e\+07 cells"):
         SimConfig(frames=1, terrain_resolution_m=0.01).validate()  # a short drive, too fine a terrain
 
 

@@ -62,9 +62,10 @@ class SimConfig:
     terrain_resolution_m: float = 0.2
 
     def validate(self) -> None:
-        def check(ok: bool, option: str, message: str) -> None:
+        """:class:`ConfigError` naming the field (``SimConfig.frames: ...``) of a value out of range."""
+        def check(ok: bool, field: str, message: str) -> None:
             if not ok:
-                raise ConfigError(f"--{option.replace('_', '-')}: {message}")
+                raise ConfigError(f"SimConfig.{field}: {message}")
 
         check_kinds("SimConfig", self)  # built in code: a str or a bool where a number belongs
 
@@ -95,7 +96,7 @@ class SimConfig:
         if math.prod(grid_size(self.length_m)) > MAX_SCENE_CELLS:  # too long at the default resolution
             check(False, "frames", f"a drive of {self.length_m:.4g} m ((frames − 1) × speed / fps) needs a terrain of "
                   f"{cells:.3g} cells, more than the {MAX_SCENE_CELLS:.3g} the simulator holds: give fewer frames, "
-                  "a lower --speed-mps or a higher --fps")
+                  "a lower speed or a higher frame rate")
         check(cells <= MAX_SCENE_CELLS, "terrain_resolution_m", f"{self.terrain_resolution_m:g} m gives a terrain of "
               f"{cells:.3g} cells, more than the {MAX_SCENE_CELLS:.3g} the simulator holds: choose a coarser one")
 
