@@ -8,7 +8,7 @@ import click
 
 from terrainmap.config import load_config
 
-from .options import config_options, output_file, refuse_overwriting_inputs, write_text
+from .options import check_outputs, config_options, output_file, write_text
 from .source_options import SourceOptions, open_options
 
 
@@ -27,7 +27,7 @@ def bench(
     """Time each pipeline stage at the paper configuration on synthetic input (or on a log's first pair)."""
     from terrainmap import bench as lib
 
-    refuse_overwriting_inputs({"--json": json_path}, [config_path, log_path, source_opts.calibration])
+    check_outputs({"--json": json_path}, [config_path, log_path, source_opts.calibration])
     source_opts.require(log_path, "--log")
     config = load_config(config_path, overrides)
     env = lib.environment()

@@ -14,10 +14,10 @@ from .options import (
     PLOT_SUFFIXES,
     Failed,
     Finite,
+    check_outputs,
     config_options,
     failures,
     output_file,
-    refuse_overwriting_inputs,
     write_text,
     writing,
 )
@@ -46,7 +46,7 @@ def accuracy(log, methods, max_frames, json_path, plot_path, obstacle_margin, co
     from terrainmap.evaluation.accuracy import evaluate, select_methods
     from terrainmap.evaluation.accuracy_report import format_table, plot_rmse_vs_range
 
-    refuse_overwriting_inputs({"--json": json_path, "--plot": plot_path}, [log, config_path])
+    check_outputs({"--json": json_path, "--plot": plot_path}, [log, config_path])
     config = load_config(config_path, overrides)
     names = [m.strip() for m in methods.split(",") if m.strip()] if methods is not None else None
     try:

@@ -15,9 +15,9 @@ from terrainmap.errors import ConfigError
 from .options import (
     PLOT_SUFFIXES,
     Finite,
+    check_outputs,
     config_options,
     output_file,
-    refuse_overwriting_inputs,
     write_text,
     writing,
 )
@@ -93,7 +93,7 @@ def artificial_obstacle(
     from terrainmap.config import GridConfig
     from terrainmap.evaluation import artificial_obstacle as ao
 
-    refuse_overwriting_inputs({"--json": json_path, "--csv": csv_path, "--plot": plot_path},
+    check_outputs({"--json": json_path, "--csv": csv_path, "--plot": plot_path},
                               [base_log, config_path, source_opts.calibration])
     if frame_index and not base_log:
         raise click.UsageError("--frame picks a stereo pair of the --base log; give --base too")

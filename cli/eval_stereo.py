@@ -11,11 +11,11 @@ from terrainmap.config import load_config
 
 from .options import (
     Failed,
+    check_outputs,
     config_options,
     counted,
     failures,
     output_file,
-    refuse_overwriting_inputs,
     write_text,
 )
 
@@ -37,7 +37,7 @@ def stereo(path, calibration, max_frames, json_path, config_path, overrides):
     """
     from terrainmap.evaluation.disparity import evaluate_disparity, format_table
 
-    refuse_overwriting_inputs({"--json": json_path}, [path, calibration, config_path])
+    check_outputs({"--json": json_path}, [path, calibration, config_path])
     config = load_config(config_path, overrides)
     report = evaluate_disparity(path, config, max_frames=max_frames, calibration=calibration)
     click.echo(format_table(report))

@@ -104,11 +104,12 @@ def wrote_before_stopping(written) -> str:
     return f"wrote {' and '.join(parts)} before stopping"
 
 
-def refuse_overwriting_inputs(outputs: dict[str, Path | None], inputs: Iterable[str | Path | None]) -> None:
+def check_outputs(outputs: dict[str, Path | None], inputs: Iterable[str | Path | None]) -> None:
     """Raise a UsageError when an output (option name → path) is an input file (also through a
     link) or lies inside an input folder, or when two outputs are one file: a report must never
     replace the data it reports on, nor another report. A rosbag2's metadata.yaml stands for its
-    folder, as for the sources."""
+    folder, as for the sources. Then :class:`Failed` where an output cannot be written
+    (:func:`writable`; probed only once it is known not to touch an input folder)."""
     from terrainmap.sources import log_path
 
     given = {option: Path(path).resolve() for option, path in outputs.items() if path is not None}
@@ -125,6 +126,9 @@ def refuse_overwriting_inputs(outputs: dict[str, Path | None], inputs: Iterable[
                 raise click.UsageError(f"{option} {path} would overwrite the input {source}")
             if source.is_dir() and source.resolve() in target.parents:
                 raise click.UsageError(f"{option} {path} lies inside the input folder {source}; write it elsewhere")
+    for path in outputs.values():
+        if path is not None:
+            writable(Path(path))
 
 
 def write_text(path: Path, text: str) -> None:
@@ -171,10 +175,10 @@ def writable(path: Path) -> None:
 
 
 def output_file(*suffixes: str) -> Callable:
-    """A click callback for an output file option: its folder must exist and it must be writable
-    (:func:`writable`; checked before any work is done), an existing path must be a file or a
-    folder (click's ``dir_okay`` decides which), and, where ``suffixes`` are given, its name must
-    end in one of them. Gives a Path."""
+    """A click callback for an output file option: its folder must exist, an existing path must be
+    a file or a folder (click's ``dir_okay`` decides which), and, where ``suffixes`` are given, its
+    name must end in one of them. Gives a Path; the command then checks it against its inputs and
+    that it can be written, before any work (:func:`check_outputs`)."""
 
     def check(ctx: click.Context, param: click.Parameter, value) -> Path | None:
         if value is None:
@@ -189,7 +193,6 @@ def output_file(*suffixes: str) -> Callable:
             raise click.BadParameter(f"{path} must end in {', '.join(suffixes)}")
         if path.exists() and not (path.is_file() or path.is_dir()):  # a FIFO would block, a device...
             raise click.BadParameter(f"{path} exists and is neither a regular file nor a folder")
-        writable(path)
         return path
 
     return check

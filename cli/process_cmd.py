@@ -14,12 +14,11 @@ from .options import (
     NO_PAIRS,
     Failed,
     GracefulStop,
+    check_outputs,
     config_options,
     counted,
     failures,
     output_file,
-    refuse_overwriting_inputs,
-    writable,
     wrote_before_stopping,
 )
 from .source_options import source_options
@@ -55,9 +54,7 @@ def process(log, output, flavor, compression, rrd, overwrite, source_opts, confi
 
     log = log_path(log)  # a rosbag2's metadata.yaml: its folder, for the default output's name too
     config = load_config(config_path, overrides)
-    if output is None:  # a given -o was checked writable with the options; the default is checked here
-        output = default_output(log)
-        writable(output)
+    output = output or default_output(log)
     _check_outputs(log, output, rrd, overwrite, [source_opts.calibration, config_path])
     show = sys.stderr.isatty()
     outputs = [output] + ([rrd] if rrd else [])
@@ -108,7 +105,7 @@ def process(log, output, flavor, compression, rrd, overwrite, source_opts, confi
 def _check_outputs(log: Path, output: Path, rrd: Path | None, overwrite: bool, inputs: list) -> None:
     """Outputs must not replace an input (the log, a file inside a log folder, the calibration or
     config file) nor each other, nor replace an existing file without ``--overwrite``."""
-    refuse_overwriting_inputs({"-o/--output": output, "--rrd": rrd}, [log, *inputs])
+    check_outputs({"-o/--output": output, "--rrd": rrd}, [log, *inputs])
     for path in (output, rrd):
         if path is not None and path.exists() and not overwrite:
             raise click.UsageError(f"{path} exists; pass --overwrite to replace it")

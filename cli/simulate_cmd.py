@@ -10,7 +10,7 @@ import click
 from terrainmap.errors import ConfigError
 from terrainmap.sim.scenes import SCENES
 
-from .options import Finite, GracefulStop, counted, output_file, wrote_before_stopping
+from .options import Finite, GracefulStop, check_outputs, counted, output_file, wrote_before_stopping
 
 
 @click.command()
@@ -52,6 +52,7 @@ def simulate(out: Path, fmt: str | None, overwrite: bool, **options) -> None:
         raise click.UsageError(f"{out} is a folder; an MCAP output must be a file")
     if fmt == "folder" and out.is_file():
         raise click.UsageError(f"{out} is a file; a folder output must be a folder")
+    check_outputs({"OUT": out}, [])
     config = SimConfig(format=fmt, **options)
     try:
         config.validate()

@@ -3,6 +3,7 @@
 import dataclasses
 import os
 import shutil
+import time
 from pathlib import Path
 
 import numpy as np
@@ -603,9 +604,12 @@ def test_an_output_in_a_subfolder_of_the_input_folder_is_refused(small_log, tmp_
     folder = tmp_path / "bag"
     (folder / "sub").mkdir(parents=True)
     shutil.copy(small_log, folder / "bag_0.mcap")
+    before = (folder / "sub").stat().st_mtime_ns
+    time.sleep(0.01)  # a file made and removed there would show in the folder's time
     result = CliRunner().invoke(cli, ["process", str(folder), "-o", str(folder / "sub" / "o.mcap")])
     assert result.exit_code == 2 and "lies inside the input folder" in result.output
     assert not (folder / "sub" / "o.mcap").exists()
+    assert (folder / "sub").stat().st_mtime_ns == before  # not even probed for writing
 
 
 def test_process_frame_refuses_a_negative_stamp_naming_the_frame():
