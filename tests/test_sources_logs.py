@@ -3,6 +3,7 @@
 import contextlib
 import os
 import shutil
+from collections import Counter
 from pathlib import Path
 
 import cv2
@@ -20,6 +21,7 @@ from mcap_ros2.writer import Writer as Ros2Writer
 
 from terrainmap.errors import CalibrationError, InputError
 from terrainmap.sources import open_source
+from terrainmap.sources.readers import bag_files
 from terrainmap.sources.topics import stereo_topics
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
@@ -623,6 +625,39 @@ def test_a_split_rosbag2_is_read_with_one_file_open_at_a_time(tmp_path, storage,
             frames.append(frame)
     _same_frames(frames, expected)
     assert most_open == 1 and _open_bag_files() == []
+
+
+def test_each_file_of_a_sqlite3_rosbag2_is_indexed_once(tmp_path, monkeypatch):
+    """rosbags indexes a whole file each time it opens it (a second per million messages), and
+    opening a log reads a few messages of several topics in turn: the files are indexed once, as
+    the bag opens, and read without it."""
+    from rosbags.rosbag2.storage_sqlite3 import Sqlite3Reader
+
+    log = write_ros2_log(tmp_path / "run.mcap", n=8)
+    opened = Counter()
+    index = Sqlite3Reader.open
+    monkeypatch.setattr(Sqlite3Reader, "open", lambda self: (opened.update([self.path.name]), index(self))[1])
+    for bag in (rewrite_rosbag2(log, tmp_path / "whole"), split_rosbag2(log, tmp_path / "bag", 3)):
+        opened.clear()
+        with open_source(bag) as source:
+            assert len(list(source.frames())) == 8
+        assert len(opened) == len(bag_files(bag)) and set(opened.values()) == {1}, opened
+
+
+def test_a_file_of_a_split_rosbag2_damaged_or_changed_is_named(tmp_path):
+    """rosbags checks every file as the bag opens; one read later must still be that file."""
+    log = write_ros2_log(tmp_path / "run.mcap", n=8)
+    bag = split_rosbag2(log, tmp_path / "bag", 6)
+    for k, change in enumerate((lambda f: f.unlink(), lambda f: shutil.copy(bag / "bag_0.db3", f))):
+        copy = shutil.copytree(bag, tmp_path / f"copy{k}")
+        with open_source(copy) as source:
+            change(copy / "bag_3.db3")  # removed, or another file's bytes written into it
+            with pytest.raises(InputError, match=f"{copy / 'bag_3.db3'}: changed or removed since the bag was opened"):
+                list(source.frames())
+    mcap = split_rosbag2(log, tmp_path / "mcap", 3, storage="mcap", compression="message")
+    (mcap / "mcap_1.mcap").write_bytes((mcap / "mcap_1.mcap").read_bytes()[:-20])
+    with pytest.raises(InputError, match=r"mcap: not a readable rosbag2 \(ReaderError: mcap_1.mcap: "):
+        open_source(mcap)
 
 
 def test_rosbag2_sqlite3_of_the_real_log_gives_its_frames(tmp_path):

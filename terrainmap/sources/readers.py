@@ -16,6 +16,7 @@ from __future__ import annotations
 import heapq
 import io
 import logging
+import sqlite3
 import struct
 import zlib
 from collections import Counter
@@ -464,7 +465,8 @@ def _topics(connections) -> tuple[dict[str, str], dict[str, int]]:
 class _OpenWhileRead:
     """A ``rosbags`` storage reader of one file of a rosbag2 (``plugin``: sqlite3's or MCAP's),
     open only while it is being read: ``rosbags`` opens every file of a split bag at once and
-    keeps them open (memory, and the open-file limit), we one at a time."""
+    keeps them all open (memory, and the open-file limit). A file is reread only if it is still
+    the one checked when the bag opened; errors name the file."""
 
     plugin: type
 
@@ -472,29 +474,82 @@ class _OpenWhileRead:
         self.path = path
         self.connections: list = []
         self.metadata = None
-        self._reading: list = []  # the plugin's readers now open in :meth:`messages`
+        self._identity = None
+        self._reading: list = []  # the readers now open in :meth:`messages`
 
     def open(self) -> None:
         """Check the file and take its connections and metadata (rosbags asks as the bag opens)."""
         storage = self.plugin(self.path)
-        storage.open()
-        self.connections, self.metadata = list(storage.connections), storage.metadata
-        storage.close()  # which empties storage.connections, hence the copy
+        try:
+            storage.open()
+        except Exception as exc:
+            raise _named(self.path, exc) from exc
+        self.connections, self.metadata = list(storage.connections), storage.metadata  # copies: close empties them
+        self._identity = _identity(self.path)
+        storage.close()
 
     def close(self) -> None:
         while self._reading:
             self._reading.pop().close()
 
     def messages(self, connections, start=None, stop=None) -> Iterator:
-        storage = self.plugin(self.path)  # one per call: two reads may be under way
-        storage.open()
-        self._reading.append(storage)
+        if _identity(self.path) != self._identity:
+            raise InputError(f"{self.path}: changed or removed since the bag was opened")
+        try:  # one reader per call: two reads may be under way in one file
+            reader = _Sqlite3File(self.path, self.connections) if self.plugin.__name__ == "Sqlite3Reader" else None
+            if reader is None:
+                reader = self.plugin(self.path)
+                reader.open()
+        except Exception as exc:
+            raise _named(self.path, exc) from exc
+        self._reading.append(reader)
         try:
-            yield from storage.messages(connections, start, stop)
+            yield from reader.messages(connections, start, stop)
+        except Exception as exc:
+            raise _named(self.path, exc) from exc
         finally:
-            if storage in self._reading:  # not yet closed by close()
-                self._reading.remove(storage)
-                storage.close()
+            if reader in self._reading:  # not yet closed by close()
+                self._reading.remove(reader)
+                reader.close()
+
+
+class _Sqlite3File:
+    """The messages of one rosbag2 sqlite3 file, as ``rosbags``' reader gives them, without the
+    statistics it gathers over the whole file each time it opens one (a second per million
+    messages; opening a log reads a few messages of several topics in turn)."""
+
+    def __init__(self, path: Path, connections: list):
+        self._db = sqlite3.connect(f"{path.resolve().as_uri()}?immutable=1", uri=True, check_same_thread=False)
+        self._connections = {c.id: c for c in connections}
+
+    def messages(self, connections, start: int | None = None, stop: int | None = None) -> Iterator:
+        ids = [c.id for c in connections]
+        query = f"SELECT topic_id, timestamp, data FROM messages WHERE topic_id IN ({', '.join('?' * len(ids))})"
+        for clause, value in ((" AND timestamp >= ?", start), (" AND timestamp < ?", stop)):
+            if value is not None:
+                query += clause
+                ids.append(value)
+        for topic_id, stamp, data in self._db.execute(query + " ORDER BY timestamp", ids):
+            yield self._connections[topic_id], stamp, data
+
+    def close(self) -> None:
+        self._db.close()
+
+
+def _identity(path: Path) -> tuple | None:
+    """What tells a file from one put in its place: inode, size and time of change (None if gone)."""
+    try:
+        st = path.stat()
+    except OSError:
+        return None
+    return st.st_ino, st.st_size, st.st_mtime_ns
+
+
+def _named(path: Path, exc: Exception) -> Exception:
+    """``exc``, as a ``rosbags`` ReaderError whose message starts with the name of the file it came from."""
+    from rosbags.rosbag2 import ReaderError
+
+    return ReaderError(f"{path.name}: {exc}")
 
 
 def _rosbags_reader(path: Path):
