@@ -6,6 +6,7 @@ import itertools
 import math
 import os
 import signal
+import tempfile
 from collections import Counter
 from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
@@ -159,15 +160,20 @@ def writing(path) -> Iterator[Path]:
 
 
 def writable(path: Path) -> None:
-    """Raise :class:`Failed` naming ``path`` when it cannot be written, without changing it (an
-    existing file is opened for appending; a file created by the probe is removed again)."""
-    if path.is_dir():
-        return
+    """Raise :class:`Failed` naming ``path`` when it cannot be written, without changing it: an
+    existing file is opened for appending, a folder gets a temporary file that goes at once, a new
+    file is created and removed again; anything else there (a FIFO would block, a device...) is
+    refused."""
     target = Path(os.path.realpath(path))  # a symbolic link stays, even one to a file not yet there
+    if target.exists() and not (target.is_file() or target.is_dir()):
+        raise Failed(f"{path} exists and is neither a regular file nor a folder")
     existed = target.exists()
     try:
-        with open(target, "ab"):
-            pass
+        if target.is_dir():
+            tempfile.TemporaryFile(dir=target).close()
+        else:
+            with open(target, "ab"):
+                pass
     except OSError as exc:
         raise Failed(f"cannot write {path}: {exc.strerror or exc}") from None
     if not existed:
@@ -175,10 +181,10 @@ def writable(path: Path) -> None:
 
 
 def output_file(*suffixes: str) -> Callable:
-    """A click callback for an output file option: its folder must exist, an existing path must be
-    a file or a folder (click's ``dir_okay`` decides which), and, where ``suffixes`` are given, its
-    name must end in one of them. Gives a Path; the command then checks it against its inputs and
-    that it can be written, before any work (:func:`check_outputs`)."""
+    """A click callback for an output file option: its folder must exist and, where ``suffixes``
+    are given, its name must end in one of them (click's ``dir_okay`` decides whether it may be a
+    folder). Gives a Path; the command then checks it against its inputs and that it can be
+    written, before any work (:func:`check_outputs`)."""
 
     def check(ctx: click.Context, param: click.Parameter, value) -> Path | None:
         if value is None:
@@ -191,8 +197,6 @@ def output_file(*suffixes: str) -> Callable:
             raise click.BadParameter(what)
         if suffixes and path.suffix.lower() not in suffixes:
             raise click.BadParameter(f"{path} must end in {', '.join(suffixes)}")
-        if path.exists() and not (path.is_file() or path.is_dir()):  # a FIFO would block, a device...
-            raise click.BadParameter(f"{path} exists and is neither a regular file nor a folder")
         return path
 
     return check

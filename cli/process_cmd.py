@@ -105,6 +105,8 @@ def process(log, output, flavor, compression, rrd, overwrite, source_opts, confi
 def _check_outputs(log: Path, output: Path, rrd: Path | None, overwrite: bool, inputs: list) -> None:
     """Outputs must not replace an input (the log, a file inside a log folder, the calibration or
     config file) nor each other, nor replace an existing file without ``--overwrite``."""
+    if output.is_dir():  # (-o is refused as a folder by click; the default output beside the log is not)
+        raise click.UsageError(f"{output} (the default output) is a folder; name a file with -o")
     check_outputs({"-o/--output": output, "--rrd": rrd}, [log, *inputs])
     for path in (output, rrd):
         if path is not None and path.exists() and not overwrite:

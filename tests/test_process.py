@@ -472,6 +472,24 @@ def test_an_output_that_is_no_regular_file_is_refused(small_log, tmp_path):
     os.mkfifo(fifo)
     result = CliRunner().invoke(cli, ["process", str(small_log), "-o", str(fifo), "--overwrite"])
     assert result.exit_code == 2 and "neither a regular file nor a folder" in result.output
+    log = shutil.copy(small_log, tmp_path / "run.mcap")
+    os.mkfifo(tmp_path / "run.terrain.mcap")  # the default output: its probe would block too
+    result = CliRunner().invoke(cli, ["process", str(log), "--overwrite"])
+    assert result.exit_code == 2 and "run.terrain.mcap exists and is neither a regular file nor a folder" in result.output
+    os.unlink(tmp_path / "run.terrain.mcap")
+    (tmp_path / "run.terrain.mcap").mkdir()
+    result = CliRunner().invoke(cli, ["process", str(log), "--overwrite"])
+    assert result.exit_code == 2 and "run.terrain.mcap (the default output) is a folder; name a file with -o" in result.output
+
+
+@pytest.mark.skipif(not Path("/proc/self").is_dir(), reason="needs Linux's /proc")
+def test_an_output_folder_is_probed_for_writing_too():
+    """simulate writes a folder log into an existing folder: one where no file can be made is
+    refused before the scene is built (Linux makes no files in /proc/self)."""
+    from terrainmap.cli.options import Failed, writable
+
+    with pytest.raises(Failed, match="cannot write /proc/self: "):
+        writable(Path("/proc/self"))
 
 
 def test_a_terminated_run_still_finalises_its_output(small_log, tmp_path):
