@@ -569,10 +569,11 @@ def _rosbags_reader(path: Path):
 
 class Rosbag2Bag(_SkipsDamage):
     """A rosbag2 directory in sqlite3 storage (``.db3``, the default before ROS 2 Iron), or one whose
-    files or messages rosbag2 compressed (zstd), read with ``rosbags``, one file open at a time;
-    CDR messages are decoded with its type store of standard ROS 2 messages, and one that cannot
-    be decoded is skipped. A compressed file is decompressed once, into a temporary folder, when
-    the bag opens; the folder goes at :meth:`close`."""
+    files or messages rosbag2 compressed (zstd), opened with ``rosbags`` (which checks every file
+    and gathers its topics) and read one file at a time (:class:`_OpenWhileRead`); CDR messages
+    are decoded with its type store of standard ROS 2 messages, and one that cannot be decoded is
+    skipped. A compressed file is decompressed once, into a temporary folder, when the bag opens;
+    the folder goes at :meth:`close`."""
 
     format = "rosbag2"
     damage: str | None = None  # rosbags reads the storage's index at open and fails there
