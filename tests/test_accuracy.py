@@ -609,7 +609,7 @@ def test_a_truth_grid_that_is_no_grid_is_named():
 @pytest.mark.parametrize(
     "field, value, message",
     [("baseline_m", "x", "ConfigError: SimConfig.baseline_m: must be a number, got 'x'"),
-     ("focal_px", 0, "ConfigError: --focal-px: must be > 0, got 0"),
+     ("focal_px", 0, "ConfigError: SimConfig.focal_px: must be > 0, got 0"),
      ("frames", None, "ConfigError: SimConfig.frames: must be an integer, got None"), ("nonsense", 1, "TypeError")],
 )
 def test_a_damaged_scene_description_is_named_not_scored(tmp_path, field, value, message):
