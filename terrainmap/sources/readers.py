@@ -495,15 +495,14 @@ class _OpenWhileRead:
     def messages(self, connections, start=None, stop=None) -> Iterator:
         if _identity(self.path) != self._identity:
             raise InputError(f"{self.path}: changed or removed since the bag was opened")
-        try:  # one reader per call: two reads may be under way in one file
-            reader = _Sqlite3File(self.path, self.connections) if self.plugin.__name__ == "Sqlite3Reader" else None
-            if reader is None:
+        reader = None  # one per call: two reads may be under way in one file
+        try:
+            if self.plugin.__name__ == "Sqlite3Reader":
+                reader = _Sqlite3File(self.path, self.connections)
+            else:
                 reader = self.plugin(self.path)
                 reader.open()
-        except Exception as exc:
-            raise _named(self.path, exc) from exc
-        self._reading.append(reader)
-        try:
+            self._reading.append(reader)
             yield from reader.messages(connections, start, stop)
         except Exception as exc:
             raise _named(self.path, exc) from exc
