@@ -602,7 +602,7 @@ def _open_bag_files() -> list[str]:
     names = []
     for fd in fds.iterdir():
         with contextlib.suppress(OSError):  # the listing's own descriptor is gone by now
-            name = Path(os.readlink(fd)).name
+            name = Path(os.readlink(fd)).name.removesuffix(" (deleted)")  # a temporary copy, removed
             if name.startswith("bag_") and name.endswith((".db3", ".mcap")):
                 names.append(name)
     return names
@@ -625,6 +625,24 @@ def test_a_split_rosbag2_is_read_with_one_file_open_at_a_time(tmp_path, storage,
             frames.append(frame)
     _same_frames(frames, expected)
     assert most_open == 1 and _open_bag_files() == []
+
+
+@pytest.mark.parametrize("compression", ["none", "file"])
+def test_a_rosbag2_closed_part_way_lets_go_of_its_files_and_reads_from_any_working_folder(tmp_path, monkeypatch,
+                                                                                       compression):
+    """A library user may stop reading frames, close the source and keep the iterator: no file
+    stays open (nor a deleted temporary copy's disk space). A bag opened by a relative path is
+    read whatever the working folder is later."""
+    split_rosbag2(write_ros2_log(tmp_path / "run.mcap", n=8), tmp_path / "bag", 3, compression=compression)
+    monkeypatch.chdir(tmp_path)
+    with open_source(Path("bag")) as source:
+        frames = source.frames()
+        next(frames)
+        monkeypatch.chdir("/")
+        assert len(list(frames)) == 7
+        frames = source.frames()
+        next(frames)
+    assert _open_bag_files() == []
 
 
 def test_each_file_of_a_sqlite3_rosbag2_is_indexed_once(tmp_path, monkeypatch):

@@ -16,6 +16,7 @@ from __future__ import annotations
 import heapq
 import io
 import logging
+import os
 import sqlite3
 import struct
 import zlib
@@ -471,7 +472,7 @@ class _OpenWhileRead:
     plugin: type
 
     def __init__(self, path: Path):
-        self.path = path
+        self.path = Path(os.path.abspath(path))  # reopened later: whatever the working folder is then
         self.connections: list = []
         self.metadata = None
         self._identity = None
@@ -513,35 +514,41 @@ class _OpenWhileRead:
 
 
 class _Sqlite3File:
-    """The messages of one rosbag2 sqlite3 file, as ``rosbags``' reader gives them, without the
-    statistics it gathers over the whole file each time it opens one (a second per million
-    messages; opening a log reads a few messages of several topics in turn)."""
+    """The messages of one rosbag2 sqlite3 file, as ``rosbags``' reader gives them (its query),
+    without the statistics it gathers over the whole file each time it opens one (a second per
+    million messages; opening a log reads a few messages of several topics in turn)."""
 
     def __init__(self, path: Path, connections: list):
-        self._db = sqlite3.connect(f"{path.resolve().as_uri()}?immutable=1", uri=True, check_same_thread=False)
+        self._db = sqlite3.connect(f"{path.as_uri()}?immutable=1&mode=ro", uri=True, check_same_thread=False)
+        self._cursor = None
         self._connections = {c.id: c for c in connections}
 
     def messages(self, connections, start: int | None = None, stop: int | None = None) -> Iterator:
-        ids = [c.id for c in connections]
-        query = f"SELECT topic_id, timestamp, data FROM messages WHERE topic_id IN ({', '.join('?' * len(ids))})"
-        for clause, value in ((" AND timestamp >= ?", start), (" AND timestamp < ?", stop)):
+        args = [c.id for c in connections]
+        query = ("SELECT topics.id, messages.timestamp, messages.data FROM messages JOIN topics ON "
+                 f"messages.topic_id=topics.id WHERE topics.id IN ({', '.join('?' * len(args))})")
+        for clause, value in ((" AND messages.timestamp >= ?", start), (" AND messages.timestamp < ?", stop)):
             if value is not None:
                 query += clause
-                ids.append(value)
-        for topic_id, stamp, data in self._db.execute(query + " ORDER BY timestamp", ids):
+                args.append(value)
+        self._cursor = self._db.execute(query + " ORDER BY timestamp", args)
+        for topic_id, stamp, data in self._cursor:
             yield self._connections[topic_id], stamp, data
 
     def close(self) -> None:
+        if self._cursor is not None:  # a connection closed under an open cursor keeps its file
+            self._cursor.close()
         self._db.close()
 
 
 def _identity(path: Path) -> tuple | None:
-    """What tells a file from one put in its place: inode, size and time of change (None if gone)."""
+    """What tells a file from another put in its place: size and time of change (None if gone; not
+    the inode, which some network file systems number anew on each lookup)."""
     try:
         st = path.stat()
     except OSError:
         return None
-    return st.st_ino, st.st_size, st.st_mtime_ns
+    return st.st_size, st.st_mtime_ns
 
 
 def _named(path: Path, exc: Exception) -> Exception:
