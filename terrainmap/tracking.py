@@ -21,7 +21,8 @@ Per frame (:meth:`ObstacleTracker.update`):
    fragments: one within ``fragment_radius_m`` of a confirmed track of its kind matched in this
    frame is another cluster of that obstacle (a low mound whose top flickers above the
    threshold, a person smeared in depth), and a track of its own would take the obstacle over
-   whenever the first cluster is missed;
+   whenever the first cluster is missed; such a fragment is one of the track's :attr:`parts`
+   for this frame, which occupy cells in the cost map as the track does;
 4. a track is *confirmed* once it has been matched in ``confirm_hits`` frames (counting the
    first); a tentative track is dropped at its first miss, a confirmed one after more than
    ``max_misses`` consecutive misses, and any track whose predicted centre leaves the grid area
@@ -41,15 +42,16 @@ filter's position (corrected by this frame's detection where matched, predicted 
 with their last detected shape. A confirmed track that coasts longer is not
 reported but keeps its id if it is matched again within ``max_misses`` frames: on the simulated
 scenes, reporting them through 3 missed frames gave 1.6–3.7× the false obstacles within 20 m in
-every scene for up to 0.08 more obstacle recall. Only confirmed ones are
+every scene for up to 0.08 more obstacle recall. Only confirmed ones (and their parts) are
 obstacles for the cost map, so a candidate seen in a single frame never becomes one (for
-``confirm_hits >= 2``). ``velocity_mps`` is (vx, vy, 0): relative to the vehicle without a pose,
+``confirm_hits >= 2``) unless it is taken for part of a confirmed one. ``velocity_mps`` is (vx, vy, 0): relative to the vehicle without a pose,
 over ground with one, in vehicle axes.
 """
 
 from __future__ import annotations
 
 import logging
+from dataclasses import replace
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
@@ -107,6 +109,10 @@ class ObstacleTracker:
         self._shape: list[tuple[Obstacle, float, float]] = []
         self._stamp_ns = None
         self._interval_s: float | None = None  # between the last two frames
+        self.parts: list[Obstacle] = []
+        """The last frame's detections taken for parts of a confirmed track (fragments, step 3),
+        vehicle frame, each with that track's id and ``confirmed``: no track of their own, but
+        they occupy cells in the cost layer as the track does."""
 
     @property
     def _confirmed(self) -> np.ndarray:
@@ -160,6 +166,7 @@ class ObstacleTracker:
         if self._stamp_ns is not None and int(stamp_ns) == self._stamp_ns:
             # A frame logged twice (its stamp again) is no new evidence: the tracks stay as they are.
             return self._report(rot, trans, yaw_v)
+        self.parts = []
         dt = self._advance(int(stamp_ns))  # may reset the tracks, and with them _world
         self._world = vehicle_pose is not None
         self._predict(dt)
@@ -263,7 +270,8 @@ class ObstacleTracker:
         kind matched in this frame: farther than ``fragment_radius_m`` from its centre and not
         in the shadow of its detection (:func:`_in_shadow`: behind it as the camera sees it, up to
         that radius beyond it, and no taller; what stands there is hidden by it, so a cluster
-        there is its far side or its smear, as when a car comes into range as two clusters)."""
+        there is its far side or its smear, as when a car comes into range as two clusters).
+        The fragments become :attr:`parts` of the first such track."""
         radius = self.config.fragment_radius_m
         rows = rows[self._confirmed[rows]]
         if radius <= 0 or not len(new) or not len(rows):
@@ -271,7 +279,11 @@ class ObstacleTracker:
         near = np.hypot(*(centers_t[new, None, :2] - self._x[None, rows, :2]).transpose(2, 0, 1)) <= radius
         near |= _in_shadow([obstacles[i] for i in new], [self._shape[r][0] for r in rows], radius)
         same = np.array([obstacles[i].kind for i in new])[:, None] == np.array([self._shape[r][0].kind for r in rows])
-        return new[~(near & same).any(1)]
+        part_of = near & same
+        fragment = part_of.any(1)
+        self.parts = [replace(obstacles[i], track_id=int(self._ids[rows[k]]), confirmed=True)
+                      for i, k in zip(new[fragment], part_of[fragment].argmax(1), strict=True)]
+        return new[~fragment]
 
     def _merge_duplicates(self, rot: np.ndarray, trans: np.ndarray, camera: StereoCamera | None) -> None:
         """Merge tracks that follow one obstacle (``TrackingConfig.duplicate_depth_sigmas``): the

@@ -269,6 +269,31 @@ def test_stage_on_a_scene_marks_the_box_once_confirmed_and_never_before():
     np.testing.assert_allclose(cost[~occupied], slope_cost, atol=0.02)
 
 
+def test_a_cluster_taken_for_part_of_a_confirmed_obstacle_occupies_its_cells_too():
+    """A person standing 1.1 m behind a parked car, no taller than it, lies in the car's shadow:
+    the tracker takes the cluster for the car's far side (no track of its own), but its cells
+    still cost 1, as the car's do."""
+    plane = Plane()
+    car = box_points(plane, (12.0, 0.0), 4.0, 1.8, 1.5)
+    person = box_points(plane, (15.35, 0.0), 0.5, 0.5, 1.4)
+    config = Config()
+    tracker = make_tracker(config)
+    for stamp, parts in ((0, [car]), (10**8, [car]), (2 * 10**8, [car, person])):
+        points, labels = labelled(plane, terrain_points(plane, spacing=0.2), *parts)
+        grid = quantize(points, GRID)
+        elevation = plane.on_grid(*cell_centers(GRID))
+        layers = {"elevation": elevation, "slope": np.zeros(GRID.shape),
+                  "label": label_cells(grid, elevation, config.segmentation)}
+        obstacles, cost = run_obstacle_stage(points, labels, grid, layers, stamp, tracker, config)
+    (track,) = obstacles
+    assert track.confirmed and track.center_m[0] == pytest.approx(12.0, abs=0.1)
+    (part,) = tracker.parts
+    assert part.track_id == track.track_id and part.center_m[0] == pytest.approx(15.35, abs=0.1)
+    ix, iy = int((15.35 - GRID.x_min_m) / 0.5), int((0.0 - GRID.y_min_m) / 0.5)
+    assert np.all(cost[ix - 1 : ix + 2, iy - 1 : iy + 1] == 1)  # the person's cells, beyond the car's clearance
+    assert cost[int((17.0 - GRID.x_min_m) / 0.5), iy] == 0
+
+
 def test_low_relief_on_ground_too_steep_to_drive_is_no_obstacle_and_the_cost_is_the_same():
     """``obstacles.drop_on_steep_ground``: on a 30° bank (past ``cost.max_slope_deg``) a low bump
     gives no obstacle, and the cost layer is what it is with the option off and the bump confirmed

@@ -283,6 +283,11 @@ def test_fragment_beside_a_confirmed_track_starts_no_track(radius):
     starts = sorted(o.center_m[0] for o in out if o.track_id != track.track_id)
     assert [o.center_m[0] for o in out if o.track_id == track.track_id] == pytest.approx([10])
     assert starts == pytest.approx([13] if radius else [11, 13])
+    # the fragment is a part of the track: it occupies cells in the cost layer as the track does
+    assert [(p.center_m[0], p.track_id, p.confirmed) for p in tracker.parts] == (
+        [(11, track.track_id, True)] if radius else [])
+    tracker.update([detection(10, 0)], 3 * DT_NS)
+    assert tracker.parts == []  # a frame's parts only
 
 
 def test_lower_cluster_in_a_confirmed_obstacles_shadow_starts_no_track():
@@ -302,6 +307,8 @@ def test_lower_cluster_in_a_confirmed_obstacles_shadow_starts_no_track():
     out = tracker.update([box(17.0, 3.0, 4.3, 1.5), *others.values()], 2 * DT_NS)
     started = {tuple(o.center_m[:2].round(1)) for o in out if o.track_id != car.track_id}
     assert started == {tuple(d.center_m[:2].round(1)) for name, d in others.items() if name != "far part"}
+    (part,) = tracker.parts
+    assert part.track_id == car.track_id and part.center_m[:2] == pytest.approx(others["far part"].center_m[:2])
     off = ObstacleTracker(TrackingConfig(fragment_radius_m=0))
     for k in range(2):
         off.update([box(17.0, 3.0, 4.3, 1.5)], k * DT_NS)
