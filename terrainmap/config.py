@@ -654,7 +654,8 @@ class TrackingConfig:
     report_misses: int = 0
     """A confirmed track is reported (and occupies the cost map) while it has missed at most
     this many consecutive frames; beyond that, up to ``max_misses``, it only keeps its id for
-    re-association. 0 reports only tracks matched in the current frame."""
+    re-association (and occupies the cost map through ``cost.occupied_misses`` missed frames).
+    0 reports only tracks matched in the current frame."""
     gate_m: float = 2.0
     """Association gate: maximum distance between predicted track and detection, metres."""
     measurement_std_m: float = 0.2
@@ -726,12 +727,21 @@ class CostConfig:
     """Steps (height differences within a cell's neighbourhood) at or above this cost 1."""
     clearance_m: float = 0.5
     """Cells within this distance of a confirmed obstacle's footprint are occupied (cost 1)."""
+    occupied_misses: int = 3
+    """A confirmed track keeps occupying the cost map, at its predicted position and with its
+    last detected footprint, while it has missed at most this many consecutive frames (it is
+    reported as an obstacle through ``tracking.report_misses`` of them only): the detections of
+    a real obstacle flicker. On the twelve simulated drives, per frame, 93.4 % of the true
+    obstacles within 20 m have cells of their footprint occupied with 3, 90.7 % with 0, for 3 %
+    more occupied cells lying more than 1 m from every true obstacle (2026-11-27). 0 occupies
+    with the reported tracks only."""
 
     def validate(self) -> None:
         value = self.max_slope_deg
         _check(0.1 <= value < 90, "cost.max_slope_deg", f"must be in [0.1, 90), got {value}")
         _check(self.max_step_m >= 0.001, "cost.max_step_m", f"must be >= 0.001, got {self.max_step_m}")
         _check(self.clearance_m >= 0, "cost.clearance_m", f"must be >= 0, got {self.clearance_m}")
+        _check(0 <= self.occupied_misses <= 1000, "cost.occupied_misses", f"must be in 0..1000, got {self.occupied_misses}")
 
 
 @dataclass

@@ -16,8 +16,10 @@ For every grid cell (arrays ``(m0, m1)``, indexed ``[ix, iy]``)::
   ``cost.max_step_m``; the term is 0 where the step is NaN (cells filled from neighbours
   hold no sample of their own) and everywhere when no ``step`` array is given;
 * ``occ`` is 1 where a **confirmed** obstacle's footprint, grown by ``cost.clearance_m``,
-  reaches the cell (the pipeline passes the tracker's parts of confirmed tracks as confirmed
-  obstacles too: :attr:`~terrainmap.tracking.ObstacleTracker.parts`): the distance between the oriented footprint rectangle and the cell's square
+  reaches the cell (the pipeline passes the tracker's parts of confirmed tracks and the
+  confirmed tracks missed in the last ``cost.occupied_misses`` frames as confirmed obstacles
+  too: :attr:`~terrainmap.tracking.ObstacleTracker.parts`,
+  :meth:`~terrainmap.tracking.ObstacleTracker.coasting`): the distance between the oriented footprint rectangle and the cell's square
   is at most ``clearance_m`` (so a footprint touching a cell, at a corner too, occupies it even
   with no clearance), and 0 elsewhere;
 * "has data" is the ``valid`` mask where slope and elevation are finite.

@@ -76,7 +76,8 @@ def run_obstacle_stage(
     obstacles = tracker.update(detections, stamp_ns, vehicle_pose, camera)
     relief_cells = grid.observed & (layers["label"] != Label.OBSTACLE)
     step = step_height(grid.z, elevation, relief_cells)
-    cost = traversability_cost(  # the confirmed tracks and the fragments taken for parts of them occupy cells
-        elevation, layers["slope"], grid.valid, grid.config, [*obstacles, *tracker.parts], config.cost, step=step
-    )
+    # Cells are occupied by the confirmed tracks, by the clusters taken for parts of them and by
+    # those missed in the last cost.occupied_misses frames
+    occupying = [*obstacles, *tracker.parts, *tracker.coasting(config.cost.occupied_misses)]
+    cost = traversability_cost(elevation, layers["slope"], grid.valid, grid.config, occupying, config.cost, step=step)
     return obstacles, cost

@@ -109,6 +109,7 @@ class ObstacleTracker:
         self._shape: list[tuple[Obstacle, float, float]] = []
         self._stamp_ns = None
         self._interval_s: float | None = None  # between the last two frames
+        self._now = (np.eye(3), np.zeros(3), 0.0)  # the last frame's pose: rotation, translation, yaw
         self.parts: list[Obstacle] = []
         """The last frame's detections taken for parts of a confirmed track (fragments, step 3),
         vehicle frame, each with that track's id and ``confirmed``: no track of their own, but
@@ -188,6 +189,7 @@ class ObstacleTracker:
         )
         self._merge_duplicates(rot, trans, camera)
         self._spawn([obstacles[i] for i in new], centers_t[new], yaw_v)
+        self._now = (rot, trans, yaw_v)
         return self._report(rot, trans, yaw_v)
 
     def _mark_matched(self, rows: np.ndarray) -> None:
@@ -400,9 +402,20 @@ class ObstacleTracker:
         self._streak, self._suspect = self._streak[keep], self._suspect[keep]
         self._shape = [s for s, k in zip(self._shape, keep, strict=True) if k]
 
+    def coasting(self, misses: int) -> list[Obstacle]:
+        """The confirmed tracks left out of the last frame's report that have missed at most
+        ``misses`` frames in a row, at their predicted positions with their last detected
+        shapes, vehicle frame: most likely still there, for the cost map."""
+        rows = self._confirmed & (self._misses > self.config.report_misses) & (self._misses <= misses)
+        return self._obstacles(np.flatnonzero(rows), *self._now)
+
     def _report(self, rot: np.ndarray, trans: np.ndarray, yaw_v: float) -> list[Obstacle]:
+        shown = (self._misses == 0) | (self._confirmed & (self._misses <= self.config.report_misses))
+        return self._obstacles(np.flatnonzero(shown), rot, trans, yaw_v)
+
+    def _obstacles(self, shown: np.ndarray, rot: np.ndarray, trans: np.ndarray, yaw_v: float) -> list[Obstacle]:
+        """Tracks ``shown`` as obstacles in the vehicle frame of pose (``rot``, ``trans``, ``yaw_v``)."""
         confirmed = self._confirmed
-        shown = np.flatnonzero((self._misses == 0) | (confirmed & (self._misses <= self.config.report_misses)))
         centers = self._centers_in_vehicle(shown, rot, trans)
         velocities = np.column_stack([self._x[shown, 2:], np.zeros(len(shown))]) @ rot
         velocities[:, 2] = 0.0

@@ -294,6 +294,29 @@ def test_a_cluster_taken_for_part_of_a_confirmed_obstacle_occupies_its_cells_too
     assert cost[int((17.0 - GRID.x_min_m) / 0.5), iy] == 0
 
 
+@pytest.mark.parametrize("occupied_misses", [3, 0])
+def test_a_confirmed_obstacle_missed_for_a_few_frames_keeps_occupying_its_cells(occupied_misses):
+    """A detection flickers: a confirmed box missed in a frame is not reported, but its cells stay
+    occupied through ``cost.occupied_misses`` missed frames in a row, then no longer."""
+    plane = Plane()
+    config = Config()
+    config.cost.occupied_misses = occupied_misses
+    tracker = make_tracker(config)
+    ground = labelled(plane, terrain_points(plane, spacing=0.2))
+    scene = labelled(plane, terrain_points(plane, spacing=0.2), box_points(plane, (12.0, 0.0), 1.0, 1.0, 1.0))
+    ix, iy = int((12.0 - GRID.x_min_m) / 0.5), int((0.0 - GRID.y_min_m) / 0.5)
+    occupied = []
+    for k, (points, labels) in enumerate([scene, scene, ground, ground, ground, ground]):
+        grid = quantize(points, GRID)
+        elevation = plane.on_grid(*cell_centers(GRID))
+        layers = {"elevation": elevation, "slope": np.zeros(GRID.shape),
+                  "label": label_cells(grid, elevation, config.segmentation)}
+        obstacles, cost = run_obstacle_stage(points, labels, grid, layers, k * 10**8, tracker, config)
+        assert [o.confirmed for o in obstacles] == ([False] if k == 0 else [True] if k == 1 else [])
+        occupied.append(bool(cost[ix, iy] == 1))
+    assert occupied == [False, True] + [True] * occupied_misses + [False] * (4 - occupied_misses)
+
+
 def test_low_relief_on_ground_too_steep_to_drive_is_no_obstacle_and_the_cost_is_the_same():
     """``obstacles.drop_on_steep_ground``: on a 30° bank (past ``cost.max_slope_deg``) a low bump
     gives no obstacle, and the cost layer is what it is with the option off and the bump confirmed

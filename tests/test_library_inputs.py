@@ -62,6 +62,8 @@ def test_sections_built_in_code_are_checked_where_they_are_used():
     zeros = np.zeros(C.grid.shape)
     with pytest.raises(ConfigError, match="cost.max_step_m: must be >= 0.001"):  # NaN cost everywhere before
         traversability_cost(zeros, zeros, zeros > -1, C.grid, [], dataclasses.replace(C.cost, max_step_m=0.0), step=zeros)
+    with pytest.raises(ConfigError, match="cost.occupied_misses: must be in 0..1000, got -1"):
+        traversability_cost(zeros, zeros, zeros > -1, C.grid, [], dataclasses.replace(C.cost, occupied_misses=-1))
     calibration = StereoCalibration(64, 48, 100.0, 100.0, 32.0, 24.0, 0.5)
     with pytest.raises(ConfigError, match="stereo.mode"):
         StereoMatcher(calibration, dataclasses.replace(StereoConfig(), mode="x"))  # KeyError before
