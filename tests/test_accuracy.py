@@ -14,6 +14,7 @@ from click.testing import CliRunner
 
 from terrainmap.cli.eval_accuracy import accuracy
 from terrainmap.config import Config
+from terrainmap.cost import occupancy
 from terrainmap.errors import ConfigError, InputError
 from terrainmap.evaluation import accuracy as acc
 from terrainmap.evaluation.scores import BANDS, METRICS, Histogram, MethodScores
@@ -273,10 +274,11 @@ def test_a_detection_within_the_margin_of_a_true_footprint_is_not_false(monkeypa
 
 # --- evaluate(): a perfect pipeline scores perfectly; schema; errors ---------------------------------------
 
-def _oracle(truth_path, config: Config, spoil_far_cells: bool = False):
+def _oracle(truth_path, config: Config, spoil_far_cells: bool = False, blocking: bool = True):
     """A process_frame that returns the truth itself (truth pixels as points, truth layers, truth
-    obstacles); with ``spoil_far_cells``, its elevation is 5 m off beyond 10 m, where its cells are
-    marked not valid (no data: what ``process`` writes as NaN)."""
+    obstacles, a cost of 1 on their footprints, or nowhere without ``blocking``); with
+    ``spoil_far_cells``, its elevation is 5 m off beyond 10 m, where its cells are marked not
+    valid (no data: what ``process`` writes as NaN)."""
     truth = open_truth(truth_path)
     frames = {f.stamp_ns: f for f in truth.frames()}
     cal, ext = truth.calibration, truth.extrinsics
@@ -291,7 +293,8 @@ def _oracle(truth_path, config: Config, spoil_far_cells: bool = False):
         labels = np.where(tf.label[v, u] == 1, Label.TERRAIN, Label.OBSTACLE).astype(np.uint8)
         obstacles = [Obstacle(b.center_m, b.size_m, b.yaw_rad, b.height_m, b.pixels, b.range_m, confirmed=True)
                      for b in gt.obstacles if b.pixels > 0]
-        layers = {"elevation": gt.height_m.astype(np.float32), "slope": gt.slope_rad, "valid": np.ones(gt.range_m.shape, bool)}
+        layers = {"elevation": gt.height_m.astype(np.float32), "slope": gt.slope_rad, "valid": np.ones(gt.range_m.shape, bool),
+                  "cost": occupancy(obstacles, cfg.grid, 0.0).astype(np.float32) * blocking}
         if spoil_far_cells:
             far = gt.range_m > 10
             layers["elevation"][far] += 5
@@ -315,6 +318,9 @@ def test_a_pipeline_equal_to_the_truth_scores_perfectly(tiny_log, monkeypatch):
     assert all(v == 0 for v in report["obstacles"]["frames_to_confirmation"].values())
     assert all(v == 0 for v in report["obstacles"]["id_switches"].values())
     assert all(v == 0 for v in report["obstacles"]["duplicate_frames"].values())
+    assert report["obstacles"]["blocked_by_cost"] == 1
+    monkeypatch.setattr(acc, "process_frame", _oracle(tiny_log, Config(), blocking=False))
+    assert acc.evaluate(tiny_log, Config(), methods=["terrainmap"])["obstacles"]["blocked_by_cost"] == 0
 
 
 def test_cells_without_data_are_not_scored_but_lower_the_coverage(tiny_log, monkeypatch):
@@ -446,10 +452,11 @@ def test_table_lists_each_true_obstacle():
     report = {"log": "x.mcap", "frames": 3, "methods": {}, "obstacles": {
         "min_height_m": 0.5, "range_m": 20.0,
         "frames_to_confirmation": {"1 pedestrian": 2, "3 pole": None}, "id_switches": {"1 pedestrian": 1},
-        "duplicate_frames": {"1 pedestrian": 3}}}
+        "duplicate_frames": {"1 pedestrian": 3}, "blocked_by_cost": 0.9251}}
     lines = format_table(report).splitlines()
-    assert lines[-2].split() == ["1", "pedestrian", "2", "1", "3"]
-    assert lines[-1].split() == ["3", "pole", "never", "—", "—"]
+    assert lines[-3].split() == ["1", "pedestrian", "2", "1", "3"]
+    assert lines[-2].split() == ["3", "pole", "never", "—", "—"]
+    assert lines[-1] == "true obstacles within 20.0 m whose footprint holds a cell of cost 1, per frame: 92.5 %"
 
 
 def test_cli_prints_the_table_and_writes_json_and_plot(tiny_log, tmp_path):

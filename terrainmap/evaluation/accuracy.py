@@ -48,7 +48,10 @@ centre in its footprint (one obstacle reported twice);
 and ``false_on_steep_ground_per_frame``: the false positive obstacles within
 ``obstacle_range_m`` whose footprint covers true terrain steeper than ``cost.max_slope_deg``
 (berms, walls: ground the vehicle cannot drive on, which the paper counts out of the
-traversable terrain), per evaluated frame.
+traversable terrain), per evaluated frame; ``blocked_by_cost``: the share of the eligible
+obstacles (as for ``obstacle_recall``, summed over frames) whose footprint holds a cell of cost 1
+in terrainmap's ``cost`` layer (a cell whose centre lies in it, or the cell under the centre of
+a footprint too small to hold one): what a planner reading the cost alone is kept off.
 
 ``common_cells`` (extra key) repeats the elevation metrics over the cells that *every* selected
 method covers, so methods with partial coverage are compared on the same cells.
@@ -71,7 +74,7 @@ from scipy.optimize import linear_sum_assignment
 
 from ..config import Config
 from ..errors import ConfigError, FrameError, brief
-from ..grid import cell_index
+from ..grid import cell_centers, cell_index
 from ..pipeline import PipelineState, process_frame
 from ..sim.truth import TruthFrame, open_truth, truth_at
 from ..sources import open_source
@@ -163,6 +166,8 @@ class _Evaluation:
         self.id_switches: Counter = Counter()
         self.duplicate_frames: Counter = Counter()
         self.false_on_steep_ground = 0
+        self.blocked = [0, 0]  # eligible obstacles whose footprint the cost layer blocks, of all eligible
+        self.cell_xy = np.column_stack([a.ravel() for a in np.meshgrid(*cell_centers(config.grid), indexing="ij")])
         self.frames = 0
 
     def add_frame(self, result: FrameResult, truth_frame: TruthFrame) -> None:
@@ -233,6 +238,13 @@ class _Evaluation:
                     self.duplicate_frames[key] += int(covering > 1)
                 self.last_track[key] = track
         matched = np.array(matched, bool)
+        if "cost" in result.layers:  # (a result built without one: not scored)
+            cost = result.layers["cost"].ravel()
+            for t in eligible:  # the cells whose centres lie in its footprint, or the one under its centre
+                inside = t.contains_xy(self.cell_xy, 0.0)
+                cells = inside if inside.any() else np.argmin(np.hypot(*(self.cell_xy - t.center_m[:2]).T))
+                self.blocked[0] += bool(np.any(cost[cells] >= 1))
+            self.blocked[1] += len(eligible)
         false = [o for o in confirmed if self._is_false(o, gt, truth_frame)]
         false_range = [float(np.hypot(*o.center_m[:2])) for o in false]
         self.scores["terrainmap"].add_obstacles([t.range_m for t in eligible], matched, false_range)
@@ -266,6 +278,7 @@ class _Evaluation:
                 "duplicate_frames": {k: self.duplicate_frames[k] for k in sorted(self.first_matched)},
                 "false_on_steep_ground_per_frame": self.false_on_steep_ground / self.frames
                 if self.frames and "terrainmap" in self.scores else None,  # (only terrainmap has obstacles)
+                "blocked_by_cost": self.blocked[0] / self.blocked[1] if self.blocked[1] else None,
             },
             "rmse_vs_range": {
                 "range_edges_m": [k * PROFILE_STEP_M for k in range(PROFILE_BINS)] + [None],

@@ -57,6 +57,9 @@ def _obstacle_lines(obstacles: dict | None) -> list[str]:
     for key, frames in confirm.items():
         lines.append(f"{key:<{width}} {'never' if frames is None else frames:>18} {switches.get(key, '—'):>12} "
                      f"{duplicates.get(key, '—'):>22}")
+    if (blocked := obstacles.get("blocked_by_cost")) is not None:
+        lines.append(f"true obstacles within {obstacles['range_m']} m whose footprint holds a cell of cost 1, "
+                     f"per frame: {100 * blocked:.1f} %")
     steep = obstacles.get("false_on_steep_ground_per_frame")
     if steep is not None:
         lines.append(f"false obstacles per frame within {obstacles['range_m']} m standing on ground steeper than "
