@@ -42,10 +42,11 @@ filter's position (corrected by this frame's detection where matched, predicted 
 with their last detected shape. A confirmed track that coasts longer is not
 reported but keeps its id if it is matched again within ``max_misses`` frames: on the simulated
 scenes, reporting them through 3 missed frames gave 1.6–3.7× the false obstacles within 20 m in
-every scene for up to 0.08 more obstacle recall. Only confirmed ones (and their parts) are
-obstacles for the cost map, so a candidate seen in a single frame never becomes one (for
-``confirm_hits >= 2``) unless it is taken for part of a confirmed one. ``velocity_mps`` is (vx, vy, 0): relative to the vehicle without a pose,
-over ground with one, in vehicle axes.
+every scene for up to 0.08 more obstacle recall. Only confirmed ones are obstacles for the
+cost map (with their :attr:`parts`, and through ``cost.occupied_misses`` missed frames:
+:meth:`ObstacleTracker.coasting`), so a candidate seen in a single frame never becomes one (for
+``confirm_hits >= 2``) unless it is taken for part of a confirmed one. ``velocity_mps`` is
+(vx, vy, 0): relative to the vehicle without a pose, over ground with one, in vehicle axes.
 """
 
 from __future__ import annotations
