@@ -735,7 +735,8 @@ class CostConfig:
     ``blocked_by_cost``), per frame, the footprints of 94.6 % of the true obstacles within 20 m
     (mean of the drives, 89.4–96.6 %) hold a cell of cost 1 with 3, 92.6 % (87.0–96.6 %) with 0,
     for 3 % more occupied cells lying more than 1 m from every true obstacle (2026-11-27). 0
-    occupies with the reported tracks only."""
+    occupies with the reported tracks only; at most ``tracking.reconfirm_misses`` (a track seen
+    again after more misses is not confirmed at once)."""
 
     def validate(self) -> None:
         value = self.max_slope_deg
@@ -796,6 +797,9 @@ class Config:
         cells = self.grid.shape[0] * self.grid.shape[1]
         _check(self.obstacles.min_cells <= cells, "obstacles.min_cells",
                f"({self.obstacles.min_cells}) exceeds the grid's {cells} cells: no obstacle could be found")
+        _check(self.cost.occupied_misses <= self.tracking.reconfirm_misses, "cost.occupied_misses",
+               f"({self.cost.occupied_misses}) exceeds tracking.reconfirm_misses ({self.tracking.reconfirm_misses}): "
+               "a track seen again after that many misses is not confirmed at once, and would leave the cost there")
         return self
 
     def to_dict(self) -> dict[str, dict[str, Any]]:

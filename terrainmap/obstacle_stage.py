@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .config import Config
+from .config import Config, check_section
 from .cost import step_height, traversability_cost
 from .grid import HeightGrid
 from .obstacles import extract_obstacles
@@ -67,6 +67,7 @@ def run_obstacle_stage(
     cost : (m0, m1) float32
         Traversability cost in [0, 1], NaN where unknown (:mod:`terrainmap.cost`).
     """
+    check_section(config.cost)  # (its occupied_misses is used before the cost is computed)
     elevation = layers["elevation"]
     steep = layers["slope"] >= np.radians(config.cost.max_slope_deg) if config.obstacles.drop_on_steep_ground else None
     detections = extract_obstacles(

@@ -159,7 +159,8 @@ class ObstacleTracker:
         list of Obstacle
             Copies carrying ``track_id``, ``confirmed`` and ``velocity_mps``, vehicle frame.
         """
-        rot, trans = _pose(vehicle_pose)
+        parts, self.parts = self.parts, []  # (none after a frame that raises)
+        rot, trans = (a.copy() for a in _pose(vehicle_pose))  # kept in _now: not the caller's array
         centers = _detection_centers(obstacles, stamp_ns)
         if self._world is not None and self._world != (vehicle_pose is not None):
             logger.warning("tracking: vehicle poses started or stopped; tracks reset")
@@ -167,8 +168,8 @@ class ObstacleTracker:
         yaw_v = float(np.arctan2(rot[1, 0], rot[0, 0]))
         if self._stamp_ns is not None and int(stamp_ns) == self._stamp_ns:
             # A frame logged twice (its stamp again) is no new evidence: the tracks stay as they are.
+            self.parts, self._now = parts, (rot, trans, yaw_v)
             return self._report(rot, trans, yaw_v)
-        self.parts = []
         dt = self._advance(int(stamp_ns))  # may reset the tracks, and with them _world
         self._world = vehicle_pose is not None
         self._predict(dt)
@@ -188,7 +189,8 @@ class ObstacleTracker:
         self._drop(
             (~matched) & ((self._hits < self.config.confirm_hits) | (self._misses > self.config.max_misses))
         )
-        self._merge_duplicates(rot, trans, camera)
+        merged = self._merge_duplicates(rot, trans, camera)
+        self.parts = [replace(p, track_id=merged.get(p.track_id, p.track_id)) for p in self.parts]
         self._spawn([obstacles[i] for i in new], centers_t[new], yaw_v)
         self._now = (rot, trans, yaw_v)
         return self._report(rot, trans, yaw_v)
@@ -288,13 +290,15 @@ class ObstacleTracker:
                       for i, k in zip(new[fragment], part_of[fragment].argmax(1), strict=True)]
         return new[~fragment]
 
-    def _merge_duplicates(self, rot: np.ndarray, trans: np.ndarray, camera: StereoCamera | None) -> None:
+    def _merge_duplicates(self, rot: np.ndarray, trans: np.ndarray, camera: StereoCamera | None) -> dict[int, int]:
         """Merge tracks that follow one obstacle (``TrackingConfig.duplicate_depth_sigmas``): the
         track with fewer hits (the younger on a tie) goes; the other keeps its id and, if only
-        the one that goes was matched in this frame, takes over its state and detection."""
+        the one that goes was matched in this frame, takes over its state and detection.
+        Returns the ids merged: gone → kept."""
         radius = self.config.fragment_radius_m
+        merged: dict[int, int] = {}
         if radius <= 0 or len(self._ids) < 2:
-            return
+            return merged
         xy = self._x[:, :2]
         # Per track, the ellipse r²·I + s·sᵀ, s the line-of-sight shift of k disparity errors.
         shift = np.zeros((len(xy), 2))
@@ -307,7 +311,7 @@ class ObstacleTracker:
         reach = np.sqrt(radius**2 + (shift**2).sum(1))  # the ellipses' semi-major axes
         pairs = cKDTree(xy).query_pairs(reach.max(), output_type="ndarray")
         if not len(pairs):
-            return
+            return merged
         i, j = pairs.T
         kinds = np.array([s[0].kind for s in self._shape])
         confirmed = self._confirmed
@@ -330,7 +334,13 @@ class ObstacleTracker:
                 self._x[winner], self._P[winner], self._shape[winner] = self._x[loser], self._P[loser], self._shape[loser]
                 self._mark_matched(np.array([winner]))
             gone[loser] = True
+            merged[int(self._ids[loser])] = int(self._ids[winner])
         self._drop(gone)
+        for loser_id, kept in merged.items():  # a track kept in one pair may go in a later one
+            while kept in merged:
+                kept = merged[kept]
+            merged[loser_id] = kept
+        return merged
 
     def _measurement_noise(self, centers: np.ndarray, rot: np.ndarray, camera: StereoCamera | None) -> np.ndarray:
         """Covariance (n, 2, 2) of the detected centres (n, 3, vehicle frame) in the tracking frame:

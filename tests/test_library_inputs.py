@@ -10,6 +10,7 @@ from terrainmap.config import Config, GridConfig, StereoConfig, load_config
 from terrainmap.cost import traversability_cost
 from terrainmap.errors import CalibrationError, ConfigError, InputError
 from terrainmap.grid import quantize
+from terrainmap.obstacle_stage import make_tracker, run_obstacle_stage
 from terrainmap.obstacles import terrain_at
 from terrainmap.sources import open_source
 from terrainmap.sources.calibration import terrainmap_calibration
@@ -64,6 +65,16 @@ def test_sections_built_in_code_are_checked_where_they_are_used():
         traversability_cost(zeros, zeros, zeros > -1, C.grid, [], dataclasses.replace(C.cost, max_step_m=0.0), step=zeros)
     with pytest.raises(ConfigError, match="cost.occupied_misses: must be in 0..1000, got -1"):
         traversability_cost(zeros, zeros, zeros > -1, C.grid, [], dataclasses.replace(C.cost, occupied_misses=-1))
+    bad = Config()
+    bad.cost.occupied_misses = None
+    point = np.float32([[10.0, 0.0, 0.0]])
+    with pytest.raises(ConfigError, match="cost.occupied_misses"):  # TypeError in the tracker before
+        run_obstacle_stage(point, np.zeros(1, np.uint8), quantize(point, C.grid),
+                           {"elevation": zeros, "slope": zeros, "label": np.zeros(C.grid.shape, np.uint8)}, 0,
+                           make_tracker(bad), bad)
+    bad.cost.occupied_misses = 4
+    with pytest.raises(ConfigError, match=r"cost.occupied_misses: \(4\) exceeds tracking.reconfirm_misses \(3\)"):
+        bad.validate()
     calibration = StereoCalibration(64, 48, 100.0, 100.0, 32.0, 24.0, 0.5)
     with pytest.raises(ConfigError, match="stereo.mode"):
         StereoMatcher(calibration, dataclasses.replace(StereoConfig(), mode="x"))  # KeyError before

@@ -315,6 +315,37 @@ def test_lower_cluster_in_a_confirmed_obstacles_shadow_starts_no_track():
     assert len(off.update([box(17.0, 3.0, 4.3, 1.5), *others.values()], 2 * DT_NS)) == 6
 
 
+def test_parts_name_the_track_kept_when_theirs_is_merged_away():
+    """Two confirmed tracks 1 m apart merge (one obstacle) after the fragment beside them was
+    taken for a part of the one that goes: the part names the track that stays."""
+    tracker = ObstacleTracker(TrackingConfig())
+    tracker.update([detection(14, -2), detection(13, -2)], 0)
+    out = tracker.update([detection(14, -2), detection(13, -2), detection(12, -2.5, height=0.5)], DT_NS)
+    assert [p.track_id for p in tracker.parts] == [o.track_id for o in out]
+
+
+def test_coasting_tracks_are_placed_in_the_last_frames_vehicle_frame():
+    """A static obstacle (odometry frame) missed while the vehicle drives on is given for the cost
+    at its place in the current vehicle frame, whatever the caller does with its pose array later;
+    a frame logged twice keeps its parts, and an update that fails leaves none."""
+    tracker = ObstacleTracker(TrackingConfig())
+    for k in range(2):
+        tracker.update([detection(10 - k, 0)], k * DT_NS, pose(float(k)))
+    moving = pose(3.0)
+    assert tracker.update([], 2 * DT_NS, moving) == []
+    moving[0, 3] = 100.0  # the caller reuses its array
+    (coasting,) = tracker.coasting(3)
+    assert coasting.center_m[:2] == pytest.approx([7.0, 0.0], abs=0.05) and coasting.confirmed
+    assert tracker.coasting(0) == []
+    tracker.update([detection(7, 0), detection(8, 0)], 3 * DT_NS, pose(3.0))
+    (part,) = tracker.parts
+    tracker.update([detection(7, 0), detection(8, 0)], 3 * DT_NS, pose(3.0))  # logged twice
+    assert tracker.parts == [part]
+    with pytest.raises(InputError):
+        tracker.update([detection(float("nan"), 0)], 4 * DT_NS, pose(3.0))
+    assert tracker.parts == []
+
+
 def test_stamp_going_back_resets_the_tracks(caplog):
     tracker = ObstacleTracker(TrackingConfig())
     tracker.update([detection(10, 0)], 5 * DT_NS)
