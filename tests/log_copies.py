@@ -12,7 +12,7 @@ def rewrite_rosbag2(src: Path, dst: Path, *, storage: str = "sqlite3", compressi
     """``src`` (an MCAP log or rosbag2) copied message by message into a new rosbag2 by ``rosbags``'
     own writer (not terrainmap's), in ``storage`` and with rosbag2's zstd ``compression`` (none,
     file or message); only the messages whose number in log-time order passes ``keep(i)``, but all
-the topics. Topics of types the standard ROS 2 messages lack (a simulated log's truth) stay out."""
+    the topics. Topics of types the standard ROS 2 messages lack (a simulated log's truth) stay out."""
     from rosbags.rosbag2 import CompressionFormat, CompressionMode, Reader, StoragePlugin, Writer
     from rosbags.typesys import Stores, get_typestore
 
