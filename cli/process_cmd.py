@@ -55,7 +55,7 @@ def process(log, output, flavor, compression, rrd, overwrite, source_opts, confi
     log = log_path(log)  # a rosbag2's metadata.yaml: its folder, for the default output's name too
     config = load_config(config_path, overrides)
     output = output or default_output(log)
-    _check_outputs(log, output, rrd, overwrite, [source_opts.calibration, config_path])
+    _check_process_outputs(log, output, rrd, overwrite, [source_opts.calibration, config_path])
     show = sys.stderr.isatty()
     outputs = [output] + ([rrd] if rrd else [])
     progress = []  # the run's summary, kept to tell what was written when the run fails
@@ -102,7 +102,7 @@ def process(log, output, flavor, compression, rrd, overwrite, source_opts, confi
     stop.check()  # a signal while the outputs were being closed: the exit code still says so
 
 
-def _check_outputs(log: Path, output: Path, rrd: Path | None, overwrite: bool, inputs: list) -> None:
+def _check_process_outputs(log: Path, output: Path, rrd: Path | None, overwrite: bool, inputs: list) -> None:
     """Outputs must not replace an input (the log, a file inside a log folder, the calibration or
     config file) nor each other, nor replace an existing file without ``--overwrite``."""
     if output.is_dir():  # (-o is refused as a folder by click; the default output beside the log is not)

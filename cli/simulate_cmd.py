@@ -46,13 +46,13 @@ def simulate(out: Path, fmt: str | None, overwrite: bool, **options) -> None:
     from terrainmap.sim import simulate as run
 
     fmt = fmt or ("mcap" if out.suffix.lower() == ".mcap" else "folder")
+    check_outputs({"OUT": out}, [])  # first: neither file nor folder (a FIFO) is refused there
     if out.exists() and not overwrite and (out.is_file() or any(out.iterdir())):
         raise click.UsageError(f"{out} exists; pass --overwrite to replace it")
     if fmt == "mcap" and out.is_dir():
         raise click.UsageError(f"{out} is a folder; an MCAP output must be a file")
     if fmt == "folder" and out.is_file():
         raise click.UsageError(f"{out} is a file; a folder output must be a folder")
-    check_outputs({"OUT": out}, [])
     config = SimConfig(format=fmt, **options)
     try:
         config.validate()

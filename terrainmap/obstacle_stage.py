@@ -46,7 +46,8 @@ def run_obstacle_stage(
     layers : dict of (m0, m1) arrays
         ``elevation`` (m) and ``slope`` (rad) at the cell centres, ``label`` (cell labels).
         Cells labelled OBSTACLE are left out of the step term: what stands up that high is for
-        the tracker to confirm, so a single-frame false positive leaves no trace in the cost.
+        the tracker to confirm, so a single-frame false positive leaves no trace in the cost
+        unless the tracker takes it for a part of a confirmed obstacle.
     stamp_ns : int
         Frame stamp, nanoseconds.
     tracker : ObstacleTracker
@@ -79,6 +80,7 @@ def run_obstacle_stage(
     step = step_height(grid.z, elevation, relief_cells)
     # Cells are occupied by the confirmed tracks, by the clusters taken for parts of them and by
     # those missed in the last cost.occupied_misses frames
-    occupying = [*obstacles, *tracker.parts, *tracker.coasting(config.cost.occupied_misses)]
+    missed = min(config.cost.occupied_misses, config.tracking.reconfirm_misses)  # (CostConfig.occupied_misses)
+    occupying = [*obstacles, *tracker.parts, *tracker.coasting(missed)]
     cost = traversability_cost(elevation, layers["slope"], grid.valid, grid.config, occupying, config.cost, step=step)
     return obstacles, cost

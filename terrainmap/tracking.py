@@ -185,7 +185,7 @@ class ObstacleTracker:
         self._misses[~matched] += 1
         for r, c in zip(rows, cols, strict=True):
             self._shape[r] = (obstacles[c], centers_t[c, 2], obstacles[c].yaw_rad + yaw_v)
-        new = self._not_fragments(np.setdiff1d(np.arange(len(obstacles)), cols), centers_t, obstacles, rows)
+        new, self.parts = self._not_fragments(np.setdiff1d(np.arange(len(obstacles)), cols), centers_t, obstacles, rows)
         self._drop(
             (~matched) & ((self._hits < self.config.confirm_hits) | (self._misses > self.config.max_misses))
         )
@@ -270,25 +270,27 @@ class ObstacleTracker:
         ok = cost[r, c] < 0
         return np.concatenate([i[single], rows[r[ok]]]), np.concatenate([j[single], cols[c[ok]]])
 
-    def _not_fragments(self, new: np.ndarray, centers_t: np.ndarray, obstacles: list[Obstacle], rows: np.ndarray):
+    def _not_fragments(
+        self, new: np.ndarray, centers_t: np.ndarray, obstacles: list[Obstacle], rows: np.ndarray
+    ) -> tuple[np.ndarray, list[Obstacle]]:
         """The unmatched detections ``new`` that are no fragment of a confirmed track of their
         kind matched in this frame: farther than ``fragment_radius_m`` from its centre and not
         in the shadow of its detection (:func:`_in_shadow`: behind it as the camera sees it, up to
         that radius beyond it, and no taller; what stands there is hidden by it, so a cluster
         there is its far side or its smear, as when a car comes into range as two clusters).
-        The fragments become :attr:`parts` of the first such track."""
+        And the fragments, as :attr:`parts` of the first such track."""
         radius = self.config.fragment_radius_m
         rows = rows[self._confirmed[rows]]
         if radius <= 0 or not len(new) or not len(rows):
-            return new
+            return new, []
         near = np.hypot(*(centers_t[new, None, :2] - self._x[None, rows, :2]).transpose(2, 0, 1)) <= radius
         near |= _in_shadow([obstacles[i] for i in new], [self._shape[r][0] for r in rows], radius)
         same = np.array([obstacles[i].kind for i in new])[:, None] == np.array([self._shape[r][0].kind for r in rows])
         part_of = near & same
         fragment = part_of.any(1)
-        self.parts = [replace(obstacles[i], track_id=int(self._ids[rows[k]]), confirmed=True)
-                      for i, k in zip(new[fragment], part_of[fragment].argmax(1), strict=True)]
-        return new[~fragment]
+        parts = [replace(obstacles[i], track_id=int(self._ids[rows[k]]), confirmed=True)
+                 for i, k in zip(new[fragment], part_of[fragment].argmax(1), strict=True)]
+        return new[~fragment], parts
 
     def _merge_duplicates(self, rot: np.ndarray, trans: np.ndarray, camera: StereoCamera | None) -> dict[int, int]:
         """Merge tracks that follow one obstacle (``TrackingConfig.duplicate_depth_sigmas``): the
@@ -335,11 +337,7 @@ class ObstacleTracker:
                 self._mark_matched(np.array([winner]))
             gone[loser] = True
             merged[int(self._ids[loser])] = int(self._ids[winner])
-        self._drop(gone)
-        for loser_id, kept in merged.items():  # a track kept in one pair may go in a later one
-            while kept in merged:
-                kept = merged[kept]
-            merged[loser_id] = kept
+        self._drop(gone)  # (a track kept in one pair never goes in a later one: pairs come by their winner's rank)
         return merged
 
     def _measurement_noise(self, centers: np.ndarray, rot: np.ndarray, camera: StereoCamera | None) -> np.ndarray:

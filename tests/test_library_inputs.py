@@ -72,9 +72,6 @@ def test_sections_built_in_code_are_checked_where_they_are_used():
         run_obstacle_stage(point, np.zeros(1, np.uint8), quantize(point, C.grid),
                            {"elevation": zeros, "slope": zeros, "label": np.zeros(C.grid.shape, np.uint8)}, 0,
                            make_tracker(bad), bad)
-    bad.cost.occupied_misses = 4
-    with pytest.raises(ConfigError, match=r"cost.occupied_misses: \(4\) exceeds tracking.reconfirm_misses \(3\)"):
-        bad.validate()
     calibration = StereoCalibration(64, 48, 100.0, 100.0, 32.0, 24.0, 0.5)
     with pytest.raises(ConfigError, match="stereo.mode"):
         StereoMatcher(calibration, dataclasses.replace(StereoConfig(), mode="x"))  # KeyError before

@@ -666,7 +666,11 @@ def test_a_file_of_a_split_rosbag2_damaged_or_changed_is_named(tmp_path):
     """rosbags checks every file as the bag opens; one read later must still be that file."""
     log = write_ros2_log(tmp_path / "run.mcap", n=8)
     bag = split_rosbag2(log, tmp_path / "bag", 6)
-    for k, change in enumerate((lambda f: f.unlink(), lambda f: shutil.copy(bag / "bag_0.db3", f))):
+    def replace(f):  # another file's bytes (of the same size) and time
+        shutil.copy(bag / "bag_0.db3", f)
+        os.utime(f, ns=(10**18, 10**18))
+
+    for k, change in enumerate((lambda f: f.unlink(), replace)):
         copy = shutil.copytree(bag, tmp_path / f"copy{k}")
         with open_source(copy) as source:
             change(copy / "bag_3.db3")  # removed, or another file's bytes written into it

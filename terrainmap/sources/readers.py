@@ -470,6 +470,8 @@ class _OpenWhileRead:
     the one checked when the bag opened; errors name the file."""
 
     plugin: type
+    is_sqlite3: bool
+    """Whether the plugin is sqlite3's (whose files are read with :class:`_Sqlite3File`)."""
 
     def __init__(self, path: Path):
         self.path = Path(os.path.abspath(path))  # reopened later: whatever the working folder is then
@@ -498,7 +500,7 @@ class _OpenWhileRead:
             raise InputError(f"{self.path}: changed or removed since the bag was opened")
         reader = None  # one per call: two reads may be under way in one file
         try:
-            if self.plugin.__name__ == "Sqlite3Reader":
+            if self.is_sqlite3:
                 reader = _Sqlite3File(self.path, self.connections)
             else:
                 reader = self.plugin(self.path)
@@ -542,8 +544,8 @@ class _Sqlite3File:
 
 
 def _identity(path: Path) -> tuple | None:
-    """What tells a file from another put in its place: size and time of change (None if gone; not
-    the inode, which some network file systems number anew on each lookup)."""
+    """What tells a file from another put in its place: size and modification time (None if gone;
+    not the inode, which some network file systems number anew on each lookup)."""
     try:
         st = path.stat()
     except OSError:
@@ -564,7 +566,8 @@ def _rosbags_reader(path: Path):
     from rosbags.rosbag2.reader import DirectoryReader, Reader
 
     class Directory(DirectoryReader):
-        STORAGE_PLUGINS = {name: type(f"{plugin.__name__}OpenWhileRead", (_OpenWhileRead,), {"plugin": plugin})
+        STORAGE_PLUGINS = {name: type(f"{plugin.__name__}OpenWhileRead", (_OpenWhileRead,),
+                                      {"plugin": plugin, "is_sqlite3": name == "sqlite3"})
                            for name, plugin in DirectoryReader.STORAGE_PLUGINS.items()}
 
     class OneFileAtATime(Reader):
