@@ -165,9 +165,9 @@ def writable(path: Path) -> None:
     file is created and removed again; anything else there (a FIFO would block, a device...) is
     refused."""
     target = Path(os.path.realpath(path))  # a symbolic link stays, even one to a file not yet there
-    if target.exists() and not (target.is_file() or target.is_dir()):
-        raise Failed(f"{path} exists and is neither a regular file nor a folder")
     existed = target.exists()
+    if existed and not (target.is_file() or target.is_dir()):
+        raise Failed(f"{path} exists and is neither a regular file nor a folder")
     try:
         if target.is_dir():
             tempfile.TemporaryFile(dir=target).close()

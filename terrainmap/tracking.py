@@ -159,7 +159,7 @@ class ObstacleTracker:
         list of Obstacle
             Copies carrying ``track_id``, ``confirmed`` and ``velocity_mps``, vehicle frame.
         """
-        parts, self.parts = self.parts, []  # (none after a frame that raises)
+        previous, self.parts = self.parts, []  # (none after a frame that raises)
         rot, trans = (a.copy() for a in _pose(vehicle_pose))  # kept in _now: not the caller's array
         centers = _detection_centers(obstacles, stamp_ns)
         if self._world is not None and self._world != (vehicle_pose is not None):
@@ -168,7 +168,7 @@ class ObstacleTracker:
         yaw_v = float(np.arctan2(rot[1, 0], rot[0, 0]))
         if self._stamp_ns is not None and int(stamp_ns) == self._stamp_ns:
             # A frame logged twice (its stamp again) is no new evidence: the tracks stay as they are.
-            self.parts, self._now = parts, (rot, trans, yaw_v)
+            self.parts, self._now = previous, (rot, trans, yaw_v)
             return self._report(rot, trans, yaw_v)
         dt = self._advance(int(stamp_ns))  # may reset the tracks, and with them _world
         self._world = vehicle_pose is not None
@@ -185,12 +185,12 @@ class ObstacleTracker:
         self._misses[~matched] += 1
         for r, c in zip(rows, cols, strict=True):
             self._shape[r] = (obstacles[c], centers_t[c, 2], obstacles[c].yaw_rad + yaw_v)
-        new, self.parts = self._not_fragments(np.setdiff1d(np.arange(len(obstacles)), cols), centers_t, obstacles, rows)
+        new, parts = self._not_fragments(np.setdiff1d(np.arange(len(obstacles)), cols), centers_t, obstacles, rows)
         self._drop(
             (~matched) & ((self._hits < self.config.confirm_hits) | (self._misses > self.config.max_misses))
         )
         merged = self._merge_duplicates(rot, trans, camera)
-        self.parts = [replace(p, track_id=merged.get(p.track_id, p.track_id)) for p in self.parts]
+        self.parts = [replace(p, track_id=merged.get(p.track_id, p.track_id)) for p in parts]
         self._spawn([obstacles[i] for i in new], centers_t[new], yaw_v)
         self._now = (rot, trans, yaw_v)
         return self._report(rot, trans, yaw_v)

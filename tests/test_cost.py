@@ -239,6 +239,15 @@ def test_cost_is_monotone_in_slope(base, extra):
     assert np.all(high >= low)
 
 
+def _stage(plane, points, labels, config, tracker, stamp, slope_deg=0.0):
+    """run_obstacle_stage on ``points`` over ``plane``: the plane as the terrain, one slope everywhere."""
+    grid = quantize(points, GRID)
+    elevation = plane.on_grid(*cell_centers(GRID))
+    layers = {"elevation": elevation, "slope": np.full(GRID.shape, np.deg2rad(slope_deg)),
+              "label": label_cells(grid, elevation, config.segmentation)}
+    return run_obstacle_stage(points, labels, grid, layers, stamp, tracker, config)
+
+
 def test_stage_on_a_scene_marks_the_box_once_confirmed_and_never_before():
     """The whole step over two frames: the box costs nothing extra until its track is confirmed,
     then becomes an occupied, clearance-grown patch."""
@@ -247,20 +256,13 @@ def test_stage_on_a_scene_marks_the_box_once_confirmed_and_never_before():
     points, labels = labelled(plane, terrain_points(plane, spacing=0.2), box)
     config = Config()
     config.cost.clearance_m = 0.4  # reaches the squares of cells up to 0.4 m from the footprint
-    grid = quantize(points, GRID)
-    elevation = plane.on_grid(*cell_centers(GRID))
-    layers = {
-        "elevation": elevation,
-        "slope": np.full(GRID.shape, np.deg2rad(5)),
-        "label": label_cells(grid, elevation, config.segmentation),
-    }
     tracker = make_tracker(config)
     slope_cost = smoothstep(5 / 25)
     ix, iy = int((12.0 - GRID.x_min_m) / 0.5), int((0.0 - GRID.y_min_m) / 0.5)
-    (first,), cost = run_obstacle_stage(points, labels, grid, layers, 0, tracker, config)
+    (first,), cost = _stage(plane, points, labels, config, tracker, 0, slope_deg=5)
     assert not first.confirmed
     np.testing.assert_allclose(cost, slope_cost, atol=0.02)  # tentative: no trace of the box
-    (box,), cost = run_obstacle_stage(points, labels, grid, layers, 10**8, tracker, config)
+    (box,), cost = _stage(plane, points, labels, config, tracker, 10**8, slope_deg=5)
     assert box.confirmed
     occupied = cost == 1
     # The box's own 2×2 cells and one ring of neighbours (their squares within 0.4 m of the footprint;
@@ -279,12 +281,8 @@ def test_a_cluster_taken_for_part_of_a_confirmed_obstacle_occupies_its_cells_too
     config = Config()
     tracker = make_tracker(config)
     for stamp, parts in ((0, [car]), (10**8, [car]), (2 * 10**8, [car, person])):
-        points, labels = labelled(plane, terrain_points(plane, spacing=0.2), *parts)
-        grid = quantize(points, GRID)
-        elevation = plane.on_grid(*cell_centers(GRID))
-        layers = {"elevation": elevation, "slope": np.zeros(GRID.shape),
-                  "label": label_cells(grid, elevation, config.segmentation)}
-        obstacles, cost = run_obstacle_stage(points, labels, grid, layers, stamp, tracker, config)
+        obstacles, cost = _stage(plane, *labelled(plane, terrain_points(plane, spacing=0.2), *parts), config,
+                                 tracker, stamp)
     (track,) = obstacles
     assert track.confirmed and track.center_m[0] == pytest.approx(12.0, abs=0.1)
     (part,) = tracker.parts
@@ -307,11 +305,7 @@ def test_a_confirmed_obstacle_missed_for_a_few_frames_keeps_occupying_its_cells(
     ix, iy = int((12.0 - GRID.x_min_m) / 0.5), int((0.0 - GRID.y_min_m) / 0.5)
     occupied = []
     for k, (points, labels) in enumerate([scene, scene, ground, ground, ground, ground]):
-        grid = quantize(points, GRID)
-        elevation = plane.on_grid(*cell_centers(GRID))
-        layers = {"elevation": elevation, "slope": np.zeros(GRID.shape),
-                  "label": label_cells(grid, elevation, config.segmentation)}
-        obstacles, cost = run_obstacle_stage(points, labels, grid, layers, k * 10**8, tracker, config)
+        obstacles, cost = _stage(plane, points, labels, config, tracker, k * 10**8)
         assert [o.confirmed for o in obstacles] == ([False] if k == 0 else [True] if k == 1 else [])
         occupied.append(bool(cost[ix, iy] == 1))
     assert occupied == [False, True] + [True] * occupied_misses + [False] * (4 - occupied_misses)
@@ -324,20 +318,13 @@ def test_low_relief_on_ground_too_steep_to_drive_is_no_obstacle_and_the_cost_is_
     plane = Plane(gy=np.tan(np.deg2rad(30)))
     bump = box_points(plane, (12.0, 0.0), 2.0, 0.5, 0.55)
     points, labels = labelled(plane, terrain_points(plane, spacing=0.2), bump)
-    grid = quantize(points, GRID)
-    elevation = plane.on_grid(*cell_centers(GRID))
     results = {}
     for drop in (True, False):
         config = Config()
         config.obstacles.drop_on_steep_ground = drop
-        layers = {
-            "elevation": elevation,
-            "slope": np.full(GRID.shape, np.deg2rad(30)),
-            "label": label_cells(grid, elevation, config.segmentation),
-        }
         tracker = make_tracker(config)
         for stamp in (0, 10**8):
-            results[drop] = run_obstacle_stage(points, labels, grid, layers, stamp, tracker, config)
+            results[drop] = _stage(plane, points, labels, config, tracker, stamp, slope_deg=30)
     assert results[True][0] == []
     (bump_track,) = results[False][0]
     assert bump_track.confirmed and bump_track.height_m == pytest.approx(0.55, abs=0.02)
