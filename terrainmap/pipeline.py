@@ -11,6 +11,7 @@ from __future__ import annotations
 import time
 from contextlib import contextmanager
 from dataclasses import dataclass, field, fields, replace
+from typing import NamedTuple
 
 import numpy as np
 
@@ -225,9 +226,19 @@ def check_stamp(frame: StereoFrame) -> None:
                          "outside 1970–2262 (0 to 2^63 − 1 ns)")
 
 
-def match_frame(frame: StereoFrame, config: Config, state: PipelineState) -> Matched:
-    """SGM disparity → 3D points in the vehicle frame (uses and updates ``state.matcher`` and
-    ``state.extrinsics`` only, so it can run one frame ahead of :func:`finish_frame`)."""
+class Prepared(NamedTuple):
+    """What :func:`prepare_match` chose for a frame: its ``matcher``, the ``extrinsics`` to use
+    (None: to be estimated from this frame) and the ``watch`` timing the frame so far."""
+
+    matcher: StereoMatcher
+    extrinsics: Extrinsics | None
+    watch: Stopwatch
+
+
+def prepare_match(frame: StereoFrame, config: Config, state: PipelineState) -> Prepared:
+    """The part of :func:`match_frame` that reads and updates ``state`` before matching: checks,
+    the matcher (rebuilt for another calibration or stereo config) and the extrinsics. Called in
+    frame order, it lets the matching itself run in several threads at once (the runner)."""
     check_arguments(frame, config, state)
     check_stamp(frame)
     watch = Stopwatch()
@@ -237,17 +248,26 @@ def match_frame(frame: StereoFrame, config: Config, state: PipelineState) -> Mat
                 state.extrinsics = None  # scenes): the pose estimated before does not hold for it
             state.matcher = StereoMatcher(frame.calibration, config.stereo)
         state.check(config, frame)
-        extrinsics = frame.extrinsics or state.extrinsics
-        stereo = state.matcher.compute(frame.left, frame.right, extrinsics)  # drops the sky if it can
+    return Prepared(state.matcher, frame.extrinsics or state.extrinsics, watch)
+
+
+def match_frame(frame: StereoFrame, config: Config, state: PipelineState, prepared: Prepared | None = None) -> Matched:
+    """SGM disparity → 3D points in the vehicle frame (uses and updates ``state.matcher`` and
+    ``state.extrinsics`` only, so it can run ahead of :func:`finish_frame`). ``prepared``: what
+    :func:`prepare_match` gave for this frame, when it was called apart; only a frame prepared
+    without extrinsics updates ``state`` (with the pose estimated from it)."""
+    matcher, extrinsics, watch = prepared or prepare_match(frame, config, state)
+    with watch("stereo"):
+        stereo = matcher.compute(frame.left, frame.right, extrinsics)  # drops the sky if it can
     with watch("points"):
         if extrinsics is None:  # the sky's horizon needs the extrinsics: estimated first, here
-            points_cam, _ = state.matcher.reproject(stereo.disparity)
+            points_cam, _ = matcher.reproject(stereo.disparity)
             estimated = estimate_extrinsics(points_cam, config.extrinsics)
             extrinsics = state.extrinsics = replace(estimated, camera_frame_id=frame.frame_id)
-            state.matcher.drop_sky(stereo, extrinsics)
-        points_cam, pixels = state.matcher.reproject(stereo.disparity)
+            matcher.drop_sky(stereo, extrinsics)
+        points_cam, pixels = matcher.reproject(stereo.disparity)
         points = to_vehicle(points_cam, extrinsics)
-    return Matched(stereo, points, pixels, extrinsics, watch.ms, state.matcher)
+    return Matched(stereo, points, pixels, extrinsics, watch.ms, matcher)
 
 
 def finish_frame(frame: StereoFrame, matched: Matched, config: Config, state: PipelineState) -> FrameResult:

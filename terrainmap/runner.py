@@ -1,10 +1,12 @@
 """The runner: iterate a source, run the pure per-frame core, feed the sinks, keep statistics.
 
-The first half of each frame (reading it, SGM matching, points: :func:`match_frame`) runs one
-frame ahead in a worker thread while the main thread finishes the previous frame (terrain,
-labels, obstacles: :func:`finish_frame`) and writes it. OpenCV and numpy release the GIL in
-their heavy loops, so on two cores the two halves overlap; the results are the same as running
-:func:`process_frame` frame by frame.
+The first half of each frame (reading it, SGM matching, points: :func:`match_frame`) runs ahead
+in two worker threads, one frame each, while the main thread finishes the frame before them
+(terrain, labels, obstacles: :func:`finish_frame`) and writes it. OpenCV and numpy release the
+GIL in their heavy loops, so the three overlap; OpenCV's own threads are shared out among the
+workers for the run (one each on two cores: on the 2-core benchmark machine that gave 13.4–19.1
+frames/s against 13.5–16.7 with one worker and SGBM's two threads, five alternating runs each).
+The results are the same as running :func:`process_frame` frame by frame, byte for byte.
 
 Frames that yield no terrain (:class:`~terrainmap.errors.FrameError`) are counted by reason and
 skipped; any other error ends the run. Either way every sink is closed, so the outputs written
@@ -14,24 +16,32 @@ runner keeps only the current frame and a fixed-size sample of per-stage times.
 
 from __future__ import annotations
 
+import itertools
 import logging
+import os
 import random
 import statistics
+import threading
 import time
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 from dataclasses import dataclass, field
+
+import cv2
 
 from .config import Config
 from .errors import FrameError, TerrainmapError
-from .pipeline import Matched, PipelineState, finish_frame, match_frame
+from .pipeline import Matched, PipelineState, Prepared, finish_frame, match_frame, prepare_match
 from .sinks.base import Sink
 from .types import Extrinsics, FrameResult, StereoFrame
 
 log = logging.getLogger(__name__)
 
 _RESERVOIR = 4096  # per-stage time samples kept for the medians
+MATCH_WORKERS = 2
+"""Threads matching frames ahead of the main thread (each with its share of OpenCV's threads)."""
 
 
 @dataclass
@@ -115,7 +125,7 @@ def run(
         summary.wall_s = time.perf_counter() - start
         try:
             if ahead is not None:
-                ahead.close()  # ends the worker thread now, not whenever the generator is collected
+                ahead.close()  # ends the worker threads now, not whenever the generator is collected
         finally:
             _close_all(sinks)
     return summary
@@ -124,24 +134,66 @@ def run(
 def _matched_ahead(
     frames: Iterable[StereoFrame], config: Config, state: PipelineState
 ) -> Iterator[tuple[StereoFrame, Matched | FrameError]]:
-    """Yield each frame with its :func:`match_frame` result (or the FrameError it raised), the
-    next frame being read and matched in a worker thread meanwhile. Other errors re-raise here."""
-    source = iter(frames)
+    """Yield each frame in order with its :func:`match_frame` result (or the FrameError it
+    raised), the next frames being read and matched in :data:`MATCH_WORKERS` worker threads
+    meanwhile. Other errors re-raise here, in frame order.
 
-    def step():
-        frame = next(source, None)
-        if frame is None:
-            return None
+    Each worker reads its frame and calls :func:`prepare_match` in turn (ticket order), so the
+    state changes happen frame by frame as in :func:`process_frame`; a frame whose camera pose
+    must be estimated is matched whole in its turn, so that the frames after it use that pose.
+    """
+    source = iter(frames)
+    turn = threading.Condition()
+    served = 0  # tickets whose turn has passed
+
+    def step(ticket: int):
+        nonlocal served
+        with turn:
+            turn.wait_for(lambda: served == ticket)
+            try:
+                frame = next(source, None)
+                if frame is None:
+                    return None
+                prepared = prepare_match(frame, config, state)
+                if prepared.extrinsics is None:  # the pose is estimated from this frame, in its turn
+                    return matched(frame, prepared)
+            finally:
+                served += 1
+                turn.notify_all()
+        return matched(frame, prepared)
+
+    def matched(frame: StereoFrame, prepared: Prepared):
         try:
-            return frame, match_frame(frame, config, state)
+            return frame, match_frame(frame, config, state, prepared)
         except FrameError as exc:
             return frame, exc
 
-    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="terrainmap-match") as pool:
-        pending = pool.submit(step)
-        while (item := pending.result()) is not None:
-            pending = pool.submit(step)
-            yield item
+    tickets = itertools.count()
+    with _opencv_threads(_cpus() // MATCH_WORKERS), ThreadPoolExecutor(MATCH_WORKERS, "terrainmap-match") as pool:
+        pending = deque(pool.submit(step, next(tickets)) for _ in range(MATCH_WORKERS))
+        try:
+            while (item := pending.popleft().result()) is not None:
+                pending.append(pool.submit(step, next(tickets)))
+                yield item
+        finally:
+            pool.shutdown(cancel_futures=True)  # a ticket not started is not waited for
+
+
+@contextmanager
+def _opencv_threads(count: int):
+    """OpenCV's thread count set to ``count`` (at least 1) for the block, then restored: the
+    workers match in parallel, so SGBM's own threads would only take turns with them."""
+    before = cv2.getNumThreads()
+    cv2.setNumThreads(max(1, count))
+    try:
+        yield
+    finally:
+        cv2.setNumThreads(before)
+
+
+def _cpus() -> int:
+    """The CPUs this process may run on."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 
 def _close_all(sinks: list[Sink]) -> None:

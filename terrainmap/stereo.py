@@ -273,7 +273,8 @@ def create_sgbm(config: StereoConfig, width: int) -> cv2.StereoSGBM:
 
 
 class StereoMatcher:
-    """Rectification, SGBM and reprojection for one calibration, with everything cached.
+    """Rectification, SGBM and reprojection for one calibration, with everything cached. Threads
+    may call :meth:`compute` at once (each then matches with an SGBM instance of its own).
 
     Parameters
     ----------
@@ -297,6 +298,9 @@ class StereoMatcher:
             )
         self.sgbm = create_sgbm(self.config, calibration.width)
         """The bare ``cv2.StereoSGBM`` (``sgbm.compute(grey_left, grey_right)`` is "SGBM alone")."""
+        # A cv2.StereoSGBM keeps its work buffer between calls, so threads matching at once (the
+        # runner's workers) each take an instance of their own from here, made when none is free.
+        self._idle = [self.sgbm]
         # config.full_width: columns padded on the left, so that SGBM searches every column whose
         # match can lie left_margin_px inside the right image; the largest disparity kept per column.
         self._pad = max(0, self.config.min_disparity + n - self.config.left_margin_px) if self.config.full_width else 0
@@ -389,7 +393,14 @@ class StereoMatcher:
 
     def _sgbm(self, pair) -> np.ndarray:
         """One SGBM call on the (padded) grey pair → H×W float32 pixels, NaN where invalid."""
-        raw = self.sgbm.compute(*pair)[:, self._pad :]  # int16, disparity × 16
+        try:
+            sgbm = self._idle.pop()
+        except IndexError:  # another thread is matching with each instance made so far
+            sgbm = create_sgbm(self.config, self.calibration.width)
+        try:
+            raw = sgbm.compute(*pair)[:, self._pad :]  # int16, disparity × 16
+        finally:
+            self._idle.append(sgbm)
         disparity = raw.astype(np.float32)
         disparity *= 1.0 / 16.0
         disparity[raw < self.config.min_disparity * 16] = np.nan

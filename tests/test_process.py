@@ -284,28 +284,51 @@ def test_unusable_calibration_is_reported(shared_data, tmp_path, capsys):
     assert "baseline" in capsys.readouterr().err
 
 
-def test_overlapped_runner_gives_the_sequential_results(tmp_path, keep_sink):
+@pytest.mark.parametrize("poses", ["tf", "estimated, then another camera"])
+def test_overlapped_runner_gives_the_sequential_results(tmp_path, keep_sink, poses):
+    """The runner matches frames in two worker threads ahead of the main thread; its results are
+    those of process_frame frame by frame, also where the camera pose is estimated from the first
+    frame (the frames after it wait for that pose) and where a new calibration part way starts
+    the pose afresh, and OpenCV's thread count is given back afterwards."""
+    import cv2
+
     from terrainmap.pipeline import PipelineState, process_frame
     from terrainmap.sim import SimConfig, simulate
 
     log = tmp_path / "sim.mcap"
-    simulate(log, SimConfig(scene="mounds", frames=4, seed=2, width=320, height=240, focal_px=250.0))
+    simulate(log, SimConfig(scene="mounds", frames=6, seed=2, width=320, height=240, focal_px=250.0))
+
+    def frames():
+        with open_source(log) as source:
+            for frame in source.frames():
+                if poses != "tf":
+                    scene_b = frame.index >= 3  # another camera from the fourth frame on
+                    calibration = dataclasses.replace(frame.calibration, source="scene_b/calib.txt") if scene_b else frame.calibration
+                    frame = dataclasses.replace(frame, extrinsics=None, calibration=calibration)
+                yield frame
 
     config = Config()
+    threads = cv2.getNumThreads()
     keep = keep_sink
-    with open_source(log) as source:
-        summary = runner.run(source.frames(), config, [keep])
+    summary = runner.run(frames(), config, [keep])
+    assert cv2.getNumThreads() == threads
     state = PipelineState(config)
-    with open_source(log) as source:
-        expected = [process_frame(frame, config, state) for frame in source.frames()]
-    assert summary.frames_done == 4
+    expected = [process_frame(frame, config, state) for frame in frames()]
+    assert summary.frames_done == 6
     assert summary.extrinsics is keep.results[-1].extrinsics  # the camera pose `process` reports
+    sources = {r.extrinsics.source for r in keep.results}
+    assert sources == ({"tf"} if poses == "tf" else {"estimated"})
     for got, want in zip(keep.results, expected, strict=True):
         # the stereo rig reaches the terrain stage (eq. 1's noise discount, the labelling floors)
         assert got.grid.camera is not None and got.grid.height_per_px is not None
+        np.testing.assert_array_equal(got.extrinsics.translation, want.extrinsics.translation)
         np.testing.assert_array_equal(got.point_labels, want.point_labels)
         np.testing.assert_array_equal(got.layers["elevation"], want.layers["elevation"])
         assert [o.track_id for o in got.obstacles] == [o.track_id for o in want.obstacles]
+    if poses != "tf":  # each camera's pose estimated on its own first frame
+        first, second = keep.results[0].extrinsics, keep.results[3].extrinsics
+        assert all(r.extrinsics is first for r in keep.results[:3])
+        assert all(r.extrinsics is second for r in keep.results[3:]) and second is not first
 
 
 @pytest.fixture(scope="module")

@@ -475,7 +475,7 @@ def test_rows_that_see_only_sky_are_not_matched():
             heights.append(left.shape[0])
             return sgbm.compute(left, right)
 
-    matcher.sgbm = Recorder()
+    matcher._idle[:] = [Recorder()]
     cropped = matcher.compute(frame.left, frame.right, extrinsics).disparity
     sky_rows = int(np.argmin(matcher.sky(whole.grey, extrinsics).all(axis=1)))
     assert sky_rows > 0.25 * frame.left.shape[0]
@@ -619,3 +619,22 @@ def test_matching_from_a_row_at_or_past_the_last_matches_nothing(passes):
     for first_row in (119, 120, 500):
         disparity = matcher.match(image, image, first_row)
         assert disparity.shape == (120, 160) and np.isnan(disparity[:119]).all()
+
+
+def test_threads_matching_at_once_each_use_an_sgbm_of_their_own_and_get_the_sequential_disparities():
+    """OpenCV's SGBM keeps a work buffer between calls; the runner's worker threads share one
+    matcher, so each call made while another is matching takes an instance of its own."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    renderer = SimConfig(scene="mounds", frames=4, seed=1, width=320, height=240, focal_px=250.0).renderer(
+        build_scene("mounds", 1, length_m=20.0)
+    )
+    frames = [renderer.frame(i) for i in range(4)]
+    matcher = StereoMatcher(renderer.rig.calibration())
+    alone = [matcher.compute(f.left, f.right).disparity for f in frames]
+    assert len(matcher._idle) == 1
+    with ThreadPoolExecutor(2) as pool:
+        together = list(pool.map(lambda f: matcher.compute(f.left, f.right).disparity, frames * 6))
+    assert len(matcher._idle) <= 2 and matcher.sgbm in matcher._idle
+    for got, want in zip(together, alone * 6, strict=True):
+        np.testing.assert_array_equal(got, want)
