@@ -4,8 +4,9 @@ The first half of each frame (reading it, SGM matching, points: :func:`match_fra
 in two worker threads, one frame each, while the main thread finishes the frame before them
 (terrain, labels, obstacles: :func:`finish_frame`) and writes it. OpenCV and numpy release the
 GIL in their heavy loops, so the three overlap; OpenCV's own threads are shared out among the
-workers for the run (one each on two cores: on the 2-core benchmark machine that gave 13.4–19.1
-frames/s against 13.5–16.7 with one worker and SGBM's two threads, five alternating runs each).
+workers for the run (one each on two cores: on the 2-core benchmark machine that gave 13.0–19.8
+frames/s, median 16.7, against 13.5–16.7, median 14.1, with one worker and SGBM's two threads;
+docs/speed.md).
 The results are the same as running :func:`process_frame` frame by frame, byte for byte.
 
 Frames that yield no terrain (:class:`~terrainmap.errors.FrameError`) are counted by reason and
