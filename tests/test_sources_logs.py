@@ -682,6 +682,28 @@ def test_a_file_of_a_split_rosbag2_damaged_or_changed_is_named(tmp_path):
         open_source(mcap)
 
 
+def test_errors_in_a_file_compressed_rosbag2_name_the_bags_file_not_its_decompressed_copy(tmp_path, monkeypatch):
+    """rosbags decompresses each ``.db3.zstd`` into a temporary folder as ``.db3``: a damaged
+    file is named as the bag holds it, and a copy removed while the bag is open as the copy of it."""
+    import re
+    import tempfile
+
+    import zstandard
+
+    bag = split_rosbag2(write_ros2_log(tmp_path / "run.mcap", n=8), tmp_path / "bag", 3, compression="file")
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path / "temp"))  # where rosbags decompresses
+    (tmp_path / "temp").mkdir()
+    with open_source(bag) as source:
+        (copy,) = (tmp_path / "temp").glob("*/bag_1.db3")
+        copy.unlink()
+        with pytest.raises(InputError, match=re.escape(f"{copy} (the decompressed copy of {bag.resolve() / 'bag_1.db3.zstd'}): "
+                                                       "changed or removed since the bag was opened")):
+            list(source.frames())
+    (bag / "bag_1.db3.zstd").write_bytes(zstandard.ZstdCompressor().compress(b"not a database" * 100))
+    with pytest.raises(InputError, match=r"bag: not a readable rosbag2 \(\w+: bag_1\.db3\.zstd: "):
+        open_source(bag)
+
+
 def test_rosbag2_sqlite3_of_the_real_log_gives_its_frames(tmp_path):
     real = DATA / "kitti2015_000005_ros2_raw"
     if not real.is_dir():

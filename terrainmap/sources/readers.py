@@ -472,9 +472,15 @@ class _OpenWhileRead:
     plugin: type
     is_sqlite3: bool
     """Whether the plugin is sqlite3's (whose files are read with :class:`_Sqlite3File`)."""
+    compressed: dict[str, Path]
+    """The bag's zstd-compressed files by the name of the copy ``rosbags`` decompresses each into,
+    in a temporary folder: errors name the bag's file."""
 
     def __init__(self, path: Path):
         self.path = Path(os.path.abspath(path))  # reopened later: whatever the working folder is then
+        original = self.compressed.get(self.path.name)
+        self.shown = original if original is not None and original.parent != self.path.parent else None
+        """The bag's compressed file this is the decompressed copy of (None: this is the bag's file)."""
         self.connections: list = []
         self.metadata = None
         self._identity = None
@@ -486,7 +492,7 @@ class _OpenWhileRead:
         try:
             storage.open()
         except Exception as exc:
-            raise _named(self.path, exc) from exc
+            raise _named(self.shown or self.path, exc) from exc
         self.connections, self.metadata = list(storage.connections), storage.metadata  # copies: close empties them
         self._identity = _identity(self.path)
         storage.close()
@@ -497,7 +503,8 @@ class _OpenWhileRead:
 
     def messages(self, connections, start=None, stop=None) -> Iterator:
         if _identity(self.path) != self._identity:
-            raise InputError(f"{self.path}: changed or removed since the bag was opened")
+            copy = "" if self.shown is None else f" (the decompressed copy of {self.shown})"
+            raise InputError(f"{self.path}{copy}: changed or removed since the bag was opened")
         reader = None  # one per call: two reads may be under way in one file
         try:
             if self.is_sqlite3:
@@ -508,7 +515,7 @@ class _OpenWhileRead:
             self._reading.append(reader)
             yield from reader.messages(connections, start, stop)
         except Exception as exc:
-            raise _named(self.path, exc) from exc
+            raise _named(self.shown or self.path, exc) from exc
         finally:
             if reader in self._reading:  # not yet closed by close()
                 self._reading.remove(reader)
@@ -560,14 +567,17 @@ def _named(path: Path, exc: Exception) -> Exception:
     return ReaderError(f"{path.name}: {exc}")
 
 
-def _rosbags_reader(path: Path):
-    """``rosbags``' reader of a rosbag2 directory, with its storage files opened one at a time
-    (:class:`_OpenWhileRead`; ``rosbags`` is pinned to the minor version this is written for)."""
+def _rosbags_reader(path: Path, files: list[Path]):
+    """``rosbags``' reader of the rosbag2 directory ``path`` of storage ``files``, with the files
+    opened one at a time (:class:`_OpenWhileRead`; ``rosbags`` is pinned to the minor version
+    this is written for)."""
     from rosbags.rosbag2.reader import DirectoryReader, Reader
+
+    compressed = {f.name.removesuffix(".zstd"): Path(os.path.abspath(f)) for f in files if f.name.endswith(".zstd")}
 
     class Directory(DirectoryReader):
         STORAGE_PLUGINS = {name: type(f"{plugin.__name__}OpenWhileRead", (_OpenWhileRead,),
-                                      {"plugin": plugin, "is_sqlite3": name == "sqlite3"})
+                                      {"plugin": plugin, "is_sqlite3": name == "sqlite3", "compressed": compressed})
                            for name, plugin in DirectoryReader.STORAGE_PLUGINS.items()}
 
     class OneFileAtATime(Reader):
@@ -597,7 +607,7 @@ class Rosbag2Bag(_SkipsDamage):
         self.paths = bag_files(path)
         self._typestore = get_typestore(Stores.LATEST)
         try:
-            self._bag = _rosbags_reader(path)
+            self._bag = _rosbags_reader(path, self.paths)
             self._bag.open()
         except Exception as exc:  # ReaderError, but also sqlite3, YAML and zstd errors on damaged files
             raise InputError(f"{path}: not a readable rosbag2 ({_reason(exc)})") from exc
