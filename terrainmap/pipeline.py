@@ -236,9 +236,11 @@ class Prepared(NamedTuple):
 
 
 def prepare_match(frame: StereoFrame, config: Config, state: PipelineState) -> Prepared:
-    """The part of :func:`match_frame` that reads and updates ``state`` before matching: checks,
-    the matcher (rebuilt for another calibration or stereo config) and the extrinsics. Called in
-    frame order, it lets the matching itself run in several threads at once (the runner)."""
+    """The part of :func:`match_frame` that reads and updates ``state`` before matching: checks
+    (``state.checked``), the matcher (rebuilt for another calibration or stereo config) and the
+    extrinsics. Called in frame order, it lets the matching itself run in several threads at once
+    (the runner); a frame prepared without extrinsics must be matched (its pose estimated into
+    ``state``) before the next frame is prepared, or that one would estimate a pose of its own."""
     check_arguments(frame, config, state)
     check_stamp(frame)
     watch = Stopwatch()
@@ -252,8 +254,8 @@ def prepare_match(frame: StereoFrame, config: Config, state: PipelineState) -> P
 
 
 def match_frame(frame: StereoFrame, config: Config, state: PipelineState, prepared: Prepared | None = None) -> Matched:
-    """SGM disparity → 3D points in the vehicle frame (uses and updates ``state.matcher`` and
-    ``state.extrinsics`` only, so it can run ahead of :func:`finish_frame`). ``prepared``: what
+    """SGM disparity → 3D points in the vehicle frame (uses and updates ``state.matcher``,
+    ``state.extrinsics`` and ``state.checked`` only, so it can run ahead of :func:`finish_frame`). ``prepared``: what
     :func:`prepare_match` gave for this frame, when it was called apart; only a frame prepared
     without extrinsics updates ``state`` (with the pose estimated from it)."""
     matcher, extrinsics, watch = prepared or prepare_match(frame, config, state)

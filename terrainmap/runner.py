@@ -3,23 +3,24 @@
 The first half of each frame (reading it, SGM matching, points: :func:`match_frame`) runs ahead
 in two worker threads, one frame each, while the main thread finishes the frame before them
 (terrain, labels, obstacles: :func:`finish_frame`) and writes it. OpenCV and numpy release the
-GIL in their heavy loops, so the three overlap; OpenCV's own threads are shared out among the
-workers for the run (one each on two cores: on the 2-core benchmark machine that gave 13.0–19.8
-frames/s, median 16.7, against 13.5–16.7, median 14.1, with one worker and SGBM's two threads;
-docs/speed.md).
-The results are the same as running :func:`process_frame` frame by frame, byte for byte.
+GIL in their heavy loops, so the three overlap; OpenCV's thread count is divided between the
+workers for the run (one thread each on two cores: on the 2-core benchmark machine that gave
+13.0–19.8 frames/s, median 16.7, against 13.5–16.7, median 14.1, with one worker and SGBM's two
+threads; docs/speed.md). The results are the same as running :func:`process_frame` frame by
+frame, byte for byte, as long as the config is not changed while the run is under way (the
+workers match up to two frames ahead with it).
 
 Frames that yield no terrain (:class:`~terrainmap.errors.FrameError`) are counted by reason and
 skipped; any other error ends the run. Either way every sink is closed, so the outputs written
 so far are finalised and readable. Memory is bounded whatever the length of the log: the
-runner keeps only the current frame and a fixed-size sample of per-stage times.
+runner holds at most ``MATCH_WORKERS + 2`` frames (the one being finished, the last written
+until the next is done, and those matched ahead) and a fixed-size sample of per-stage times.
 """
 
 from __future__ import annotations
 
 import itertools
 import logging
-import os
 import random
 import statistics
 import threading
@@ -42,7 +43,7 @@ log = logging.getLogger(__name__)
 
 _RESERVOIR = 4096  # per-stage time samples kept for the medians
 MATCH_WORKERS = 2
-"""Threads matching frames ahead of the main thread (each with its share of OpenCV's threads)."""
+"""Threads matching frames ahead of the main thread, a frame each."""
 
 
 @dataclass
@@ -155,7 +156,10 @@ def _matched_ahead(
                 frame = next(source, None)
                 if frame is None:
                     return None
-                prepared = prepare_match(frame, config, state)
+                try:
+                    prepared = prepare_match(frame, config, state)
+                except FrameError as exc:  # (none is raised there today: counted as elsewhere)
+                    return frame, exc
                 if prepared.extrinsics is None:  # the pose is estimated from this frame, in its turn
                     return matched(frame, prepared)
             finally:
@@ -170,7 +174,7 @@ def _matched_ahead(
             return frame, exc
 
     tickets = itertools.count()
-    with _opencv_threads(_cpus() // MATCH_WORKERS), ThreadPoolExecutor(MATCH_WORKERS, "terrainmap-match") as pool:
+    with _OPENCV_THREADS.divided(MATCH_WORKERS), ThreadPoolExecutor(MATCH_WORKERS, "terrainmap-match") as pool:
         pending = deque(pool.submit(step, next(tickets)) for _ in range(MATCH_WORKERS))
         try:
             while (item := pending.popleft().result()) is not None:
@@ -180,21 +184,34 @@ def _matched_ahead(
             pool.shutdown(cancel_futures=True)  # a ticket not started is not waited for
 
 
-@contextmanager
-def _opencv_threads(count: int):
-    """OpenCV's thread count set to ``count`` (at least 1) for the block, then restored: the
-    workers match in parallel, so SGBM's own threads would only take turns with them."""
-    before = cv2.getNumThreads()
-    cv2.setNumThreads(max(1, count))
-    try:
-        yield
-    finally:
-        cv2.setNumThreads(before)
+class _OpenCVThreads:
+    """OpenCV's thread count (process-wide) divided among the matching workers while runs are
+    under way, and restored when the last of them ends (runs may overlap, in threads): the workers
+    match at once, so SGBM's own threads would only take turns with them. On two cores each
+    worker matches on one thread."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._runs = 0
+        self._before = 0
+
+    @contextmanager
+    def divided(self, workers: int):
+        with self._lock:
+            if self._runs == 0:
+                self._before = cv2.getNumThreads()  # the caller's setting, or OpenCV's own count of the CPUs
+                cv2.setNumThreads(max(1, self._before // workers))
+            self._runs += 1
+        try:
+            yield
+        finally:
+            with self._lock:
+                self._runs -= 1
+                if self._runs == 0:
+                    cv2.setNumThreads(self._before)
 
 
-def _cpus() -> int:
-    """The CPUs this process may run on."""
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+_OPENCV_THREADS = _OpenCVThreads()
 
 
 def _close_all(sinks: list[Sink]) -> None:

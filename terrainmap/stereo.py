@@ -13,16 +13,18 @@ Disparity convention: ``d = u_left − u_right`` as SGBM measures it on the rect
 ``Z = fx·B / (d + doffs)`` with the effective ``doffs = calibration.doffs + (cx_right − cx)``
 (KITTI-style different principal points and Middlebury's ``doffs`` are the same offset and add up).
 
-Threads: OpenCV runs SGBM on all cores by default, which is what the single-process runner wants
-(the ``sgbm_3way`` mode halves its time with 2 threads, see :class:`~terrainmap.config.StereoConfig`).
-A runner that processes frames in several worker processes should call ``cv2.setNumThreads(1)`` in
-each worker; the library never changes this global setting itself.
+Threads: OpenCV runs SGBM on all cores by default (the ``sgbm_3way`` mode halves its time with 2
+threads, see :class:`~terrainmap.config.StereoConfig`). :class:`StereoMatcher` may be called from
+several threads at once; the runner matches two frames at a time and divides OpenCV's thread count
+between them for the run (:func:`terrainmap.runner.run`). A program that processes frames in
+several worker processes should call ``cv2.setNumThreads(1)`` in each worker.
 """
 
 from __future__ import annotations
 
 import logging
 import math
+import threading
 from dataclasses import dataclass, replace
 from functools import lru_cache
 
@@ -272,6 +274,23 @@ def create_sgbm(config: StereoConfig, width: int) -> cv2.StereoSGBM:
     )
 
 
+_SGBM_SETTINGS = ("MinDisparity", "NumDisparities", "BlockSize", "P1", "P2", "Disp12MaxDiff", "PreFilterCap",
+                  "UniquenessRatio", "SpeckleWindowSize", "SpeckleRange", "Mode")
+
+
+def _settings(sgbm: cv2.StereoSGBM) -> tuple:
+    """Every setting of a ``cv2.StereoSGBM``, by its getters."""
+    return tuple(getattr(sgbm, f"get{name}")() for name in _SGBM_SETTINGS)
+
+
+def _copy_of(sgbm: cv2.StereoSGBM) -> cv2.StereoSGBM:
+    """A new ``cv2.StereoSGBM`` with the settings of ``sgbm`` (and a work buffer of its own)."""
+    copy = cv2.StereoSGBM.create()
+    for name, value in zip(_SGBM_SETTINGS, _settings(sgbm), strict=True):
+        getattr(copy, f"set{name}")(value)
+    return copy
+
+
 class StereoMatcher:
     """Rectification, SGBM and reprojection for one calibration, with everything cached. Threads
     may call :meth:`compute` at once (each then matches with an SGBM instance of its own).
@@ -297,10 +316,12 @@ class StereoMatcher:
                 "stereo.num_disparities): the range must hold positive disparities and be narrower than the images"
             )
         self.sgbm = create_sgbm(self.config, calibration.width)
-        """The bare ``cv2.StereoSGBM`` (``sgbm.compute(grey_left, grey_right)`` is "SGBM alone")."""
-        # A cv2.StereoSGBM keeps its work buffer between calls, so threads matching at once (the
-        # runner's workers) each take an instance of their own from here, made when none is free.
-        self._idle = [self.sgbm]
+        """The bare ``cv2.StereoSGBM`` (``sgbm.compute(grey_left, grey_right)`` is "SGBM alone"); a
+        thread that matches while another is matching with it uses a copy of its settings."""
+        # A cv2.StereoSGBM keeps its work buffer between calls: threads matching at once (the
+        # runner's workers) must not share one.
+        self._matching = threading.Lock()  # held while a thread matches with self.sgbm
+        self._spares: list[cv2.StereoSGBM] = []  # copies for the others, kept for the next time
         # config.full_width: columns padded on the left, so that SGBM searches every column whose
         # match can lie left_margin_px inside the right image; the largest disparity kept per column.
         self._pad = max(0, self.config.min_disparity + n - self.config.left_margin_px) if self.config.full_width else 0
@@ -393,14 +414,21 @@ class StereoMatcher:
 
     def _sgbm(self, pair) -> np.ndarray:
         """One SGBM call on the (padded) grey pair → H×W float32 pixels, NaN where invalid."""
-        try:
-            sgbm = self._idle.pop()
-        except IndexError:  # another thread is matching with each instance made so far
-            sgbm = create_sgbm(self.config, self.calibration.width)
-        try:
-            raw = sgbm.compute(*pair)[:, self._pad :]  # int16, disparity × 16
-        finally:
-            self._idle.append(sgbm)
+        if self._matching.acquire(blocking=False):
+            try:
+                raw = self.sgbm.compute(*pair)
+            finally:
+                self._matching.release()
+        else:  # another thread is matching with self.sgbm
+            settings = _settings(self.sgbm)
+            spare = self._spares.pop() if self._spares else None  # (list.pop and append are atomic)
+            if spare is None or _settings(spare) != settings:
+                spare = _copy_of(self.sgbm)
+            try:
+                raw = spare.compute(*pair)
+            finally:
+                self._spares.append(spare)
+        raw = raw[:, self._pad :]  # int16, disparity × 16
         disparity = raw.astype(np.float32)
         disparity *= 1.0 / 16.0
         disparity[raw < self.config.min_disparity * 16] = np.nan

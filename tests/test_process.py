@@ -331,6 +331,59 @@ def test_overlapped_runner_gives_the_sequential_results(tmp_path, keep_sink, pos
         assert all(r.extrinsics is second for r in keep.results[3:]) and second is not first
 
 
+def test_the_runner_waits_for_a_pose_estimated_after_a_failed_frame_and_stops_its_workers_when_a_sink_fails(
+    tmp_path, keep_sink
+):
+    """A blank first frame fails to give a pose (counted); the second estimates it and the frames
+    after it use that pose. A sink failing part way ends the run with no matching thread left,
+    OpenCV's thread count given back and at most MATCH_WORKERS frames read past the failure; runs
+    that overlap (in threads) give it back when the last of them ends."""
+    import threading
+
+    import cv2
+
+    from terrainmap.sim import SimConfig, simulate
+
+    log = tmp_path / "sim.mcap"
+    simulate(log, SimConfig(scene="mounds", frames=6, seed=2, width=320, height=240, focal_px=250.0))
+    with open_source(log) as source:
+        frames = [dataclasses.replace(f, extrinsics=None) for f in source.frames()]
+    blank = np.zeros_like(frames[0].left)
+    frames[0] = dataclasses.replace(frames[0], left=blank, right=blank)
+    threads = cv2.getNumThreads()
+    summary = runner.run(frames, Config(), [keep_sink])
+    assert dict(summary.failures) == {"no_ground": 1} and summary.frames_done == 5
+    poses = {id(r.extrinsics) for r in keep_sink.results}
+    assert len(poses) == 1 and keep_sink.results[0].extrinsics.source == "estimated"
+
+    read = []
+
+    def counted():
+        for frame in frames[1:]:
+            read.append(frame.index)
+            yield frame
+
+    class Failing(type(keep_sink)):
+        def write(self, frame, result):
+            if frame.index == 2:
+                raise OSError("disk full")
+
+    with pytest.raises(OSError, match="disk full"):
+        runner.run(counted(), Config(), [Failing()])
+    assert max(read) <= 2 + runner.MATCH_WORKERS
+    assert not [t for t in threading.enumerate() if t.name.startswith("terrainmap-match")]
+    assert cv2.getNumThreads() == threads
+
+    first, second = runner._OPENCV_THREADS.divided(2), runner._OPENCV_THREADS.divided(2)  # two runs' turns
+    first.__enter__()
+    second.__enter__()
+    assert cv2.getNumThreads() == max(1, threads // 2)
+    first.__exit__(None, None, None)  # the first run ends before the second
+    assert cv2.getNumThreads() == max(1, threads // 2)
+    second.__exit__(None, None, None)
+    assert cv2.getNumThreads() == threads
+
+
 @pytest.fixture(scope="module")
 def small_log(tmp_path_factory):
     from terrainmap.sim import SimConfig, simulate

@@ -475,7 +475,7 @@ def test_rows_that_see_only_sky_are_not_matched():
             heights.append(left.shape[0])
             return sgbm.compute(left, right)
 
-    matcher._idle[:] = [Recorder()]
+    matcher.sgbm = Recorder()
     cropped = matcher.compute(frame.left, frame.right, extrinsics).disparity
     sky_rows = int(np.argmin(matcher.sky(whole.grey, extrinsics).all(axis=1)))
     assert sky_rows > 0.25 * frame.left.shape[0]
@@ -623,7 +623,8 @@ def test_matching_from_a_row_at_or_past_the_last_matches_nothing(passes):
 
 def test_threads_matching_at_once_each_use_an_sgbm_of_their_own_and_get_the_sequential_disparities():
     """OpenCV's SGBM keeps a work buffer between calls; the runner's worker threads share one
-    matcher, so each call made while another is matching takes an instance of its own."""
+    matcher, so a call made while another thread matches with ``matcher.sgbm`` uses a copy of its
+    settings (that copy made again when they change), and gets the same disparities."""
     from concurrent.futures import ThreadPoolExecutor
 
     renderer = SimConfig(scene="mounds", frames=4, seed=1, width=320, height=240, focal_px=250.0).renderer(
@@ -632,9 +633,19 @@ def test_threads_matching_at_once_each_use_an_sgbm_of_their_own_and_get_the_sequ
     frames = [renderer.frame(i) for i in range(4)]
     matcher = StereoMatcher(renderer.rig.calibration())
     alone = [matcher.compute(f.left, f.right).disparity for f in frames]
-    assert len(matcher._idle) == 1
+    assert matcher._spares == []
     with ThreadPoolExecutor(2) as pool:
         together = list(pool.map(lambda f: matcher.compute(f.left, f.right).disparity, frames * 6))
-    assert len(matcher._idle) <= 2 and matcher.sgbm in matcher._idle
     for got, want in zip(together, alone * 6, strict=True):
         np.testing.assert_array_equal(got, want)
+    assert len(matcher._spares) <= 1
+
+    with matcher._matching:  # another thread matching with matcher.sgbm: this call uses a copy
+        np.testing.assert_array_equal(matcher.compute(frames[0].left, frames[0].right).disparity, alone[0])
+        (spare,) = matcher._spares
+        assert spare is not matcher.sgbm
+        matcher.sgbm.setUniquenessRatio(60)  # a caller's tuning reaches the copies too
+        tuned = matcher.compute(frames[0].left, frames[0].right).disparity
+        assert matcher._spares[0].getUniquenessRatio() == 60
+    np.testing.assert_array_equal(tuned, matcher.compute(frames[0].left, frames[0].right).disparity)
+    assert np.isfinite(tuned).sum() < np.isfinite(alone[0]).sum()
