@@ -27,6 +27,10 @@ speed goals. The inputs are synthetic so the figures are comparable anywhere:
 With a log of one's own (:func:`first_frame`, ``terrainmap bench --log PATH``), :func:`all_stages`
 times the same stages on its first stereo pair instead: the frame stages on its images, the core
 stages on that pair's points as the pipeline makes them, seen from its rig.
+
+Then :func:`process_rate` times ``terrainmap process`` as a whole, reading and writing included
+(its two matching workers beside the main thread): frames/s over the log's first pairs, or over
+a still simulated log (:func:`still_log`), held to the goal of at least 15.
 """
 
 from __future__ import annotations
@@ -137,15 +141,59 @@ def numpy_floor(points: np.ndarray, config: Config) -> Stage:
 def sim_frame(scene: str = "mounds", seed: int = 7, width: int = 640, height: int = 480):
     """A rendered stereo pair as a :class:`~terrainmap.types.StereoFrame` (calibration and true
     extrinsics attached, as a log from ``terrainmap simulate`` would give them)."""
-    from .sim import SimConfig
-    from .sim.scenes import build_scene
     from .types import StereoFrame
 
-    renderer = SimConfig(scene=scene, frames=1, seed=seed, width=width, height=height).renderer(
-        build_scene(scene, seed, length_m=10.0)
-    )
-    rendered, rig = renderer.frame(0), renderer.rig
+    _, rig, rendered = _rendered(scene, seed, width, height)
     return StereoFrame(0, rendered.stamp_ns, rendered.left, rendered.right, rig.calibration(), rig.extrinsics())
+
+
+def _rendered(scene: str, seed: int, width: int, height: int):
+    """(scene, rig, first frame) of a short simulated drive over ``scene``."""
+    from .sim import SimConfig
+    from .sim.scenes import build_scene
+
+    built = build_scene(scene, seed, length_m=10.0)
+    renderer = SimConfig(scene=scene, frames=1, seed=seed, width=width, height=height).renderer(built)
+    return built, renderer.rig, renderer.frame(0)
+
+
+def still_log(path: Path, frames: int, scene: str = "mounds", seed: int = 7) -> Path:
+    """A ROS 2 MCAP log as ``terrainmap simulate`` writes it (raw images, camera infos, tf, the
+    truth topics), of ``frames`` copies of :func:`sim_frame`'s pair 0.1 s apart: a vehicle standing
+    still, without the minute of rendering a drive takes."""
+    from .sim.mcap_log import McapLog
+
+    built, rig, rendered = _rendered(scene, seed, 640, 480)
+    with McapLog(path, built, rig, {"scene": scene, "seed": seed, "still": True}) as log:
+        for k in range(frames):
+            log.write(dataclasses.replace(rendered, stamp_ns=rendered.stamp_ns + k * 10**8))
+    return path
+
+
+def process_rate(config: Config, log=None, *, frames: int = 40, runs: int = 3, **open_kwargs) -> dict:
+    """``terrainmap process``'s throughput, reading and writing included: the runner over the first
+    ``frames`` stereo pairs of ``log`` (anything ``process`` reads; by default :func:`still_log`),
+    written to a Foxglove MCAP (lz4) in a temporary folder, ``runs`` times. Returns
+    ``{median_fps, min_fps, max_fps, runs, frames}``, frames/s counted as ``process`` reports it."""
+    import tempfile
+
+    from . import runner
+    from .sinks import open_mcap_sink
+    from .sources import open_source
+
+    rates, done = [], 0
+    with tempfile.TemporaryDirectory(ignore_cleanup_errors=True) as folder:
+        log = log if log is not None else still_log(Path(folder) / "still.mcap", frames)
+        for _ in range(runs):
+            output = Path(folder) / "out.mcap"
+            with open_source(log, **open_kwargs) as source:
+                summary = runner.run(itertools.islice(source.frames(), frames), config,
+                                     [open_mcap_sink(output, config=config)])
+            output.unlink()
+            rates.append(summary.fps)
+            done = summary.frames_done
+    return {"median_fps": statistics.median(rates), "min_fps": min(rates), "max_fps": max(rates), "runs": runs,
+            "frames": done}
 
 
 def first_frame(path, **open_kwargs) -> StereoFrame:

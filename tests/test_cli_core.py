@@ -153,9 +153,9 @@ def test_bench_reports_every_stage(tmp_path, monkeypatch):
     scratch = tmp_path / "tmp"
     scratch.mkdir()
     monkeypatch.setattr(tempfile, "tempdir", str(scratch))
-    result = CliRunner().invoke(cli, ["bench", "--runs", "2", "--json", str(tmp_path / "b.json")])
+    result = CliRunner().invoke(cli, ["bench", "--runs", "2", "--process-frames", "3", "--json", str(tmp_path / "b.json")])
     assert result.exit_code == 0, result.output
-    assert not any(scratch.iterdir())  # the MCAP that mcap_write times is gone with its folder
+    assert not any(scratch.iterdir())  # the MCAPs that mcap_write and process write are gone with their folders
     assert "machine:" in result.output
     assert "frame_total / sgbm_alone:" in result.output and "grid + labels, ms (numpy's floor for their passes: " in result.output
     assert "frame_every_row / sgbm_alone:" in result.output
@@ -164,6 +164,11 @@ def test_bench_reports_every_stage(tmp_path, monkeypatch):
                  "mcap_write"):
         assert set(stages[name]) == {"median_ms", "min_ms", "max_ms", "runs"}
         assert 0 < stages[name]["min_ms"] <= stages[name]["median_ms"] <= stages[name]["max_ms"]
+    process = stages["process"]  # the runner over a still simulated log, three times
+    assert process["runs"] == 3 and process["frames"] == 3
+    assert 0 < process["min_fps"] <= process["median_fps"] <= process["max_fps"]
+    assert "process, frames/s over 3 pairs of a still simulated log, 3 runs: median " in result.output
+    assert "process, frames/s (median): " in result.output and "the goal of at least 15)" in result.output
 
 
 def test_bench_goal_lines_show_the_digits_that_decide(monkeypatch):
@@ -174,8 +179,11 @@ def test_bench_goal_lines_show_the_digits_that_decide(monkeypatch):
     monkeypatch.setattr(lib, "run", lambda config, runs, stages: {})
     monkeypatch.setattr(lib, "goals", lambda results: [("a", 1.6004, 1.6), ("b", 1.5996, 1.6), ("c", 1.6, 1.6),
                                                        ("d", 1.2345, 1.6), ("e", 1.60004, 1.6)])
+    rate = {"median_fps": 14.9996, "min_fps": 14.0, "max_fps": 16.0, "runs": 3, "frames": 40}
+    monkeypatch.setattr(lib, "process_rate", lambda config, log, frames, **kwargs: rate)
     result = CliRunner().invoke(cli, ["bench", "--runs", "1"])
     assert result.exit_code == 0, result.output
+    assert "process, frames/s (median): 14.9996 (MISSES the goal of at least 15)" in result.output
     assert "a: 1.6004 (MISSES the goal of at most 1.6)" in result.output
     assert "b: 1.60 (meets the goal of at most 1.6)" in result.output
     assert "c: 1.60 (meets" in result.output and "d: 1.23 (meets" in result.output
@@ -190,6 +198,7 @@ def test_bench_times_the_first_pair_of_a_log(tmp_path):
     result = CliRunner().invoke(cli, ["bench", "--log", str(log), "--runs", "1", "--json", str(tmp_path / "b.json")])
     assert result.exit_code == 0, result.output
     assert f"input: the first stereo pair of {log}, 320×240" in result.output
+    assert f"process, frames/s over the first 2 stereo pairs of {log}, 3 runs: " in result.output
     stages = json.loads((tmp_path / "b.json").read_text())
     assert {"grid", "surface", "labels", "obstacles", "sgbm_alone", "frame_total", "upright", "mcap_write"} <= set(stages)
     # the log's topics can be named, as for process (a log whose names do not give them away)
