@@ -51,7 +51,7 @@ def bench(
         results["process"] = rate
         where = f"the first {rate['frames']} stereo pairs of {log_path}" if log_path else (
             f"{rate['frames']} pairs of a still simulated log")
-        click.echo(f"process, frames/s over {where}, 3 runs: median {rate['median_fps']:.1f}, "
+        click.echo(f"process, frames/s over {where}, {rate['runs']} runs: median {rate['median_fps']:.1f}, "
                    f"min {rate['min_fps']:.1f}, max {rate['max_fps']:.1f}")
         click.echo(_goal_line("process, frames/s (median)", rate["median_fps"], 15.0, at_most=False))
     if json_path:

@@ -255,9 +255,10 @@ def prepare_match(frame: StereoFrame, config: Config, state: PipelineState) -> P
 
 def match_frame(frame: StereoFrame, config: Config, state: PipelineState, prepared: Prepared | None = None) -> Matched:
     """SGM disparity → 3D points in the vehicle frame (uses and updates ``state.matcher``,
-    ``state.extrinsics`` and ``state.checked`` only, so it can run ahead of :func:`finish_frame`). ``prepared``: what
-    :func:`prepare_match` gave for this frame, when it was called apart; only a frame prepared
-    without extrinsics updates ``state`` (with the pose estimated from it)."""
+    ``state.extrinsics`` and ``state.checked`` only, so it can run ahead of :func:`finish_frame`).
+    ``prepared``: what :func:`prepare_match` gave for this frame, called apart (the runner); the
+    matching then updates ``state`` only where the frame had no extrinsics (with the pose
+    estimated from it)."""
     matcher, extrinsics, watch = prepared or prepare_match(frame, config, state)
     with watch("stereo"):
         stereo = matcher.compute(frame.left, frame.right, extrinsics)  # drops the sky if it can

@@ -419,10 +419,12 @@ class StereoMatcher:
                 raw = self.sgbm.compute(*pair)
             finally:
                 self._matching.release()
-        else:  # another thread is matching with self.sgbm
-            settings = _settings(self.sgbm)
-            spare = self._spares.pop() if self._spares else None  # (list.pop and append are atomic)
-            if spare is None or _settings(spare) != settings:
+        else:  # another thread is matching with self.sgbm: a copy of its settings
+            try:
+                spare = self._spares.pop()  # (list.pop and append are atomic)
+            except IndexError:
+                spare = None
+            if spare is None or _settings(spare) != _settings(self.sgbm):
                 spare = _copy_of(self.sgbm)
             try:
                 raw = spare.compute(*pair)
