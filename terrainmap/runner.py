@@ -91,7 +91,9 @@ def run(
     *,
     on_frame: Callable[[RunSummary, StereoFrame, FrameResult | None], None] | None = None,
 ) -> RunSummary:
-    """Process every frame of ``frames`` and write each result to every sink.
+    """Process every frame of ``frames`` and write each result to every sink, the next frames
+    matched ahead in :data:`MATCH_WORKERS` worker threads (module docstring; while the run is under
+    way, OpenCV's process-wide thread count is divided between them).
 
     ``on_frame`` is called after each frame (the result is None for a failed frame) — the CLI
     draws its progress line there. Sinks are closed when the run ends, however it ends.
