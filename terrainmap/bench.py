@@ -158,9 +158,10 @@ def _rendered(scene: str, seed: int, width: int, height: int):
 
 
 def still_log(path: Path, frames: int, scene: str = "mounds", seed: int = 7) -> Path:
-    """A ROS 2 MCAP log as ``terrainmap simulate`` writes it (raw images, camera infos, tf, the
-    truth topics), of ``frames`` copies of :func:`sim_frame`'s pair 0.1 s apart: a vehicle standing
-    still, without the minute of rendering a drive takes."""
+    """A ROS 2 MCAP log with the topics ``terrainmap simulate`` writes (raw images, camera infos,
+    tf, the truth's images and boxes) of ``frames`` copies of :func:`sim_frame`'s pair 0.1 s
+    apart: a vehicle standing still, without the minute of rendering a drive takes. Its metadata
+    is no full scene description: ``eval accuracy`` cannot read its truth."""
     from .sim.mcap_log import McapLog
 
     built, rig, rendered = _rendered(scene, seed, 640, 480)
@@ -174,14 +175,20 @@ def process_rate(config: Config, log=None, *, frames: int = 40, runs: int = 3, *
     """``terrainmap process``'s throughput, reading and writing included: the runner over the first
     ``frames`` stereo pairs of ``log`` (anything ``process`` reads; by default :func:`still_log`),
     written to a Foxglove MCAP (lz4) in a temporary folder, ``runs`` times. Returns
-    ``{median_fps, min_fps, max_fps, runs, frames}``, frames/s counted as ``process`` reports it."""
+    ``{median_fps, min_fps, max_fps, runs, frames, failed}``: frames/s as the runner counts them
+    (pairs read, failed ones too, over its wall time; ``process`` reads its first pair before),
+    the pairs read in a run and the failed ones by reason (a failed pair skips the terrain fit, so
+    a run with failures is faster than one without)."""
     import tempfile
 
     from . import runner
+    from .errors import InputError
     from .sinks import open_mcap_sink
     from .sources import open_source
 
-    rates, done = [], 0
+    if runs < 1 or frames < 1:
+        raise InputError(f"process_rate: runs and frames must be at least 1, got {runs} and {frames}")
+    rates = []
     with tempfile.TemporaryDirectory(ignore_cleanup_errors=True) as folder:
         log = log if log is not None else still_log(Path(folder) / "still.mcap", frames)
         for _ in range(runs):
@@ -191,9 +198,8 @@ def process_rate(config: Config, log=None, *, frames: int = 40, runs: int = 3, *
                                      [open_mcap_sink(output, config=config)])
             output.unlink()
             rates.append(summary.fps)
-            done = summary.frames_done
     return {"median_fps": statistics.median(rates), "min_fps": min(rates), "max_fps": max(rates), "runs": runs,
-            "frames": done}
+            "frames": summary.frames_done + summary.frames_failed, "failed": dict(summary.failures)}
 
 
 def first_frame(path, **open_kwargs) -> StereoFrame:

@@ -167,8 +167,14 @@ def test_bench_reports_every_stage(tmp_path, monkeypatch):
     process = stages["process"]  # the runner over a still simulated log, three times
     assert process["runs"] == 3 and process["frames"] == 3
     assert 0 < process["min_fps"] <= process["median_fps"] <= process["max_fps"]
-    assert "process, frames/s over 3 pairs of a still simulated log, 3 runs: median " in result.output
+    assert "process, frames/s over 3 pairs of a still simulated log (640×480), 3 runs: median " in result.output
+    assert process["failed"] == {}
     assert "process, frames/s (median): " in result.output and "the goal of at least 15)" in result.output
+
+
+def test_bench_refuses_a_still_log_longer_than_it_writes():
+    result = CliRunner().invoke(cli, ["bench", "--process-frames", "1001"])
+    assert result.exit_code == 2 and "--process-frames" in result.output and "at most 1000 without --log" in result.output
 
 
 def test_bench_goal_lines_show_the_digits_that_decide(monkeypatch):
@@ -179,7 +185,7 @@ def test_bench_goal_lines_show_the_digits_that_decide(monkeypatch):
     monkeypatch.setattr(lib, "run", lambda config, runs, stages: {})
     monkeypatch.setattr(lib, "goals", lambda results: [("a", 1.6004, 1.6), ("b", 1.5996, 1.6), ("c", 1.6, 1.6),
                                                        ("d", 1.2345, 1.6), ("e", 1.60004, 1.6)])
-    rate = {"median_fps": 14.9996, "min_fps": 14.0, "max_fps": 16.0, "runs": 3, "frames": 40}
+    rate = {"median_fps": 14.9996, "min_fps": 14.0, "max_fps": 16.0, "runs": 3, "frames": 40, "failed": {}}
     monkeypatch.setattr(lib, "process_rate", lambda config, log, frames, **kwargs: rate)
     result = CliRunner().invoke(cli, ["bench", "--runs", "1"])
     assert result.exit_code == 0, result.output
@@ -194,16 +200,45 @@ def test_bench_times_the_first_pair_of_a_log(tmp_path):
     from terrainmap.sim import SimConfig, simulate
 
     log = tmp_path / "sim.mcap"
-    simulate(log, SimConfig(scene="flat", frames=2, seed=1, width=320, height=240, focal_px=250.0))
-    result = CliRunner().invoke(cli, ["bench", "--log", str(log), "--runs", "1", "--json", str(tmp_path / "b.json")])
+    simulate(log, SimConfig(scene="flat", frames=3, seed=1, width=320, height=240, focal_px=250.0))
+    result = CliRunner().invoke(cli, ["bench", "--log", str(log), "--runs", "1", "--process-frames", "2",
+                                      "--json", str(tmp_path / "b.json")])
     assert result.exit_code == 0, result.output
     assert f"input: the first stereo pair of {log}, 320×240" in result.output
-    assert f"process, frames/s over the first 2 stereo pairs of {log}, 3 runs: " in result.output
+    assert f"process, frames/s over the first 2 stereo pairs of {log} (320×240), 3 runs: " in result.output
+    assert "the goal of at least 15 frames/s is set at 640×480, so the rate is not held to it" in result.output
     stages = json.loads((tmp_path / "b.json").read_text())
     assert {"grid", "surface", "labels", "obstacles", "sgbm_alone", "frame_total", "upright", "mcap_write"} <= set(stages)
     # the log's topics can be named, as for process (a log whose names do not give them away)
     topic = CliRunner().invoke(cli, ["bench", "--log", str(log), "--runs", "1", "--left-topic", "/stereo/left/raw"])
     assert "left topic '/stereo/left/raw' is not an image topic of this log" in str(topic.exception)
+
+
+def test_bench_says_when_process_could_not_be_timed_or_pairs_failed_and_keeps_the_stage_timings(tmp_path):
+    """Only the first pair serves the stages; a later pair that ends process (images of two sizes)
+    leaves process untimed, said in one line, and pairs that give no terrain keep the rate (faster
+    without the fit) from being held to the goal."""
+    import cv2
+    import numpy as np
+
+    from terrainmap.sim import SimConfig, simulate
+
+    log = tmp_path / "log"
+    simulate(log, SimConfig(scene="flat", frames=3, seed=1, width=320, height=240, focal_px=250.0, format="folder"))
+    third = sorted((log / "right").iterdir())[2]
+    cv2.imwrite(str(third), cv2.resize(cv2.imread(str(third)), (160, 120)))
+    result = CliRunner().invoke(cli, ["bench", "--log", str(log), "--runs", "1", "--json", str(tmp_path / "b.json")])
+    assert result.exit_code == 0, result.output
+    assert "process: not timed (" in result.output and "differ in size" in result.output
+    stages = json.loads((tmp_path / "b.json").read_text())
+    assert "frame_total" in stages and "process" not in stages
+    for side in ("left", "right"):
+        for path in sorted((log / side).iterdir())[1:]:  # flat grey: no points, no terrain
+            cv2.imwrite(str(path), np.full((240, 320), 128, np.uint8))
+    result = CliRunner().invoke(cli, ["bench", "--log", str(log), "--runs", "1"])
+    assert result.exit_code == 0, result.output
+    assert f"the first 3 stereo pairs of {log} (320×240)" in result.output
+    assert "process: 2 of those pairs failed (" in result.output and "not held to the goal" in result.output
 
 
 def test_bench_names_the_log_whose_first_stamp_no_mcap_can_hold(tmp_path, capsys):

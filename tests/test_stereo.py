@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 from conftest import load_kitti
 
+from terrainmap import stereo
 from terrainmap.config import StereoConfig
 from terrainmap.errors import CalibrationError, ConfigError, InputError
 from terrainmap.extrinsics import extrinsics_from_pose
@@ -649,3 +650,11 @@ def test_threads_matching_at_once_each_use_an_sgbm_of_their_own_and_get_the_sequ
         assert matcher._spares[0].getUniquenessRatio() == 60
     np.testing.assert_array_equal(tuned, matcher.compute(frames[0].left, frames[0].right).disparity)
     assert np.isfinite(tuned).sum() < np.isfinite(alone[0]).sum()
+
+    def written(sgbm) -> str:  # every setting OpenCV saves, not only those the copy reads
+        storage = cv2.FileStorage(".yml", cv2.FILE_STORAGE_WRITE | cv2.FILE_STORAGE_MEMORY)
+        sgbm.write(storage)
+        return storage.releaseAndGetString()
+
+    odd = cv2.StereoSGBM.create(3, 32, 7, 100, 900, 2, 31, 5, 50, 3, cv2.STEREO_SGBM_MODE_HH4)  # none a default
+    assert written(stereo._copy_of(odd)) == written(odd)
