@@ -34,7 +34,7 @@ def run_obstacle_stage(
     vehicle_pose: np.ndarray | None = None,
     camera: StereoCamera | None = None,
     index: np.ndarray | None = None,
-) -> tuple[list[Obstacle], np.ndarray]:
+) -> tuple[list[Obstacle], np.ndarray, list[Obstacle]]:
     """Obstacles of this frame (tracked) and the cost layer.
 
     Parameters
@@ -67,6 +67,8 @@ def run_obstacle_stage(
         Tracked obstacles, vehicle frame; those with ``confirmed`` true are the obstacles.
     cost : (m0, m1) float32
         Traversability cost in [0, 1], NaN where unknown (:mod:`terrainmap.cost`).
+    occupied : list of Obstacle
+        What else occupies the cost map (:attr:`~terrainmap.types.FrameResult.occupied`).
     """
     check_section(config.cost)  # (its occupied_misses is used before the cost is computed)
     elevation = layers["elevation"]
@@ -81,6 +83,7 @@ def run_obstacle_stage(
     # Cells are occupied by the confirmed tracks, by the clusters taken for parts of them and by
     # those missed in the last cost.occupied_misses frames
     missed = min(config.cost.occupied_misses, config.tracking.reconfirm_misses)  # (CostConfig.occupied_misses)
-    occupying = [*obstacles, *tracker.parts, *tracker.coasting(missed)]
-    cost = traversability_cost(elevation, layers["slope"], grid.valid, grid.config, occupying, config.cost, step=step)
-    return obstacles, cost
+    occupied = [*tracker.parts, *tracker.coasting(missed)]
+    cost = traversability_cost(elevation, layers["slope"], grid.valid, grid.config, [*obstacles, *occupied],
+                               config.cost, step=step)
+    return obstacles, cost, occupied

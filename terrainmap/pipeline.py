@@ -296,7 +296,7 @@ def finish_frame(frame: StereoFrame, matched: Matched, config: Config, state: Pi
             )
             terrain.point_labels = labels
     with watch("obstacles"):
-        obstacles, cost = run_obstacle_stage(
+        obstacles, cost, occupied = run_obstacle_stage(
             points, terrain.point_labels, terrain.grid, terrain.layers, frame.stamp_ns, state.tracker, config,
             vehicle_pose=frame.vehicle_pose, camera=camera, index=terrain.index,
         )
@@ -314,6 +314,7 @@ def finish_frame(frame: StereoFrame, matched: Matched, config: Config, state: Pi
         image=matched.stereo.image,
         pinhole=matched.stereo.pinhole,
         obstacles=obstacles,
+        occupied=occupied,
         stats={**terrain.stats, "points": float(len(points)), "obstacles": float(len(obstacles))},
         timings_ms=watch.ms,
     )

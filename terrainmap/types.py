@@ -161,6 +161,10 @@ class FrameResult:
     image: np.ndarray | None = None  # rectified left image
     pinhole: object | None = None  # terrainmap.stereo.RectifiedPinhole of image and disparity
     obstacles: list[Obstacle] = field(default_factory=list)
+    occupied: list[Obstacle] = field(default_factory=list)
+    """What else occupies the ``cost`` layer, vehicle frame: clusters taken for parts of a confirmed
+    obstacle (``confirmed`` false, that obstacle's ``track_id``) and confirmed obstacles missed in
+    the last frames, at their predicted places (``confirmed`` true; ``cost.occupied_misses``)."""
     stats: dict[str, float] = field(default_factory=dict)
     timings_ms: dict[str, float] = field(default_factory=dict)
 

@@ -245,7 +245,7 @@ def _stage(plane, points, labels, config, tracker, stamp, slope_deg=0.0):
     elevation = plane.on_grid(*cell_centers(GRID))
     layers = {"elevation": elevation, "slope": np.full(GRID.shape, np.deg2rad(slope_deg)),
               "label": label_cells(grid, elevation, config.segmentation)}
-    return run_obstacle_stage(points, labels, grid, layers, stamp, tracker, config)
+    return run_obstacle_stage(points, labels, grid, layers, stamp, tracker, config)[:2]  # (not what else occupies)
 
 
 def test_stage_on_a_scene_marks_the_box_once_confirmed_and_never_before():

@@ -47,6 +47,12 @@ def make_layers(grid: GridConfig, *, cost: bool = True) -> dict[str, np.ndarray]
     return layers
 
 
+OCCUPIED = [  # what else occupies the cost map: a part of track 7, and track 11 unseen in this frame
+    Obstacle(np.array([4.8, 0.9, 0.3]), np.array([0.4, 0.3, 0.6]), 0.1, 0.6, 15, 4.9, "positive", 7, False),
+    Obstacle(np.array([6.0, -1.0, 0.5]), np.array([0.7, 0.7, 1.0]), 0.5, 1.0, 30, 6.1, "positive", 11, True),
+]
+
+
 def make_frame(index: int, *, grid: GridConfig = GRID, points: int = 50, source: str = "calibration", cost=True):
     rng = np.random.default_rng(index)
     stamp_ns = STAMP0 + index * 100_000_000
@@ -77,6 +83,7 @@ def make_frame(index: int, *, grid: GridConfig = GRID, points: int = 50, source:
         terrain=None,
         layers=make_layers(grid, cost=cost),
         obstacles=[obstacles[k] for k in ([], [0, 2], [0, 1, 2])[index % 3]],  # replaced each frame; #9 tentative
+        occupied=OCCUPIED if index % 3 == 2 else [],
     )
     calibration = StereoCalibration(width=4, height=3, fx=1.0, fy=1.0, cx=2.0, cy=1.5, baseline_m=0.5)
     image = np.zeros((3, 4), np.uint8)
@@ -230,15 +237,20 @@ def test_foxglove_obstacles_replace_previous_entities(fox_file):
     for (_, _, update), (_frame, result) in zip(updates, frames, strict=True):
         assert [d.type for d in update.deletions] == [1]  # ALL
         shown = [o for o in result.obstacles if o.confirmed]  # a tentative track is no obstacle yet
-        assert len(update.entities) == len(shown)
-        for entity, obstacle in zip(update.entities, shown, strict=True):
-            cube, text = entity.cubes[0], entity.texts[0]
+        assert len(update.entities) == len(shown) + len(result.occupied)
+        for entity, obstacle in zip(update.entities, shown + result.occupied, strict=True):
+            cube = entity.cubes[0]
             assert entity.frame_id == "base_link"
             np.testing.assert_allclose([cube.pose.position.x, cube.pose.position.y, cube.pose.position.z], obstacle.center_m)
             np.testing.assert_allclose([cube.size.x, cube.size.y, cube.size.z], obstacle.size_m)
             yaw = 2 * math.atan2(cube.pose.orientation.z, cube.pose.orientation.w)
             assert yaw == pytest.approx(obstacle.yaw_rad)
-            assert text.text == f"{obstacle.track_id} {obstacle.kind} {obstacle.height_m:.2f} m"
+        for entity, obstacle in zip(update.entities, shown, strict=False):
+            assert entity.texts[0].text == f"{obstacle.track_id} {obstacle.kind} {obstacle.height_m:.2f} m"
+        occupied = update.entities[len(shown):]  # grey, after the obstacles
+        assert [(e.id, e.texts[0].text) for e in occupied] == [("occupied/0", "part of 7"), ("occupied/1", "11 unseen")][
+            : len(occupied)]
+        assert all(e.cubes[0].color.r == e.cubes[0].color.g == e.cubes[0].color.b for e in occupied)
         if len(shown) == 2:
             assert update.entities[0].id == "obstacle/7"
             assert update.entities[0].cubes[0].color.r > update.entities[0].cubes[0].color.b  # positive: red

@@ -171,18 +171,23 @@ def test_marker_array(ros_file):
             first, *markers = msg.markers
             assert first.action == 3  # DELETEALL
             shown = [o for o in result.obstacles if o.confirmed]  # a tentative track is no obstacle yet
-            assert len(markers) == 2 * len(shown)
-            for cube, text, obstacle in zip(markers[::2], markers[1::2], shown, strict=True):
-                assert (cube.type, cube.action, cube.ns, text.type, text.ns) == (1, 0, "obstacles", 9, "obstacle_labels")
+            assert len(markers) == 2 * (len(shown) + len(result.occupied))
+            namespaces = [("obstacles", "obstacle_labels")] * len(shown) + [("occupied", "occupied_labels")] * len(
+                result.occupied)
+            for cube, text, obstacle, (ns, labels) in zip(markers[::2], markers[1::2], shown + result.occupied,
+                                                          namespaces, strict=True):
+                assert (cube.type, cube.action, cube.ns, text.type, text.ns) == (1, 0, ns, 9, labels)
                 assert cube.header.frame_id == "base_link" and stamp_ns(cube.header) == frame.stamp_ns
                 np.testing.assert_allclose([cube.pose.position.x, cube.pose.position.y, cube.pose.position.z],
                                            obstacle.center_m)
                 np.testing.assert_allclose([cube.scale.x, cube.scale.y, cube.scale.z], obstacle.size_m)
                 assert 2 * math.atan2(cube.pose.orientation.z, cube.pose.orientation.w) == pytest.approx(obstacle.yaw_rad)
-                assert text.text == f"{obstacle.track_id} {obstacle.kind} {obstacle.height_m:.2f} m"
+                if ns == "obstacles":
+                    assert text.text == f"{obstacle.track_id} {obstacle.kind} {obstacle.height_m:.2f} m"
                 assert text.pose.position.z > cube.pose.position.z and text.pose.orientation.w == 1.0
             if len(shown) == 2:
-                assert [m.id for m in markers] == [7, 7, 8, 8]  # the track ids
+                assert [m.id for m in markers] == [7, 7, 8, 8, 0, 0, 1, 1]  # the track ids, then n
+                assert [m.text for m in markers[5::2]] == ["part of 7", "11 unseen"]
 
 
 def test_tf_static_once_and_stamps(ros_file):

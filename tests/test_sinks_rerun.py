@@ -19,7 +19,7 @@ from terrainmap.sources import open_source
 ENTITIES = {
     "/world/vehicle", "/world/vehicle/points", "/world/vehicle/camera/image", "/world/vehicle/camera/image/labels",
     "/depth", "/world/vehicle/grid/samples", "/world/vehicle/grid/equalized", "/world/vehicle/terrain/slope",
-    "/world/vehicle/terrain/elevation", "/world/vehicle/terrain/cost", "/world/vehicle/obstacles",
+    "/world/vehicle/terrain/elevation", "/world/vehicle/terrain/cost", "/world/vehicle/obstacles", "/world/vehicle/occupied",
     "/timings/surface", "/stats/fit/iterations",
 }
 
@@ -170,8 +170,9 @@ def test_what_the_recording_shows_is_what_was_computed(log, tmp_path, keep_sink)
     mesh = _columns(rrd, "/world/vehicle/terrain/elevation", "Mesh3D:vertex_positions")
     equalized = _columns(rrd, "/world/vehicle/grid/equalized", "Points3D:positions")
     boxes = _columns(rrd, "/world/vehicle/obstacles", "Boxes3D:half_sizes")
+    occupied = _columns(rrd, "/world/vehicle/occupied", "Boxes3D:half_sizes")
     labels = _columns(rrd, "/world/vehicle/camera/image/labels", "SegmentationImage:buffer")
-    assert len(keep.results) == 3 and any(boxes.values())
+    assert len(keep.results) == 3 and any(boxes.values()) and any(occupied.values())  # (a track unseen in frame 2)
     for k, result in enumerate(keep.results):
         np.testing.assert_allclose(np.array(mesh[k])[:, 2], result.layers["elevation"].ravel(), atol=1e-6)
         valid = result.grid.valid
@@ -179,6 +180,8 @@ def test_what_the_recording_shows_is_what_was_computed(log, tmp_path, keep_sink)
         confirmed = [o for o in result.obstacles if o.confirmed]
         shown = np.array(boxes.get(k) or []).reshape(-1, 3)
         np.testing.assert_allclose(shown, [o.size_m / 2 for o in confirmed] or np.zeros((0, 3)), atol=1e-6)
+        grey = np.array(occupied.get(k) or []).reshape(-1, 3)
+        np.testing.assert_allclose(grey, [o.size_m / 2 for o in result.occupied] or np.zeros((0, 3)), atol=1e-6)
         image = np.array(labels[k][0], np.uint8).reshape(result.image.shape[:2])  # one image, its bytes
         np.testing.assert_array_equal(image[result.pixels[:, 1], result.pixels[:, 0]], result.point_labels)
 

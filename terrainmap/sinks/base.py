@@ -19,7 +19,7 @@ import logging
 import os
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Protocol, runtime_checkable
+from typing import NamedTuple, Protocol, runtime_checkable
 
 import numpy as np
 from mcap.data_stream import RecordBuilder
@@ -41,7 +41,9 @@ FLOAT_LAYERS = frozenset({"elevation", "slope", "cost"})
 POINT_DTYPE = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("label", "u1")])
 """Packed point record of both flavours: 13 bytes, x, y, z in metres (vehicle frame), Label."""
 OBSTACLE_RGBA = {"positive": (1.0, 0.35, 0.1, 0.85), "negative": (0.3, 0.3, 1.0, 0.85)}
-"""Box colour by :attr:`Obstacle.kind` (others: grey)."""
+"""Box colour by :attr:`Obstacle.kind`."""
+OCCUPIED_RGBA = (0.6, 0.6, 0.6, 0.5)
+"""Box colour of what occupies the cost map without being a confirmed obstacle of the frame."""
 
 
 def check_config(what: str, config: Config) -> None:
@@ -337,17 +339,27 @@ def points_record(result: FrameResult, head: bytes, tail: bytes = b"", stride: i
     return record
 
 
-def obstacle_text(obstacle: Obstacle) -> str:
-    """Label shown next to an obstacle: ``"<track id> <kind> <height> m"``."""
-    return f"{obstacle.track_id} {obstacle.kind} {obstacle.height_m:.2f} m"
+class Box(NamedTuple):
+    """A box the outputs draw: ``group`` "obstacle" (a confirmed obstacle, ``number`` its track id)
+    or "occupied" (what else occupies the cost map, ``number`` counting from 0 in the frame)."""
+
+    group: str
+    number: int
+    obstacle: Obstacle
+    rgba: tuple[float, float, float, float]
+    text: str
 
 
-def obstacle_rgba(obstacle: Obstacle) -> tuple[float, float, float, float]:
-    """Box colour (r, g, b, a in [0, 1]) by kind."""
-    return OBSTACLE_RGBA.get(obstacle.kind, (0.6, 0.6, 0.6, 0.85))
-
-
-def confirmed_obstacles(result: FrameResult) -> list[Obstacle]:
-    """The obstacles every output shows: the confirmed tracks (a detection seen in one frame
-    only, or a track not yet confirmed, is not an obstacle; :mod:`terrainmap.tracking`)."""
-    return [o for o in result.obstacles if o.confirmed]
+def shown_boxes(result: FrameResult) -> list[Box]:
+    """The boxes every output draws: the confirmed tracks (a detection seen in one frame only, or
+    a track not yet confirmed, is not an obstacle; :mod:`terrainmap.tracking`), coloured by kind
+    and labelled ``"<track id> <kind> <height> m"``; then, in grey, what else occupies the cost
+    map (:attr:`FrameResult.occupied`): ``"part of <track id>"`` for a cluster taken for part of
+    a confirmed obstacle, ``"<track id> unseen"`` for a confirmed obstacle missed in the last
+    frames, at its predicted place."""
+    boxes = [Box("obstacle", o.track_id, o, OBSTACLE_RGBA.get(o.kind, OCCUPIED_RGBA),
+                 f"{o.track_id} {o.kind} {o.height_m:.2f} m") for o in result.obstacles if o.confirmed]
+    for k, o in enumerate(result.occupied):
+        text = f"{o.track_id} unseen" if o.confirmed else f"part of {o.track_id}"
+        boxes.append(Box("occupied", k, o, OCCUPIED_RGBA, text))
+    return boxes

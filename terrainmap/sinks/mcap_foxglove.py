@@ -12,8 +12,9 @@ Topics, all in the vehicle frame (``Extrinsics.vehicle_frame_id``: ``base_link``
   the grid's corner ``(x_min_m, y_min_m, 0)`` with identity orientation.
 - ``/terrainmap/points`` ``foxglove.PointCloud``: x, y, z float32 and uint8 ``label``.
 - ``/terrainmap/obstacles`` ``foxglove.SceneUpdate``: deletes all previous entities, then one
-  entity per confirmed obstacle with a cube (coloured by kind) and a text
-  ``"<id> <kind> <height> m"``.
+  entity per confirmed obstacle (id ``obstacle/<track id>``) with a cube (coloured by kind) and a
+  text ``"<id> <kind> <height> m"``, and a grey one per box of what else occupies the cost map
+  (id ``occupied/<n>``, text ``"part of <id>"`` or ``"<id> unseen"``; ``FrameResult.occupied``).
 - ``/tf`` and ``/tf_static`` ``foxglove.FrameTransforms``: ``base_link`` → camera frame, and on
   ``/tf`` each frame's ``odom → base_link`` where the source gave the vehicle pose (so Foxglove
   can show the drive in the odometry frame).
@@ -47,17 +48,16 @@ from mcap_protobuf.schema import register_schema
 from mcap_protobuf.writer import Writer
 
 from ..ros2defs import yaw_quaternion
-from ..types import FrameResult, Obstacle, StereoFrame
+from ..types import FrameResult, StereoFrame
 from .base import (
     FLOAT_LAYERS,
     METADATA_NAME,
     POINT_DTYPE,
+    Box,
     McapSink,
-    confirmed_obstacles,
     grid_layers,
-    obstacle_rgba,
-    obstacle_text,
     points_record,
+    shown_boxes,
 )
 
 FLOAT32 = PackedElementField.FLOAT32  # 7
@@ -135,15 +135,16 @@ def _varint(value: int) -> bytes:
             return bytes(out)
 
 
-def _entity(obstacle: Obstacle, stamp: Timestamp, frame_id: str) -> SceneEntity:
+def _entity(box: Box, stamp: Timestamp, frame_id: str) -> SceneEntity:
+    obstacle = box.obstacle
     center = np.asarray(obstacle.center_m, float)
     size = np.asarray(obstacle.size_m, float)
-    r, g, b, a = obstacle_rgba(obstacle)
+    r, g, b, a = box.rgba
     top = center + [0.0, 0.0, size[2] / 2 + 0.3]
     return SceneEntity(
         timestamp=stamp,
         frame_id=frame_id,
-        id=f"obstacle/{obstacle.track_id}",
+        id=f"{box.group}/{box.number}",
         cubes=[
             CubePrimitive(
                 pose=_pose(center, yaw_quaternion(obstacle.yaw_rad)),
@@ -158,20 +159,20 @@ def _entity(obstacle: Obstacle, stamp: Timestamp, frame_id: str) -> SceneEntity:
                 font_size=14.0,
                 scale_invariant=True,
                 color=Color(r=1.0, g=1.0, b=1.0, a=1.0),
-                text=obstacle_text(obstacle),
+                text=box.text,
             )
         ],
     )
 
 
 def obstacles_message(result: FrameResult) -> SceneUpdate:
-    """``foxglove.SceneUpdate`` that deletes every earlier entity and adds this frame's confirmed
-    obstacles (entity id ``obstacle/<track id>``)."""
+    """``foxglove.SceneUpdate`` that deletes every earlier entity and adds this frame's boxes
+    (:func:`~.base.shown_boxes`): entity ids ``obstacle/<track id>`` and ``occupied/<n>``."""
     stamp = _timestamp(result.stamp_ns)
     frame_id = result.extrinsics.vehicle_frame_id
     return SceneUpdate(
         deletions=[SceneEntityDeletion(timestamp=stamp, type=SceneEntityDeletion.ALL)],
-        entities=[_entity(obstacle, stamp, frame_id) for obstacle in confirmed_obstacles(result)],
+        entities=[_entity(box, stamp, frame_id) for box in shown_boxes(result)],
     )
 
 

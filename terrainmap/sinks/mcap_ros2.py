@@ -19,7 +19,8 @@ Topics, all in the vehicle frame (``Extrinsics.vehicle_frame_id``: ``base_link``
 - ``/terrainmap/points`` ``sensor_msgs/msg/PointCloud2``: x, y, z FLOAT32 (7), label UINT8 (2).
 - ``/terrainmap/obstacles`` ``visualization_msgs/msg/MarkerArray``: a DELETEALL marker, then per
   confirmed obstacle a CUBE (namespace ``obstacles``) and a TEXT_VIEW_FACING label
-  (``obstacle_labels``), marker id = track id.
+  (``obstacle_labels``), marker id = track id; and per box of what else occupies the cost map
+  (``FrameResult.occupied``) a grey CUBE and label in ``occupied`` and ``occupied_labels``, id n.
 - ``/tf`` and ``/tf_static`` ``tf2_msgs/msg/TFMessage``: ``base_link`` → camera frame, and on
   ``/tf`` each frame's ``odom → base_link`` where the source gave the vehicle pose.
 - metadata record ``terrainmap``: version, config (TOML), the first frame's extrinsics (JSON) and
@@ -54,16 +55,15 @@ from ..ros2defs import (
     transform_stamped,
     yaw_quaternion,
 )
-from ..types import FrameResult, Obstacle, StereoFrame
+from ..types import FrameResult, StereoFrame
 from .base import (
     METADATA_NAME,
     POINT_DTYPE,
+    Box,
     McapSink,
-    confirmed_obstacles,
     grid_layers,
-    obstacle_rgba,
-    obstacle_text,
     points_record,
+    shown_boxes,
 )
 from .cdr import encode_grid_map, encode_occupancy_grid, point_cloud2_head_tail
 
@@ -134,14 +134,20 @@ def encode_point_cloud2(result: FrameResult, stride: int = 1) -> bytearray:
     return points_record(result, head, tail, stride=stride)
 
 
-def _markers(obstacle: Obstacle, marker_id: int, stamp_ns: int, frame_id: str) -> list[dict]:
+_NAMESPACES = {"obstacle": ("obstacles", "obstacle_labels"), "occupied": ("occupied", "occupied_labels")}
+"""Marker namespaces (cubes, texts) of each group of :class:`~.base.Box`."""
+
+
+def _markers(box: Box, stamp_ns: int, frame_id: str) -> list[dict]:
+    obstacle = box.obstacle
     center = np.asarray(obstacle.center_m, float)
     size = np.asarray(obstacle.size_m, float)
-    r, g, b, a = obstacle_rgba(obstacle)
-    common = {"header": header(stamp_ns, frame_id), "id": marker_id, "action": MARKER_ADD}
+    r, g, b, a = box.rgba
+    cubes, texts = _NAMESPACES[box.group]
+    common = {"header": header(stamp_ns, frame_id), "id": box.number, "action": MARKER_ADD}
     cube = {
         **common,
-        "ns": "obstacles",
+        "ns": cubes,
         "type": MARKER_CUBE,
         "pose": pose(center, yaw_quaternion(obstacle.yaw_rad)),
         "scale": {"x": size[0], "y": size[1], "z": size[2]},
@@ -149,23 +155,24 @@ def _markers(obstacle: Obstacle, marker_id: int, stamp_ns: int, frame_id: str) -
     }
     text = {
         **common,
-        "ns": "obstacle_labels",
+        "ns": texts,
         "type": MARKER_TEXT_VIEW_FACING,
         "pose": pose(center + [0.0, 0.0, size[2] / 2 + 0.3]),
         "scale": {"x": 0.0, "y": 0.0, "z": 0.4},
         "color": {"r": 1.0, "g": 1.0, "b": 1.0, "a": 1.0},
-        "text": obstacle_text(obstacle),
+        "text": box.text,
     }
     return [cube, text]
 
 
 def marker_array_message(result: FrameResult) -> dict:
-    """MarkerArray dict: DELETEALL, then a cube and a text marker (id = track id) per confirmed
-    obstacle."""
+    """MarkerArray dict: DELETEALL, then a cube and a text marker per box
+    (:func:`~.base.shown_boxes`): namespaces ``obstacles``/``obstacle_labels`` with id = track id,
+    and ``occupied``/``occupied_labels`` with id = n."""
     frame_id = result.extrinsics.vehicle_frame_id
     markers = [{"header": header(result.stamp_ns, frame_id), "action": MARKER_DELETEALL}]
-    for obstacle in confirmed_obstacles(result):
-        markers += _markers(obstacle, obstacle.track_id, result.stamp_ns, frame_id)
+    for box in shown_boxes(result):
+        markers += _markers(box, result.stamp_ns, frame_id)
     return {"markers": markers}
 
 

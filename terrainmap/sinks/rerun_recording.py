@@ -19,7 +19,9 @@ else the vehicle frame itself; z up)::
     world/vehicle/terrain/slope   Mesh3D over the valid cells' centres, coloured by slope (0–30°)
     world/vehicle/terrain/elevation  the same mesh coloured by elevation (hidden in the blueprint)
     world/vehicle/terrain/cost    the same mesh coloured by traversability cost (hidden)
-    world/vehicle/obstacles       Boxes3D with "id kind" labels
+    world/vehicle/obstacles       Boxes3D of the confirmed obstacles, "id kind height" labels
+    world/vehicle/occupied        Boxes3D, grey, of what else occupies the cost map ("part of id",
+                                  "id unseen"; FrameResult.occupied)
     depth                         DepthImage (metres, from the disparity)
     timings/<stage>               Scalars, ms
     stats/fit/<name>              Scalars: iterations, mean_error_m
@@ -47,7 +49,7 @@ from ..grid import cell_centers
 from ..ros2defs import yaw_quaternion
 from ..stereo import rectified_camera
 from ..types import FrameResult, Label, StereoFrame
-from .base import check_config, check_frame, confirmed_obstacles, obstacle_text, point_stride
+from .base import check_config, check_frame, point_stride, shown_boxes
 
 LABEL_COLORS = {
     Label.UNKNOWN: (140, 140, 140),
@@ -231,20 +233,22 @@ class RerunSink:
             rec.log(f"{VEHICLE}/terrain/{name}", mesh)
 
     def _log_obstacles(self, result: FrameResult) -> None:
-        obstacles = confirmed_obstacles(result)
-        if not obstacles:
-            self._rec.log(f"{VEHICLE}/obstacles", rr.Clear(recursive=False))
-            return
-        self._rec.log(
-            f"{VEHICLE}/obstacles",
-            rr.Boxes3D(
-                centers=np.array([o.center_m for o in obstacles]),
-                half_sizes=np.array([o.size_m for o in obstacles]) / 2,
-                quaternions=[yaw_quaternion(o.yaw_rad) for o in obstacles],
-                class_ids=[int(Label.OBSTACLE if o.kind == "positive" else Label.BELOW) for o in obstacles],
-                labels=[obstacle_text(o) for o in obstacles],
-            ),
-        )
+        boxes = shown_boxes(result)
+        for group, path in (("obstacle", "obstacles"), ("occupied", "occupied")):
+            shown = [box for box in boxes if box.group == group]
+            if not shown:
+                self._rec.log(f"{VEHICLE}/{path}", rr.Clear(recursive=False))
+                continue
+            self._rec.log(
+                f"{VEHICLE}/{path}",
+                rr.Boxes3D(
+                    centers=np.array([b.obstacle.center_m for b in shown]),
+                    half_sizes=np.array([b.obstacle.size_m for b in shown]) / 2,
+                    quaternions=[yaw_quaternion(b.obstacle.yaw_rad) for b in shown],
+                    colors=[b.rgba for b in shown],
+                    labels=[b.text for b in shown],
+                ),
+            )
 
     def close(self) -> None:
         """Flush and finish the recording; safe to call twice."""
