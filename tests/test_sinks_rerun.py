@@ -171,6 +171,8 @@ def test_what_the_recording_shows_is_what_was_computed(log, tmp_path, keep_sink)
     equalized = _columns(rrd, "/world/vehicle/grid/equalized", "Points3D:positions")
     boxes = _columns(rrd, "/world/vehicle/obstacles", "Boxes3D:half_sizes")
     occupied = _columns(rrd, "/world/vehicle/occupied", "Boxes3D:half_sizes")
+    greys = [c for colors in _columns(rrd, "/world/vehicle/occupied", "Boxes3D:colors").values() for c in colors or []]
+    assert greys and all(c >> 24 == (c >> 16) & 255 == (c >> 8) & 255 for c in greys)  # RGBA packed, r = g = b
     labels = _columns(rrd, "/world/vehicle/camera/image/labels", "SegmentationImage:buffer")
     assert len(keep.results) == 3 and any(boxes.values()) and any(occupied.values())  # (a track unseen in frame 2)
     for k, result in enumerate(keep.results):
