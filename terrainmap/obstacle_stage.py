@@ -35,7 +35,7 @@ def run_obstacle_stage(
     camera: StereoCamera | None = None,
     index: np.ndarray | None = None,
 ) -> tuple[list[Obstacle], np.ndarray, list[Obstacle]]:
-    """Obstacles of this frame (tracked) and the cost layer.
+    """Obstacles of this frame (tracked), the cost layer and what else occupies it.
 
     Parameters
     ----------

@@ -161,12 +161,13 @@ class FrameResult:
     image: np.ndarray | None = None  # rectified left image
     pinhole: object | None = None  # terrainmap.stereo.RectifiedPinhole of image and disparity
     obstacles: list[Obstacle] = field(default_factory=list)
-    occupied: list[Obstacle] = field(default_factory=list)
-    """What else occupies the ``cost`` layer, vehicle frame: clusters taken for parts of a confirmed
-    obstacle (``confirmed`` false, that obstacle's ``track_id``) and confirmed obstacles missed in
-    the last frames, at their predicted places (``confirmed`` true; ``cost.occupied_misses``)."""
     stats: dict[str, float] = field(default_factory=dict)
     timings_ms: dict[str, float] = field(default_factory=dict)
+    occupied: list[Obstacle] = field(default_factory=list)
+    """What else occupies the ``cost`` layer, vehicle frame: clusters taken for parts of one of
+    this frame's confirmed obstacles (with its ``track_id``), and confirmed obstacles missed in the
+    last frames (``cost.occupied_misses``), at their predicted places (their own ``track_id``,
+    none of this frame's obstacles')."""
 
 
 @dataclass(frozen=True)

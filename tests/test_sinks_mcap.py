@@ -47,8 +47,8 @@ def make_layers(grid: GridConfig, *, cost: bool = True) -> dict[str, np.ndarray]
     return layers
 
 
-OCCUPIED = [  # what else occupies the cost map: a part of track 7, and track 11 unseen in this frame
-    Obstacle(np.array([4.8, 0.9, 0.3]), np.array([0.4, 0.3, 0.6]), 0.1, 0.6, 15, 4.9, "positive", 7, False),
+OCCUPIED = [  # what else occupies the cost map: a part of track 7 (a confirmed obstacle of the frame), track 11 unseen
+    Obstacle(np.array([4.8, 0.9, 0.3]), np.array([0.4, 0.3, 0.6]), 0.1, 0.6, 15, 4.9, "positive", 7, True),
     Obstacle(np.array([6.0, -1.0, 0.5]), np.array([0.7, 0.7, 1.0]), 0.5, 1.0, 30, 6.1, "positive", 11, True),
 ]
 
@@ -255,6 +255,31 @@ def test_foxglove_obstacles_replace_previous_entities(fox_file):
             assert update.entities[0].id == "obstacle/7"
             assert update.entities[0].cubes[0].color.r > update.entities[0].cubes[0].color.b  # positive: red
             assert update.entities[1].cubes[0].color.b > update.entities[1].cubes[0].color.r  # negative: blue
+
+
+def test_the_trackers_parts_and_unseen_tracks_are_drawn_as_such():
+    """A fragment 1 m beside a confirmed track is a part of it, drawn as "part of <id>" beside the
+    track's own box; the track missed in the next frame is drawn as "<id> unseen"."""
+    from terrainmap.config import TrackingConfig
+    from terrainmap.sinks.base import shown_boxes
+    from terrainmap.tracking import ObstacleTracker
+
+    def detection(x):
+        return Obstacle(np.array([x, 0.0, 0.5]), np.ones(3), 0.0, 1.0, 50, x, "positive")
+
+    def drawn(obstacles):
+        result = FrameResult(0, 0, Extrinsics(np.eye(3), np.zeros(3)), np.zeros((0, 3), np.float32),
+                             np.zeros((0, 2), np.int32), np.zeros(0, np.uint8), None, None, obstacles=obstacles,
+                             occupied=[*tracker.parts, *tracker.coasting(3)])
+        return [(box.group, box.text) for box in shown_boxes(result)]
+
+    tracker = ObstacleTracker(TrackingConfig())
+    for k in range(2):
+        (track,) = tracker.update([detection(10.0)], k * 10**8)
+    i = track.track_id
+    assert drawn(tracker.update([detection(10.0), detection(11.0)], 2 * 10**8)) == [
+        ("obstacle", f"{i} positive 1.00 m"), ("occupied", f"part of {i}")]
+    assert drawn(tracker.update([], 3 * 10**8)) == [("occupied", f"{i} unseen")]
 
 
 def test_foxglove_static_transform_once_and_stamps(fox_file):

@@ -355,11 +355,13 @@ def shown_boxes(result: FrameResult) -> list[Box]:
     a track not yet confirmed, is not an obstacle; :mod:`terrainmap.tracking`), coloured by kind
     and labelled ``"<track id> <kind> <height> m"``; then, in grey, what else occupies the cost
     map (:attr:`FrameResult.occupied`): ``"part of <track id>"`` for a cluster taken for part of
-    a confirmed obstacle, ``"<track id> unseen"`` for a confirmed obstacle missed in the last
-    frames, at its predicted place."""
+    one of the frame's confirmed obstacles (it has that obstacle's track id), ``"<track id>
+    unseen"`` for a confirmed obstacle missed in the last frames, at its predicted place (its own
+    track id, none of the frame's obstacles')."""
     boxes = [Box("obstacle", o.track_id, o, OBSTACLE_RGBA.get(o.kind, OCCUPIED_RGBA),
                  f"{o.track_id} {o.kind} {o.height_m:.2f} m") for o in result.obstacles if o.confirmed]
+    shown = {box.number for box in boxes}
     for k, o in enumerate(result.occupied):
-        text = f"{o.track_id} unseen" if o.confirmed else f"part of {o.track_id}"
+        text = f"part of {o.track_id}" if o.track_id in shown else f"{o.track_id} unseen"
         boxes.append(Box("occupied", k, o, OCCUPIED_RGBA, text))
     return boxes
