@@ -56,16 +56,18 @@ def bench(
     for what, value, limit in lib.goals(results):
         click.echo(_goal_line(what, value, limit, at_most=True))
     if process_frames:
-        _time_process(lib, config, log_path, process_frames, source_opts, frame, results)
+        _time_process(config, log_path, process_frames, source_opts, frame, results)
     if json_path:
         write_text(json_path, json.dumps(results, indent=2) + "\n")
 
 
-def _time_process(lib, config, log_path, frames: int, source_opts: SourceOptions, frame, results: dict) -> None:
+def _time_process(config, log_path, frames: int, source_opts: SourceOptions, frame, results: dict) -> None:
     """Time process over ``frames`` pairs (bench.process_rate), print the rate and, for pairs of
     640×480 that all gave terrain, at least MIN_RATE_FRAMES of them, hold it to the goal; add it
     to ``results`` as "process". An error in the log's later pairs is said in one line: the stage
     timings stand."""
+    from terrainmap import bench as lib
+
     try:
         rate = lib.process_rate(config, log_path, frames=frames, **source_opts.open_kwargs())
     except TerrainmapError as exc:
