@@ -8,7 +8,7 @@ import sys
 
 import click
 
-from .options import NO_PAIRS, counted
+from .options import NO_PAIRS, counted, damaged_parts
 from .source_options import SourceOptions, open_options
 
 
@@ -74,7 +74,7 @@ def info(log: str, source_opts: SourceOptions, as_json: bool, check: bool) -> No
                             description["check"] += f" ({NO_PAIRS})"
                     if skipped:
                         readable = False
-                        description["check"] += f", skipping {counted(len(skipped), 'damaged part')}: " + "; ".join(skipped)
+                        description["check"] += f", skipping {damaged_parts(skipped)}"
                     if description.get("damage"):  # read whole all the same: a summary that fails its CRC
                         readable = False
                         description["check"] += ", but the log is damaged (see damage)"

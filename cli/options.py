@@ -90,6 +90,18 @@ NO_PAIRS = "no left and right images whose stamps agree within --pair-tolerance-
 """Why a log with stereo topics gives no stereo pair (``process`` and ``info --check`` say it)."""
 
 
+DAMAGE_SHOWN = 3
+"""How many of the damaged parts skipped a summary names (each was warned about as it was met)."""
+
+
+def damaged_parts(skipped: list[str]) -> str:
+    """``2 damaged parts: A; B``, or past :data:`DAMAGE_SHOWN` of them ``40 damaged parts: A; B; C;
+    and 37 more``: one line however much of a long log is damaged."""
+    more = len(skipped) - DAMAGE_SHOWN
+    listed = "; ".join(skipped[:DAMAGE_SHOWN]) + (f"; and {more} more (warned as they were met)" if more > 0 else "")
+    return f"{counted(len(skipped), 'damaged part')}: {listed}"
+
+
 def failures(counts: dict[str, int]) -> str:
     """``no_ground ×3, too_few_cells ×1``: frame failures by reason, most frequent first."""
     return ", ".join(f"{reason} ×{n}" for reason, n in Counter(counts).most_common())

@@ -17,6 +17,7 @@ from .options import (
     check_outputs,
     config_options,
     counted,
+    damaged_parts,
     failures,
     output_file,
     wrote_before_stopping,
@@ -144,7 +145,7 @@ def _report(summary, outputs, skipped: list[str]) -> None:
     rate = f" ({summary.fps:.1f} frames/s)" if summary.frames_done else ""
     click.echo(f"processed {counted(summary.frames_done, 'frame')}{failed} in {summary.wall_s:.1f} s{rate}")
     if skipped:
-        click.echo(f"skipped {counted(len(skipped), 'damaged part')}: " + "; ".join(skipped))
+        click.echo(f"skipped {damaged_parts(skipped)}")
     medians = summary.median_ms()
     if medians:
         click.echo("median ms per frame: " + ", ".join(f"{k} {v:.1f}" for k, v in medians.items()))

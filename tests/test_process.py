@@ -631,6 +631,32 @@ def test_a_log_whose_every_pair_is_damaged_says_so(tmp_path, monkeypatch, capsys
     assert not (tmp_path / "o.mcap").exists()
 
 
+def test_a_summary_names_the_first_damaged_parts_and_counts_the_rest(tmp_path, monkeypatch, capsys):
+    """Every other pair of an 8-pair log cannot be decoded: the run goes on, and its summary stays
+    one line that names three of the four damaged parts and counts the other."""
+    from terrainmap.cli.main import main
+    from terrainmap.errors import DamagedImageError
+    from terrainmap.sim import SimConfig, simulate
+    from terrainmap.sources import messages
+
+    decode, calls = messages.image_array, []
+
+    def every_other_pair_damaged(msg, msg_type, topic):
+        calls.append(topic)
+        if "left" in topic and sum("left" in t for t in calls) % 2 == 0:
+            raise DamagedImageError(f"{topic}: cannot decode the compressed image (9 bytes)")
+        return decode(msg, msg_type, topic)
+
+    log = tmp_path / "sim.mcap"
+    simulate(log, SimConfig(scene="flat", frames=8, seed=1, width=320, height=240, focal_px=250.0))
+    monkeypatch.setattr(messages, "image_array", every_other_pair_damaged)
+    main(["process", str(log), "-o", str(tmp_path / "o.mcap")])
+    (line,) = [s for s in capsys.readouterr().out.splitlines() if s.startswith("skipped ")]
+    assert line.startswith(f"skipped 4 damaged parts: {log}: stereo pair at "), line
+    assert line.count(f"{log}: stereo pair at ") == 3 and line.endswith("; and 1 more (warned as they were met)")
+    assert len(_grids(tmp_path / "o.mcap")) == 4
+
+
 def test_a_log_whose_images_never_pair_says_so(tmp_path, capsys):
     """Right images stamped 15 ms after the left (beyond the 10 ms tolerance): the error names the
     tolerance, not the selection."""
