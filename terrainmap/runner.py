@@ -8,7 +8,8 @@ workers for the run (one thread each on two cores: on the 2-core benchmark machi
 13.0–19.8 frames/s, median 16.7, against 13.5–16.7, median 14.1, with one worker and SGBM's two
 threads; docs/speed.md). The results are the same as running :func:`process_frame` frame by
 frame, byte for byte, as long as the config is not changed while the run is under way (the
-workers match up to two frames ahead with it).
+workers match up to two frames ahead with it). The runner copies each frame's images as it reads
+them, so the frames' iterator may fill the same buffers for every frame.
 
 Frames that yield no terrain (:class:`~terrainmap.errors.FrameError`) are counted by reason and
 skipped; any other error ends the run. Either way every sink is closed, so the outputs written
@@ -29,9 +30,10 @@ from collections import Counter, deque
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import cv2
+import numpy as np
 
 from .config import Config
 from .errors import FrameError, TerrainmapError
@@ -155,9 +157,10 @@ def _matched_ahead(
         with turn:
             turn.wait_for(lambda: served == ticket)
             try:
-                frame = next(source, None)
-                if frame is None:
+                frame = next(source, _END)
+                if frame is _END:
                     return None
+                frame = _own_images(frame)
                 try:
                     prepared = prepare_match(frame, config, state)
                 except FrameError as exc:  # (none is raised there today: counted as elsewhere)
@@ -184,6 +187,20 @@ def _matched_ahead(
                 yield item
         finally:
             pool.shutdown(cancel_futures=True)  # a ticket not started is not waited for
+
+
+_END = object()  # what the frames' iterator gives when it is done (a None in them is an error)
+
+
+def _own_images(frame):
+    """``frame`` with copies of its images (arrays; anything else is left for the checks to
+    refuse): a caller's iterator may fill the same buffers for every frame it yields, as camera
+    drivers do, and the runner reads frames ahead while earlier ones are still matched and
+    written (about 1 ms a 640×480 frame)."""
+    if not isinstance(frame, StereoFrame):
+        return frame
+    images = {side: image.copy() for side in ("left", "right") if isinstance(image := getattr(frame, side), np.ndarray)}
+    return replace(frame, **images)
 
 
 class _OpenCVThreads:

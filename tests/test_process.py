@@ -331,6 +331,43 @@ def test_overlapped_runner_gives_the_sequential_results(tmp_path, keep_sink, pos
         assert all(r.extrinsics is second for r in keep.results[3:]) and second is not first
 
 
+def test_frames_that_reuse_one_pair_of_buffers_give_the_sequential_results(small_log, keep_sink):
+    """A caller's iterator that fills the same two arrays for every frame, as camera drivers do:
+    the runner reads frames ahead of those it matches and writes, so it keeps its own copies; the
+    results (the images written included) are those of process_frame frame by frame."""
+    from terrainmap.pipeline import PipelineState, process_frame
+
+    with open_source(small_log) as source:
+        originals = list(source.frames())
+
+    def reusing():
+        left, right = np.empty_like(originals[0].left), np.empty_like(originals[0].right)
+        for k, frame in enumerate(originals * 2):  # four frames, the second two a second later
+            left[...], right[...] = frame.left, frame.right
+            yield dataclasses.replace(frame, left=left, right=right, stamp_ns=frame.stamp_ns + k // 2 * 10**9)
+
+    config = Config()
+    runner.run(reusing(), config, [keep_sink])
+    state = PipelineState(config)
+    expected = [process_frame(dataclasses.replace(f, left=f.left.copy(), right=f.right.copy()), config, state)
+                for f in reusing()]
+    assert len(keep_sink.results) == 4
+    for got, want, frame in zip(keep_sink.results, expected, originals * 2, strict=True):
+        np.testing.assert_array_equal(got.image, frame.left)
+        np.testing.assert_array_equal(got.point_labels, want.point_labels)
+        np.testing.assert_array_equal(got.layers["elevation"], want.layers["elevation"])
+
+
+def test_a_none_among_the_frames_is_an_error_not_their_end(small_log, keep_sink):
+    from terrainmap.errors import InputError
+
+    with open_source(small_log) as source:
+        first, second = list(source.frames())
+    with pytest.raises(InputError, match="frame must be a StereoFrame, got NoneType"):
+        runner.run([first, None, second], Config(), [keep_sink])
+    assert len(keep_sink.results) == 1
+
+
 def test_the_runner_waits_for_a_pose_estimated_after_a_failed_frame_and_stops_its_workers_when_a_sink_fails(
     tmp_path, keep_sink
 ):
