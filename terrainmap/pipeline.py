@@ -16,7 +16,7 @@ from typing import NamedTuple
 import numpy as np
 
 from .config import Config, same_values
-from .errors import ConfigError, InputError, is_whole
+from .errors import CalibrationError, ConfigError, InputError, is_whole
 from .extrinsics import estimate_extrinsics, extrinsics_from_calibration
 from .grid import HeightGrid, cell_index, quantize
 from .obstacle_stage import make_tracker, run_obstacle_stage
@@ -172,9 +172,12 @@ class PipelineState:
             config.validate()
             checked = replace(config, **{f.name: replace(getattr(config, f.name)) for f in fields(config)})
         if extrinsics is not None and extrinsics is not self.checked[1]:
-            where = f"{frame.source or 'frame'} (pair {frame.index})"
-            extrinsics_from_calibration(extrinsics.rotation, extrinsics.translation,
-                                        name=f"{where}: extrinsics ({extrinsics.source})")
+            name = f"{frame.source or 'frame'} (pair {frame.index}): extrinsics ({extrinsics.source})"
+            extrinsics_from_calibration(extrinsics.rotation, extrinsics.translation, name=name)
+            shapes = np.shape(extrinsics.rotation), np.shape(extrinsics.translation)  # (numbers, as checked)
+            if shapes != ((3, 3), (3,)):  # the stages use them as they are, not reshaped as checked
+                raise CalibrationError(f"{name}: rotation must be 3×3 and translation 3 numbers, "
+                                       f"got shapes {shapes[0]} and {shapes[1]}")
         self.checked = (checked, extrinsics)
 
 

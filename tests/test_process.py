@@ -471,7 +471,8 @@ def test_a_new_calibration_starts_the_camera_pose_and_the_tracks_afresh(small_lo
 
 
 @pytest.mark.parametrize("rotation, translation", [(np.eye(3) * 5, [0, 0, 1.5]), (np.full((3, 3), np.nan), [0, 0, 1.5]),
-                                                   (np.eye(3), [0, 1.5])])
+                                                   (np.eye(3), [0, 1.5]), (np.eye(3).ravel(), [0, 0, 1.5]),
+                                                   (np.eye(3), [[0], [0], [1.5]]), (np.eye(3)[None], [0, 0, 1.5])])
 def test_a_frame_whose_extrinsics_are_no_rigid_motion_is_refused(small_log, rotation, translation):
     import dataclasses
 
