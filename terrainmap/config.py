@@ -797,7 +797,7 @@ class Config:
             if type(value) is not section.default_factory:
                 raise ConfigError(f"{section.name}: must be a {section.default_factory.__name__}, "
                                   f"got {type(value).__name__}")
-            check_section(value, self.grid)
+            check_section(value, section.default_factory, self.grid)
         cells = self.grid.shape[0] * self.grid.shape[1]
         _check(self.obstacles.min_cells <= cells, "obstacles.min_cells",
                f"({self.obstacles.min_cells}) exceeds the grid's {cells} cells: no obstacle could be found")
@@ -824,17 +824,17 @@ _KINDS = {"bool": ((bool,), "true or false"), "int": ((int,), "an integer"), "fl
 """Declared field type → (accepted Python types, how a message names it)."""
 
 
-def check_section(section: Any, grid: GridConfig | None = None) -> None:
+def check_section(section: Any, kind: type, grid: GridConfig | None = None) -> None:
     """What :meth:`Config.validate` checks of one section, for a section used on its own (the
-    stage functions take one): kinds and finite numbers, its own ranges (the terrain's against
+    stage functions take one): that it is a ``kind`` (e.g. :class:`GridConfig`), kinds and finite numbers, its own ranges (the terrain's against
     ``grid``), then :data:`MAX_NUMBER` and :data:`INT_RANGE`, so that a field with a range of its
     own names it. :class:`ConfigError` naming the first bad field. A section equal to the last one
     of its kind that passed (values and their types, and ``grid``) is not checked again: the
     stages check theirs every frame."""
     if not isinstance(section, TerrainConfig):
         grid = None  # only the terrain's ranges depend on it: so the stages' checks find what validate() passed
-    if type(section) not in _SECTION_NAMES:
-        raise ConfigError(f"expected one section of the config (e.g. config.tracking), got {type(section).__name__}")
+    if type(section) is not kind:
+        raise ConfigError(f"expected config.{_SECTION_NAMES[kind]} (a {kind.__name__}), got {type(section).__name__}")
     if _passed_before(section, grid):
         return
     name = _SECTION_NAMES[type(section)]

@@ -79,8 +79,8 @@ def traversability_cost(
     ConfigError
         ``config`` or ``grid_config`` does not validate.
     """
-    check_section(config)
-    check_section(grid_config)
+    check_section(config, CostConfig)
+    check_section(grid_config, GridConfig)
     shape = grid_config.shape
     layers = {"elevation": elevation, "slope": slope, "valid": valid}
     if step is not None:

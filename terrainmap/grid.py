@@ -151,7 +151,7 @@ def quantize(
         height limits ``z_min_m`` and ``z_max_m``.
     """
     points_vehicle = as_points(points_vehicle)
-    check_section(config)  # a section built in code fails here, not in numpy
+    check_section(config, GridConfig)  # a section built in code fails here, not in numpy
     m0, m1 = config.shape
     ncell = m0 * m1
     check_shapes("quantize", (len(points_vehicle),), index=index)

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .config import Config, check_section
+from .config import Config, CostConfig, check_section
 from .cost import step_height, traversability_cost
 from .grid import HeightGrid
 from .obstacles import extract_obstacles
@@ -70,7 +70,7 @@ def run_obstacle_stage(
     occupied : list of Obstacle
         What else occupies the cost map (:attr:`~terrainmap.types.FrameResult.occupied`).
     """
-    check_section(config.cost)  # (its occupied_misses is used before the cost is computed)
+    check_section(config.cost, CostConfig)  # (its occupied_misses is used before the cost is computed)
     elevation = layers["elevation"]
     steep = layers["slope"] >= np.radians(config.cost.max_slope_deg) if config.obstacles.drop_on_steep_ground else None
     detections = extract_obstacles(

@@ -330,7 +330,7 @@ def process_frame(frame: StereoFrame, config: Config, state: PipelineState) -> F
     Parameters
     ----------
     frame : StereoFrame
-        Left and right images (H×W or H×W×3 uint8/uint16, of one size), their calibration, the
+        Left and right images (H×W or H×W×3 RGB, uint8, of one size), their calibration, the
         stamp (ns) and, where known, the camera's extrinsics (else estimated on the first frame and
         kept in ``state``) and the vehicle's pose in the odometry frame (tracks then live there).
     config : Config

@@ -307,7 +307,7 @@ class StereoMatcher:
         check_calibration(calibration)
         self.calibration = calibration
         self.config = replace(config or StereoConfig())  # a copy: same_setup sees a config changed in place
-        check_section(self.config)  # a section built in code: ConfigError, not an OpenCV error
+        check_section(self.config, StereoConfig)  # a section built in code: ConfigError, not an OpenCV error
         n = disparity_range(self.config, calibration.width)
         if not (0 < self.config.min_disparity + n < calibration.width and n < calibration.width):
             raise CalibrationError(  # OpenCV would crash or search nothing that gives depth
@@ -512,7 +512,9 @@ class StereoMatcher:
         name = self.calibration.source or "stereo calibration"
         for side, image in (("left", left), ("right", right)):
             if not isinstance(image, np.ndarray) or image.dtype != np.uint8 or image.ndim not in (2, 3):
-                raise InputError(f"{side} image must be a uint8 H×W or H×W×3 array")
+                got = f"{image.dtype} {image.shape}" if isinstance(image, np.ndarray) else type(image).__name__
+                raise InputError(f"{side} image must be a uint8 H×W or H×W×3 array, got {got} "
+                                 "(terrainmap.sources.images.stereo_pair makes a 16-bit pair uint8)")
             if image.ndim == 3 and image.shape[2] != 3:
                 hint = " (give a mono image as H×W: image[..., 0])" if image.shape[2] == 1 else ""
                 raise InputError(f"{side} image has {image.shape[2]} channels, expected 3 or an H×W mono image{hint}")

@@ -186,7 +186,7 @@ def estimate_terrain(grid: HeightGrid, config: TerrainConfig) -> TerrainEstimate
         ``too_few_cells`` if fewer cells are observed than the net needs; ``fit_failed`` if a fit
         cannot be solved.
     """
-    check_section(config, grid.config)
+    check_section(config, TerrainConfig, grid.config)
     check_grid(grid, config)
     gcfg = grid.config
     xs, ys = cell_centers(gcfg)

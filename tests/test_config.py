@@ -314,7 +314,7 @@ def test_a_whole_config_or_a_dict_where_a_section_belongs_is_a_config_error():
     """A stage given the whole config (or a section given as a dict or None) is told what it wants."""
     from terrainmap.tracking import ObstacleTracker
 
-    with pytest.raises(ConfigError, match=r"expected one section of the config \(e.g. config.tracking\), got Config"):
+    with pytest.raises(ConfigError, match=r"expected config.tracking \(a TrackingConfig\), got Config"):
         ObstacleTracker(Config())
     for value, got in (({"cell_size_m": 1.0}, "dict"), (None, "NoneType")):
         with pytest.raises(ConfigError, match=f"grid: must be a GridConfig, got {got}"):
@@ -332,7 +332,7 @@ def test_entry_points_given_the_wrong_object_say_what_they_want():
     config = Config()
     with pytest.raises(ConfigError, match="map_points: config must be the whole Config, got GridConfig"):
         map_points(np.zeros((10, 3)), config.grid)
-    with pytest.raises(ConfigError, match="ObstacleTracker: area must be the GridConfig, got TrackingConfig"):
+    with pytest.raises(ConfigError, match=r"expected config.grid \(a GridConfig\), got TrackingConfig"):
         ObstacleTracker(config.tracking, area=config.tracking)
     with pytest.raises(TerrainmapError, match=r"run: sinks must be a list of sinks \(write and close\), got None"):
         runner.run(iter([]), config, None)

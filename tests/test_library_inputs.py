@@ -2,6 +2,7 @@
 instead of an error from numpy, OpenCV or Python deep inside (found by fuzzing the public API)."""
 
 import dataclasses
+import re
 
 import numpy as np
 import pytest
@@ -75,6 +76,14 @@ def test_sections_built_in_code_are_checked_where_they_are_used():
     calibration = StereoCalibration(64, 48, 100.0, 100.0, 32.0, 24.0, 0.5)
     with pytest.raises(ConfigError, match="stereo.mode"):
         StereoMatcher(calibration, dataclasses.replace(StereoConfig(), mode="x"))  # KeyError before
+    # another section than the stage's: AttributeErrors before
+    for call, want in [(lambda: estimate_terrain(grid, C.grid), "terrain (a TerrainConfig), got GridConfig"),
+                       (lambda: quantize(points, C.terrain), "grid (a GridConfig), got TerrainConfig"),
+                       (lambda: traversability_cost(zeros, zeros, zeros > -1, C.cost, [], C.cost), "grid (a GridConfig)"),
+                       (lambda: StereoMatcher(calibration, C.grid), "stereo (a StereoConfig), got GridConfig"),
+                       (lambda: ObstacleTracker(C.grid), "tracking (a TrackingConfig), got GridConfig")]:
+        with pytest.raises(ConfigError, match=rf"^expected config\.{re.escape(want)}"):
+            call()
 
 
 def test_files_nested_too_deep_and_names_too_long_are_input_errors(tmp_path):
