@@ -82,6 +82,8 @@ def info(log: str, source_opts: SourceOptions, as_json: bool, check: bool) -> No
                     readable = False
                     description["check"] = f"fails after {counted(pairs, 'stereo pair')}: {_reason(exc, log)}"
     except NoStereoError as exc:
+        if source_opts.left_topic or source_opts.right_topic:  # the topics the user named: a bad option
+            raise
         description = {**exc.contents, "stereo_pair": f"none, so process cannot use it ({_reason(exc, log)})"}
         if check:
             readable, description["check"] = False, "fails: no stereo pair to read"

@@ -58,6 +58,19 @@ def test_info_errors_are_one_line_messages(tmp_path, capsys):
     assert err.startswith("Error: ") and "does not exist" in err and "\n" not in err
 
 
+def test_info_given_a_topic_the_log_lacks_is_an_error_as_process_makes_it(tmp_path, capsys):
+    from test_sources_logs import write_ros2_log
+
+    from terrainmap.cli.main import main
+
+    log = write_ros2_log(tmp_path / "run.mcap", n=2)
+    with pytest.raises(SystemExit) as exit_info:
+        main(["info", str(log), "--right-topic", "/nope"])
+    assert exit_info.value.code == 2
+    assert capsys.readouterr().err.strip() == (f"Error: {log}: right topic '/nope' is not an image topic of this log "
+                                               "(image topics: /cam/left/image_rect, /cam/right/image_rect)")
+
+
 @pytest.mark.parametrize("log", ["negative/rosbag2_talker", "negative/grid_map_ros1.bag"])
 def test_info_describes_a_log_without_stereo_and_says_why_process_cannot_use_it(log):
     result = CliRunner().invoke(info, ["--json", str(need(DATA / log))])
