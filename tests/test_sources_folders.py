@@ -113,14 +113,16 @@ def test_selection_start_end_every_max_and_index_from_source_start(tmp_path):
                 list(source.frames(**bad))
 
 
-def test_a_left_image_without_its_right_one_keeps_the_later_pairs_stamps(tmp_path):
+def test_a_left_image_without_its_right_one_keeps_the_later_pairs_stamps(tmp_path, caplog):
     """timestamps.txt has one line per left image: a pair lost to a missing right image takes its
-    line with it, so the pairs after it keep their own stamps."""
+    line with it, so the pairs after it keep their own stamps; the warning names the image left out."""
     root = generic_folder(tmp_path, n=4)
     (root / "right" / "000001.png").unlink()
     (root / "timestamps.txt").write_text("10\n20\n30\n40\n")
     with open_source(root) as source:
         frames = list(source.frames())
+    assert caplog.messages[0] == (f"{root}: 4 left and 3 right images, 3 with the same name on both sides; left out "
+                                  f"for want of a partner: {root / 'left' / '000001.png'}")
     assert [(f.stamp_ns, Path(f.source.split(" + ")[0]).name) for f in frames] == [
         (10, "000000.png"), (30, "000002.png"), (40, "000003.png")]
     (root / "timestamps.txt").write_text("10\n30\n40\n")  # one line per pair: taken in order

@@ -55,9 +55,13 @@ def matching_pairs(left_dir: Path, right_dir: Path, calibration_for) -> list[Ima
     left_names = image_names(left_dir)
     pairs = [ImagePair(left_dir / n, right_dir / n, calibration_for(n)) for n in left_names if n in right_names]
     if len(pairs) < max(len(left_names), len(right_names)):
+        alone = [left_dir / n for n in left_names if n not in right_names]
+        alone += sorted((right_dir / n for n in right_names.difference(left_names)), key=lambda p: natural_key(p.name))
+        more = f" and {len(alone) - 3} more" if len(alone) > 3 else ""
         logger.warning(
-            "%s: %d left and %d right images, %d with the same name on both sides",
-            left_dir.parent, len(left_names), len(right_names), len(pairs),
+            "%s: %d left and %d right images, %d with the same name on both sides; left out for want of a "
+            "partner: %s%s", left_dir.parent, len(left_names), len(right_names), len(pairs),
+            ", ".join(map(str, alone[:3])), more,
         )
     return pairs
 
