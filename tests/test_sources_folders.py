@@ -386,6 +386,27 @@ def test_calibration_override_replaces_the_folder_calibration(tmp_path):
     assert next(open_source(root, calibration=other).frames()).calibration.baseline_m == 0.12
 
 
+def test_a_calibration_without_a_size_whose_principal_point_is_far_off_the_images_centre_is_warned_about(
+    tmp_path, caplog
+):
+    """A KITTI calibration (no image size: cx = 609.6 px) given for 8×6 images: one warning for the
+    run, naming the file; a principal point near the centre raises none."""
+    root = generic_folder(tmp_path / "run", n=3)
+    kitti = tmp_path / "calib.txt"
+    kitti.write_text(f"P2: {KITTI_P2}\nP3: {KITTI_P3}\n")
+    with open_source(root, calibration=kitti) as source:
+        assert len(list(source.frames())) == 3
+    assert caplog.messages == [f"{kitti}: the principal point (609.6, 172.9) lies far from the centre of the 8×6 "
+                               "images it is used for; is the calibration for these images?"]
+    caplog.clear()
+    centred = tmp_path / "centred.txt"
+    centred.write_text(f"P2: {KITTI_P2.replace('6.095593e+02', '4.1').replace('1.728540e+02', '2.9')}\n"
+                       f"P3: {KITTI_P3.replace('6.095593e+02', '4.1').replace('1.728540e+02', '2.9')}\n")
+    with open_source(root, calibration=centred) as source:
+        list(source.frames())
+    assert caplog.messages == []
+
+
 def png_claiming(data: bytes, width: int, height: int) -> bytes:
     """The PNG ``data`` with its header (IHDR, CRC made good) claiming another size."""
     header = data[12:17] + struct.pack(">II", width, height) + data[25:29]

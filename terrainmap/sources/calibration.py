@@ -24,6 +24,7 @@ Calibrations read from KITTI/Middlebury text may not know the image size (``widt
 from __future__ import annotations
 
 import dataclasses
+import functools
 import logging
 import math
 import re
@@ -55,12 +56,22 @@ def fit_to_image(calib: StereoCalibration, shape: tuple[int, ...], image_name: s
     """Fill in an unknown image size from ``shape`` (H, W[, C]) or check a known one."""
     height, width = int(shape[0]), int(shape[1])
     if calib.width == 0 and calib.height == 0:
+        if abs(calib.cx - width / 2) > width / 4 or abs(calib.cy - height / 2) > height / 4:
+            _warn_off_centre(calib.source, calib.cx, calib.cy, width, height)
         return dataclasses.replace(calib, width=width, height=height)
     if (calib.width, calib.height) != (width, height):
         raise CalibrationError(
             f"{calib.source}: calibration is for {calib.width}×{calib.height} images but {image_name} is {width}×{height}"
         )
     return calib
+
+
+@functools.lru_cache(maxsize=16)  # once per calibration and image size, not once per pair
+def _warn_off_centre(source: str, cx: float, cy: float, width: int, height: int) -> None:
+    """A calibration that does not state its image size, whose principal point lies far from the
+    centre of the images it is given (a quarter of their size or more): likely another camera's."""
+    logger.warning("%s: the principal point (%.1f, %.1f) lies far from the centre of the %d×%d images it is "
+                   "used for; is the calibration for these images?", source, cx, cy, width, height)
 
 
 def from_projections(
