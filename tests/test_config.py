@@ -249,6 +249,10 @@ def test_bad_files(tmp_path):
         load_config(zero)
     with pytest.raises(ConfigError, match=r"^terrain.degree: must be 1..5, got 9$"):  # the --set is to blame
         load_config(zero, overrides=["terrain.degree=9"])
+    calibration = tmp_path / "calibration.toml"  # given as the config by a slip
+    calibration.write_text("width = 640\nheight = 480\n")
+    with pytest.raises(ConfigError, match=r"calibration.toml: unknown top-level key 'width' \(known sections: grid, "):
+        load_config(calibration)
 
 
 def test_the_accuracy_example_loads_and_sets_what_it_says():

@@ -551,6 +551,14 @@ def test_corrupt_real_log_gives_one_line_error(tmp_path, damage):
     assert "truncated or corrupt" in str(info.value) or "not a readable MCAP file" in str(info.value)
 
 
+@pytest.mark.parametrize("data", [b"", b"garbage\n", b"\x89MCAP"])
+def test_a_file_named_mcap_that_is_no_mcap_says_so(tmp_path, data):
+    bad = tmp_path / "notes.mcap"
+    bad.write_bytes(data)
+    with pytest.raises(InputError, match=rf"^{bad}: not an MCAP file \(it does not begin with MCAP's magic bytes\)$"):
+        open_source(bad)
+
+
 def test_ros1_bag_truncated(tmp_path):
     real = DATA / "kitti2015_000005_ros1_raw.bag"
     if not real.is_file():

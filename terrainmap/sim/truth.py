@@ -27,7 +27,7 @@ import numpy as np
 
 from ..bspline import xy_arrays
 from ..errors import InputError
-from ..sources.readers import summary_section
+from ..sources.readers import MCAP_MAGIC, summary_section
 from ..sources.tf import quaternion_to_matrix, usable
 from ..types import Extrinsics, StereoCalibration
 from .heightfield import Heightfield
@@ -189,9 +189,6 @@ def _open_folder(path: Path) -> Truth:
         return Truth(path, terrain, _description((truth_dir / "scene.json").read_text()), frames)
 
 
-_MCAP_MAGIC = b"\x89MCAP0\r\n"
-
-
 def _mcap_reader(file):
     from mcap.reader import make_reader
     from mcap_ros2.decoder import DecoderFactory
@@ -202,7 +199,7 @@ def _mcap_reader(file):
 def _open_mcap(path: Path) -> Truth:
     try:
         with open(path, "rb") as file:
-            if file.read(len(_MCAP_MAGIC)) != _MCAP_MAGIC:
+            if file.read(len(MCAP_MAGIC)) != MCAP_MAGIC:
                 raise NoTruthError(f"{path}: not an MCAP file; the ground truth is read from logs that "
                                  "terrainmap simulate writes (MCAP or a folder)")
             if not summary_section(file)[1]:

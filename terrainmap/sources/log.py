@@ -34,7 +34,7 @@ from . import messages as msgs
 from .base import PairRef, Source, extrinsics_entry
 from .images import stereo_pair
 from .pairing import StereoPairer
-from .readers import McapLog, Rosbag2Bag, bag_metadata
+from .readers import MCAP_MAGIC, McapLog, Rosbag2Bag, bag_metadata
 from .ros1bag import MAGIC as ROS1_MAGIC
 from .ros1bag import Ros1Bag
 from .tf import TransformTree, VehiclePoses
@@ -51,8 +51,6 @@ yielded with the poses known by then."""
 
 UNSTAMPED_PREFIX = 5
 """Images whose topic's first this many messages are stamped 0 are taken as never stamped."""
-
-MCAP_MAGIC = b"\x89MCAP0\r\n"
 
 
 def _starts_with(path: Path, magic: bytes) -> bool:

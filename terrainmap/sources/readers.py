@@ -41,6 +41,9 @@ def _reason(exc: Exception) -> str:
     return f"{type(exc).__name__}: {exc}".rstrip(": ").splitlines()[0][:200]
 
 
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+"""The 8 bytes an MCAP file begins (and ends) with."""
+
 _FOOTER = struct.Struct("<BQQQI")
 """An MCAP footer record: opcode 0x02, record length, summary start, summary offset start, summary CRC."""
 
@@ -197,6 +200,9 @@ class McapFile(_SkipsDamage):
         decoded (("message", topic, log time) → what), met while reading messages."""
         try:
             with open(path, "rb") as stream:
+                if stream.read(len(MCAP_MAGIC)) != MCAP_MAGIC:
+                    raise InputError(f"{path}: not an MCAP file (it does not begin with MCAP's magic bytes)")
+                stream.seek(0)
                 reader = make_reader(stream)
                 summary = self._summary(reader, stream)
                 if summary is not None:
@@ -207,6 +213,8 @@ class McapFile(_SkipsDamage):
                     self._scan(stream)
         except OSError as exc:
             raise InputError(f"{path}: cannot read the log ({exc.strerror or exc})") from None
+        except InputError:
+            raise
         except Exception as exc:  # mcap raises many kinds on a file that is not MCAP
             raise InputError(f"{path}: not a readable MCAP file ({_reason(exc)})") from exc
 
