@@ -42,7 +42,7 @@ INT_RANGE = (-(2**31), 2**31 - 1)
 """The range of an integer field: a C int, as OpenCV's matcher takes them."""
 
 
-@dataclass
+@dataclass(slots=True)
 class GridConfig:
     """The 2.5D grid over the area of interest (paper Sec. IV), vehicle frame.
 
@@ -119,7 +119,7 @@ MAX_CONTROL_POINTS = 4096
 """The most control points a terrain net may have in all (``control_points_x × control_points_y``)."""
 
 
-@dataclass
+@dataclass(slots=True)
 class TerrainConfig:
     """Rational B-spline terrain estimation (paper Sec. V, Algorithm V-B.1)."""
 
@@ -225,7 +225,7 @@ class TerrainConfig:
                 )
 
 
-@dataclass
+@dataclass(slots=True)
 class SegmentationConfig:
     """Inlier/outlier labelling of points and cells against the terrain surface."""
 
@@ -320,7 +320,7 @@ class SegmentationConfig:
         _check(0 <= self.side_gain <= 100, "segmentation.side_gain", "must be in [0, 100]")
 
 
-@dataclass
+@dataclass(slots=True)
 class StereoConfig:
     """OpenCV StereoSGBM front end and reprojection (paper Sec. III, SGM after Hirschmüller).
 
@@ -536,7 +536,7 @@ class StereoConfig:
                "no row would be matched twice")
 
 
-@dataclass
+@dataclass(slots=True)
 class ExtrinsicsConfig:
     """Camera pose in the vehicle frame when the log and calibration give none: a robust
     ground-plane fit on near points (see :mod:`terrainmap.extrinsics`)."""
@@ -566,7 +566,7 @@ class ExtrinsicsConfig:
         _check(self.sample_size >= 3, "extrinsics.sample_size", "must be >= 3")
 
 
-@dataclass
+@dataclass(slots=True)
 class ObstacleConfig:
     """Obstacle extraction from above/below-terrain points (paper step 5)."""
 
@@ -637,7 +637,7 @@ class ObstacleConfig:
         _check(self.max_points >= 0, "obstacles.max_points", "must be >= 0")
 
 
-@dataclass
+@dataclass(slots=True)
 class TrackingConfig:
     """Kalman tracking of obstacles (prunes single-frame false positives)."""
 
@@ -720,7 +720,7 @@ class TrackingConfig:
         _check(self.duplicate_depth_sigmas >= 0, "tracking.duplicate_depth_sigmas", f"must be >= 0, got {self.duplicate_depth_sigmas}")
 
 
-@dataclass
+@dataclass(slots=True)
 class CostConfig:
     """Traversability cost in [0, 1] from slope, step height and occupancy (see terrainmap.cost)."""
 
@@ -750,7 +750,7 @@ class CostConfig:
         _check(0 <= self.occupied_misses <= 1000, "cost.occupied_misses", f"must be in 0..1000, got {self.occupied_misses}")
 
 
-@dataclass
+@dataclass(slots=True)
 class McapConfig:
     """What goes into the MCAP output besides the grid and obstacles (size only: every layer,
     label and obstacle is computed from every point)."""
@@ -764,7 +764,7 @@ class McapConfig:
         _check(self.max_points >= 0, "mcap.max_points", "must be >= 0 (0: every point)")
 
 
-@dataclass
+@dataclass(slots=True)
 class RerunConfig:
     """What goes into Rerun recordings (display only; does not change any result)."""
 
@@ -775,7 +775,7 @@ class RerunConfig:
         _check(self.max_points >= 1, "rerun.max_points", "must be >= 1")
 
 
-@dataclass
+@dataclass(slots=True)
 class Config:
     """The effective configuration of a run: one section per pipeline stage."""
 
@@ -877,10 +877,12 @@ def same_values(a: Any, b: Any) -> bool:
 def _kinds(value: Any) -> Any:
     """The types of ``value``'s fields, nested as a config's sections and tuples are (for
     :func:`same_values`; a section's fields are numbers, flags and texts)."""
-    if isinstance(value, tuple | Config):
-        return tuple(map(_kinds, value if isinstance(value, tuple) else vars(value).values()))
+    if isinstance(value, tuple):
+        return tuple(map(_kinds, value))
+    if isinstance(value, Config):
+        return tuple(_kinds(getattr(value, f.name)) for f in fields(value))
     if hasattr(value, "__dataclass_fields__"):
-        return type(value), *map(type, vars(value).values())
+        return type(value), *(type(getattr(value, f.name)) for f in fields(value))
     return type(value)
 
 

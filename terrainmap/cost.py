@@ -81,6 +81,8 @@ def traversability_cost(
     """
     check_section(config, CostConfig)
     check_section(grid_config, GridConfig)
+    if not isinstance(obstacles, list | tuple):
+        raise InputError(f"traversability_cost: obstacles must be a list of Obstacle, got {type(obstacles).__name__}")
     shape = grid_config.shape
     layers = {"elevation": elevation, "slope": slope, "valid": valid}
     if step is not None:

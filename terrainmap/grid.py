@@ -152,6 +152,8 @@ def quantize(
     """
     points_vehicle = as_points(points_vehicle)
     check_section(config, GridConfig)  # a section built in code fails here, not in numpy
+    if camera is not None and not isinstance(camera, StereoCamera):
+        raise InputError(f"quantize: camera must be a StereoCamera or None, got {type(camera).__name__}")
     m0, m1 = config.shape
     ncell = m0 * m1
     check_shapes("quantize", (len(points_vehicle),), index=index)

@@ -210,6 +210,13 @@ def check_arguments(frame: StereoFrame, config: Config, state: PipelineState) ->
     if frame.extrinsics is not None and not isinstance(frame.extrinsics, Extrinsics):
         raise InputError(f"process_frame: frame.extrinsics must be an Extrinsics or None, got "
                          f"{type(frame.extrinsics).__name__}")
+    ids = {"frame.frame_id": frame.frame_id, "frame.odometry_frame_id": frame.odometry_frame_id}
+    if frame.extrinsics is not None:
+        ids.update({"frame.extrinsics.camera_frame_id": frame.extrinsics.camera_frame_id,
+                    "frame.extrinsics.vehicle_frame_id": frame.extrinsics.vehicle_frame_id})
+    for name, value in ids.items():  # the outputs name frames by them (tf, headers)
+        if not isinstance(value, str) or not value:
+            raise InputError(f"process_frame: {name} must be a frame name (a non-empty str), got {value!r}")
 
 
 def _whole_config(what: str, config) -> None:

@@ -103,11 +103,16 @@ def run(
     usable = isinstance(sinks, list | tuple) and all(callable(getattr(s, m, None)) for s in sinks for m in ("write", "close"))
     if not usable:
         raise TerrainmapError(f"run: sinks must be a list of sinks (write and close), got {sinks!r}")
+
     summary = RunSummary()
     start = time.perf_counter()
     ahead = None
     try:
         state = PipelineState(config)  # validates the config: a ConfigError still closes the sinks
+        try:
+            frames = iter(frames)
+        except TypeError:
+            raise TerrainmapError(f"run: frames must be an iterable of StereoFrame, got {type(frames).__name__}") from None
         ahead = _matched_ahead(frames, config, state)
         for frame, matched in ahead:
             try:

@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .config import GridConfig, SegmentationConfig
+from .config import GridConfig, SegmentationConfig, check_section
 from .grid import HeightGrid, as_points, cell_centers, cell_index, check_shapes, neighbour_sum
 from .types import Label, StereoCamera
 
@@ -46,6 +46,8 @@ def thresholds(
     """Per-cell (above, below) thresholds, (m0, m1) metres each (see the module docstring). The
     stereo term needs ``camera`` and the surface (``elevation`` and its gradient at the cell centres);
     it grows towards the image's sides where ``camera`` knows its columns."""
+    check_section(grid, GridConfig)
+    check_section(config, SegmentationConfig)  # (a NaN threshold would label every point TERRAIN)
     xs, ys = cell_centers(grid)
     x, y = xs[:, None], ys[None, :]
     grow = config.threshold_per_m * np.hypot(x, y)
@@ -118,6 +120,7 @@ def label_points(
     """
     with np.errstate(over="ignore"):  # coordinates past float32 become inf: outside the area, UNKNOWN
         pts = np.asarray(as_points(points_vehicle), dtype=np.float32)
+    check_section(grid, GridConfig)
     check_shapes("label_points", grid.shape, elevation=elevation, dz_dx=dz_dx, dz_dy=dz_dy)
     check_shapes("label_points", (len(pts),), index=index)
     if index is None:
@@ -150,6 +153,7 @@ def label_cells(
     (``grid.z_top``, mean + σ) rises above the surface by the obstacle threshold,
     BELOW where its eq.-1 sample lies under it by the below threshold, TERRAIN otherwise.
     ``limits``: per-cell (above, below) thresholds as in :func:`label_points`."""
+    check_shapes("label_cells", grid.shape, elevation=elevation)
     above, below = limits or thresholds(grid.config, config)
     labels = np.full(grid.shape, Label.TERRAIN, dtype=np.uint8)
     labels[grid.z_top - elevation > above] = Label.OBSTACLE

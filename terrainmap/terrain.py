@@ -186,6 +186,8 @@ def estimate_terrain(grid: HeightGrid, config: TerrainConfig) -> TerrainEstimate
         ``too_few_cells`` if fewer cells are observed than the net needs; ``fit_failed`` if a fit
         cannot be solved.
     """
+    if not isinstance(grid, HeightGrid):
+        raise InputError(f"estimate_terrain: grid must be a HeightGrid (terrainmap.grid.quantize), got {type(grid).__name__}")
     check_section(config, TerrainConfig, grid.config)
     check_grid(grid, config)
     gcfg = grid.config

@@ -340,5 +340,15 @@ def test_entry_points_given_the_wrong_object_say_what_they_want():
         ObstacleTracker(config.tracking, area=config.tracking)
     with pytest.raises(TerrainmapError, match=r"run: sinks must be a list of sinks \(write and close\), got None"):
         runner.run(iter([]), config, None)
+    with pytest.raises(TerrainmapError, match="run: frames must be an iterable of StereoFrame, got int"):
+        runner.run(5, config, [])
     with pytest.raises(ConfigError, match="config file: expected a path, got 5"):
         load_config(5)
+
+
+def test_a_misspelt_field_set_in_code_is_an_error_not_a_new_attribute():
+    config = Config()
+    with pytest.raises(AttributeError, match="'GridConfig' object has no attribute 'cellsize_m'"):
+        config.grid.cellsize_m = 1.0  # silently ignored, with the default used, before
+    with pytest.raises(AttributeError):
+        config.segmentaton = None

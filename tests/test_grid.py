@@ -1,3 +1,5 @@
+import dataclasses
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -9,7 +11,7 @@ from terrainmap.grid import cell_centers, cell_index, quantize
 from terrainmap.types import Extrinsics, StereoCamera
 
 SMALL = GridConfig(x_min_m=0.0, length_m=3.0, width_m=2.0, y_center_m=0.0, cell_size_m=1.0)  # 3×2 cells
-MEAN = GridConfig(**{**SMALL.__dict__, "sigma_factor": 0.0})  # Z = the cell mean
+MEAN = dataclasses.replace(SMALL, sigma_factor=0.0)  # Z = the cell mean
 
 
 def test_cell_geometry_and_indexing():
@@ -40,7 +42,7 @@ def test_eq1_on_hand_built_cells():
     mean = quantize(pts, MEAN)  # k = 0 skips the minimum
     np.testing.assert_allclose(mean.z[[0, 1, 2], [0, 1, 0]], [1.0, 2.5, 0.7])
     np.testing.assert_array_equal(mean.z_top[g.observed], g.z_top[g.observed])
-    half = quantize(pts, GridConfig(**{**SMALL.__dict__, "sigma_factor": 0.5}))  # Z = max(min, mean − k·σ)
+    half = quantize(pts, dataclasses.replace(SMALL, sigma_factor=0.5))  # Z = max(min, mean − k·σ)
     assert half.z[0, 0] == pytest.approx(1 - 0.5 * np.sqrt(2 / 3))
 
 
@@ -64,7 +66,7 @@ def _stereo_ground(n: int, noise_px: float, seed: int = 0, rise: float = 0.0) ->
 
 def test_stereo_noise_no_longer_pulls_eq1_below_the_ground():
     pts = _stereo_ground(200_000, 0.5)
-    paper = quantize(pts, GridConfig(**{**_FAR.__dict__, "stereo_noise_px": 0.0}), camera=_RIG)
+    paper = quantize(pts, dataclasses.replace(_FAR, stereo_noise_px=0.0), camera=_RIG)
     aware = quantize(pts, _FAR, camera=_RIG)
     assert np.all(paper.z < -0.06)  # eq. 1: about σ_s of the noise (8–9 cm at 14–16 m) below
     assert np.all(np.abs(aware.z) < 0.02)
@@ -110,7 +112,7 @@ def test_empty_cells_take_the_mean_of_observed_neighbours_else_invalid():
     assert g.z[2, 1] == pytest.approx(3.0)  # only (1,0) is a neighbour
     assert not g.valid[4, 4] and g.z[4, 4] == 0.0  # INVALID, Z := 0
     assert g.valid.sum() == 2 + 4  # the two observed cells and their four empty neighbours
-    off = quantize(pts, GridConfig(**{**cfg.__dict__, "fill_empty": False}))
+    off = quantize(pts, dataclasses.replace(cfg, fill_empty=False))
     assert off.valid.sum() == 2
 
 

@@ -19,7 +19,7 @@ from terrainmap.stereo import StereoMatcher
 from terrainmap.synthetic import cloud
 from terrainmap.terrain import estimate_terrain
 from terrainmap.tracking import ObstacleTracker
-from terrainmap.types import StereoCalibration, StereoCamera
+from terrainmap.types import Extrinsics, StereoCalibration, StereoCamera
 
 C = Config()
 AXIS, UP = np.array([1.0, 0.0, 0.0]), np.array([0.0, 0.0, 1.8])
@@ -117,6 +117,10 @@ def test_the_pipelines_arguments_of_another_type_are_named():
          "process_frame: frame.extrinsics must be an Extrinsics or None, got tuple"),
         ((dataclasses.replace(frame, stamp_ns=1.5e18), C, state), InputError,
          "frame 0 has stamp 1.5e.18; a stamp is a whole number of nanoseconds"),
+        ((dataclasses.replace(frame, frame_id=5), C, state), InputError,  # a TypeError in the sinks before
+         r"process_frame: frame.frame_id must be a frame name \(a non-empty str\), got 5"),
+        ((dataclasses.replace(frame, extrinsics=Extrinsics(np.eye(3), np.zeros(3), vehicle_frame_id=None)), C, state),
+         InputError, "process_frame: frame.extrinsics.vehicle_frame_id must be a frame name"),
     ]:
         with pytest.raises(error, match=message):
             process_frame(*args)
@@ -124,6 +128,14 @@ def test_the_pipelines_arguments_of_another_type_are_named():
         PipelineState(GridConfig())
     with pytest.raises(InputError, match="map_points: camera must be a StereoCamera or None, got str"):
         map_points(cloud(1000), C, camera="cam")
+    with pytest.raises(InputError, match="quantize: camera must be a StereoCamera or None, got str"):
+        quantize(cloud(1000), C.grid, camera="cam")
+    with pytest.raises(InputError, match=r"estimate_terrain: grid must be a HeightGrid \(terrainmap.grid.quantize\), "
+                                         "got ndarray"):
+        estimate_terrain(cloud(1000), C.terrain)
+    zeros = np.zeros(C.grid.shape)
+    with pytest.raises(InputError, match="traversability_cost: obstacles must be a list of Obstacle, got NoneType"):
+        traversability_cost(zeros, zeros, zeros > -1, C.grid, None, C.cost)
     with pytest.raises(InputError, match="cloud: n_points must be a whole number >= 0, got -1"):
         cloud(-1)
 

@@ -168,6 +168,24 @@ def test_layers_and_index_of_the_wrong_shape_are_named():
         label_points(pts, flat, flat, flat, grid, config, index=np.zeros(5, np.intp))
     with pytest.raises(InputError, match="N×3"):
         label_points(pts[:, :2], flat, flat, flat, grid, config)
+    with pytest.raises(InputError, match=r"label_cells: elevation must have shape \(68, 44\), got \(3, 3\)"):
+        label_cells(quantize(pts, grid), np.zeros((3, 3)), config)
+
+
+def test_the_sections_given_are_checked_where_no_thresholds_are():
+    """A NaN threshold labelled every point TERRAIN, a negative one every point BELOW, without a word."""
+    from terrainmap.errors import ConfigError
+
+    grid = GridConfig()
+    pts, flat = cloud(1000, grid=grid), np.zeros(grid.shape)
+    for value, message in ((float("nan"), "must be finite"), (-1.0, "must be > 0")):
+        config = SegmentationConfig(obstacle_height_m=value)
+        with pytest.raises(ConfigError, match=f"segmentation.obstacle_height_m: {message}"):
+            label_points(pts, flat, flat, flat, grid, config)
+        with pytest.raises(ConfigError, match=f"segmentation.obstacle_height_m: {message}"):
+            label_cells(quantize(pts, grid), flat, config)
+    with pytest.raises(ConfigError, match=r"expected config.grid \(a GridConfig\), got SegmentationConfig"):
+        label_points(pts, flat, flat, flat, SegmentationConfig(), SegmentationConfig())
 
 
 def test_cells_holding_counts_points_per_cell_and_ignores_the_outside():
