@@ -94,13 +94,13 @@ class GridConfig:
                 f"grid.{name}",
                 f"gives {cells:.3g} cells of {self.cell_size_m} m; at most {MAX_CELLS_PER_AXIS} per axis",
             )
+            _check(round(cells) >= 1, f"grid.{name}",  # first: an area under one cell is said to be so
+                   f"must hold at least one cell of {self.cell_size_m} m, got {getattr(self, name)}")
             _check(
                 abs(cells - round(cells)) < 1e-6,
                 f"grid.{name}",
                 f"must be a whole number of cells of {self.cell_size_m} m (grid.cell_size_m), got {getattr(self, name)}",
             )
-            _check(round(cells) >= 1, f"grid.{name}",
-                   f"must hold at least one cell of {self.cell_size_m} m, got {getattr(self, name)}")
         _check(self.z_min_m < self.z_max_m, "grid.z_min_m", "must be below grid.z_max_m")
         _check(self.stereo_noise_px >= 0, "grid.stereo_noise_px", f"must be >= 0, got {self.stereo_noise_px}")
         _check(0 <= self.sigma_factor <= 5, "grid.sigma_factor", f"must be in [0, 5], got {self.sigma_factor}")
