@@ -160,7 +160,8 @@ def _print_table(results) -> None:
               help="Largest gross error above the ground, m.")
 @click.option("--empty", "empty_fraction", type=Finite(0, 0.95), default=0.3, show_default=True,
               help="Fraction of empty cells.")
-@click.option("--seeds", type=click.IntRange(1, 1000), default=5, show_default=True)
+@click.option("--seeds", type=click.IntRange(1, 1000), default=5, show_default=True,
+              help="Random samples to average over (seeds 0..N-1).")
 @config_options
 def robustness(noise_m, outlier_fraction, outlier_max_m, empty_fraction, seeds, config_path, overrides):
     """Surface RMSE vs truth on synthetic rolling terrain: iterative estimator vs one plain fit."""

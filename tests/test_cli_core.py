@@ -498,7 +498,7 @@ def test_a_report_written_through_a_symbolic_link_keeps_the_link(tmp_path):
     (["eval", "artificial-obstacle", "--nets", "100"],
      "Error: --nets (terrain.control_points_x × control_points_y: must be at most 4096 (64×64), got 100×100)"),
     (["eval", "artificial-obstacle", "--cell", "100"],
-     "Error: --length/--cell (grid.length_m: must be a whole number of cells of 100.0 m (grid.cell_size_m), got 22.0)"),
+     "Error: --length/--cell (grid.length_m: must hold at least one cell of 100.0 m, got 22.0)"),
     (["eval", "artificial-obstacle", "--frame", "2"],
      "Error: --frame picks a stereo pair of the --base log; give --base too "
      "(see 'terrainmap eval artificial-obstacle --help')"),
