@@ -826,7 +826,8 @@ _KINDS = {"bool": ((bool,), "true or false"), "int": ((int,), "an integer"), "fl
 
 def check_section(section: Any, kind: type, grid: GridConfig | None = None) -> None:
     """What :meth:`Config.validate` checks of one section, for a section used on its own (the
-    stage functions take one): that it is a ``kind`` (e.g. :class:`GridConfig`), kinds and finite numbers, its own ranges (the terrain's against
+    stage functions take one): that it is the section the stage takes (of class ``kind``, e.g.
+    :class:`GridConfig`), kinds and finite numbers, its own ranges (the terrain's against
     ``grid``), then :data:`MAX_NUMBER` and :data:`INT_RANGE`, so that a field with a range of its
     own names it. :class:`ConfigError` naming the first bad field. A section equal to the last one
     of its kind that passed (values and their types, and ``grid``) is not checked again: the

@@ -103,7 +103,6 @@ def run(
     usable = isinstance(sinks, list | tuple) and all(callable(getattr(s, m, None)) for s in sinks for m in ("write", "close"))
     if not usable:
         raise TerrainmapError(f"run: sinks must be a list of sinks (write and close), got {sinks!r}")
-
     summary = RunSummary()
     start = time.perf_counter()
     ahead = None

@@ -53,7 +53,8 @@ def check_calibration(calib: StereoCalibration) -> StereoCalibration:
 
 
 def fit_to_image(calib: StereoCalibration, shape: tuple[int, ...], image_name: str) -> StereoCalibration:
-    """Fill in an unknown image size from ``shape`` (H, W[, C]) or check a known one."""
+    """Fill in an unknown image size from ``shape`` (H, W[, C]) (with a warning where the principal
+    point lies far from the image's centre) or check a known one."""
     height, width = int(shape[0]), int(shape[1])
     if calib.width == 0 and calib.height == 0:
         if abs(calib.cx - width / 2) > width / 4 or abs(calib.cy - height / 2) > height / 4:
