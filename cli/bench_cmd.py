@@ -20,7 +20,7 @@ MIN_RATE_FRAMES = 10
 
 @click.command()
 @click.option("--runs", type=click.IntRange(1, 10_000), default=30, show_default=True, help="Timed runs per stage.")
-@click.option("--json", "json_path", type=click.Path(dir_okay=False), callback=output_file(report=".json"),
+@click.option("--json", "json_path", type=click.Path(dir_okay=False), callback=output_file(".json"),
               help='Write {stage: {median_ms, ...}, "process": {median_fps, ...}} here.')
 @click.option("--log", "log_path", type=click.Path(exists=True),
               help="Time the stages on the first stereo pair of this log or folder instead of synthetic input.")

@@ -28,7 +28,7 @@ from .options import (
 @click.option("--methods", default=None, metavar="NAME,...",
               help="Comma-separated methods (default: every available one: terrainmap and the baselines).")
 @click.option("--max-frames", type=click.IntRange(min=1), default=None, help="Evaluate at most this many frames.")
-@click.option("--json", "json_path", type=click.Path(dir_okay=False), callback=output_file(report=".json"),
+@click.option("--json", "json_path", type=click.Path(dir_okay=False), callback=output_file(".json"),
               help="Write the report as JSON.")
 @click.option("--plot", "plot_path", type=click.Path(dir_okay=False), callback=output_file(*PLOT_SUFFIXES),
               help="Draw elevation RMSE against range for each method to this image (.png, .pdf or .svg).")

@@ -69,8 +69,8 @@ def eval_group() -> None:
 @click.option("--heights", default="0.5,1,1.5,2,2.5,3", show_default=True, callback=_numbers(), help="Obstacle heights, m.")
 @click.option("--position", default="11.0,0.0", show_default=True, callback=_numbers(positive=False, count=2),
               help="Obstacle centre x,y in the area, m.")
-@click.option("--json", "json_path", type=click.Path(dir_okay=False), callback=output_file(report=".json"), help="Write results as JSON.")
-@click.option("--csv", "csv_path", type=click.Path(dir_okay=False), callback=output_file(report=".csv"), help="Write results as CSV.")
+@click.option("--json", "json_path", type=click.Path(dir_okay=False), callback=output_file(".json"), help="Write results as JSON.")
+@click.option("--csv", "csv_path", type=click.Path(dir_okay=False), callback=output_file(".csv"), help="Write results as CSV.")
 @click.option("--plot", "plot_path", type=click.Path(dir_okay=False), callback=output_file(*PLOT_SUFFIXES),
               help="Draw Fig. 6 to this image (.png, .pdf or .svg).")
 @click.option("--base", "base_log", type=click.Path(exists=True), help="Take the base scene from a frame of this log "

@@ -25,7 +25,7 @@ from .options import (
 @click.option("--calibration", type=click.Path(exists=True, dir_okay=False, path_type=Path),
               help="Calibration file to use instead of the folder's own.")
 @click.option("--max-frames", type=click.IntRange(min=1), default=None, help="Score at most this many pairs.")
-@click.option("--json", "json_path", type=click.Path(dir_okay=False), callback=output_file(report=".json"),
+@click.option("--json", "json_path", type=click.Path(dir_okay=False), callback=output_file(".json"),
               help="Write the report as JSON.")
 @config_options
 def stereo(path, calibration, max_frames, json_path, config_path, overrides):

@@ -192,13 +192,12 @@ def writable(path: Path) -> None:
         target.unlink(missing_ok=True)
 
 
-def output_file(*suffixes: str, report: str | None = None) -> Callable:
+def output_file(*suffixes: str) -> Callable:
     """A click callback for an output file option: its folder must exist and, where ``suffixes``
     are given, its name must end in one of them (click's ``dir_okay`` decides whether it may be a
-    folder). A ``report`` (``.json``, ``.csv``) may have any name, but replaces an existing file
-    only where the name ends in that suffix: an earlier report, not a log named by a slip. Gives a
-    Path; the command then checks it against its inputs and that it can be written, before any
-    work (:func:`check_outputs`)."""
+    folder; a report's suffix keeps a log named by a slip from being replaced by it). Gives a Path;
+    the command then checks it against its inputs and that it can be written, before any work
+    (:func:`check_outputs`)."""
 
     def check(ctx: click.Context, param: click.Parameter, value) -> Path | None:
         if value is None:
@@ -211,9 +210,6 @@ def output_file(*suffixes: str, report: str | None = None) -> Callable:
             raise click.BadParameter(what)
         if suffixes and path.suffix.lower() not in suffixes:
             raise click.BadParameter(f"{path} must end in {', '.join(suffixes)}")
-        if report and path.exists() and path.suffix.lower() != report:
-            raise click.BadParameter(f"{path} exists and is no {report} file (a report replaces only an earlier "
-                                     "one); name another file")
         return path
 
     return check

@@ -139,28 +139,30 @@ def test_eval_rejects_bad_lists(widths):
 
 
 def test_outputs_are_checked_before_any_work(tmp_path):
-    same = str(tmp_path / "same.out")
-    result = CliRunner().invoke(cli, ["eval", "artificial-obstacle", "--json", same, "--csv", same])
+    (tmp_path / "same.csv").symlink_to(tmp_path / "same.json")  # one file under both names
+    result = CliRunner().invoke(cli, ["eval", "artificial-obstacle", "--json", str(tmp_path / "same.json"),
+                                      "--csv", str(tmp_path / "same.csv")])
     assert result.exit_code == 2 and "--json and --csv are the same file" in result.output
     if os.path.isdir("/proc"):  # Linux refuses new files there: found before the benchmark runs
         result = CliRunner().invoke(cli, ["bench", "--json", "/proc/terrainmap-bench.json"])
         assert result.exit_code == 2 and "cannot write /proc/terrainmap-bench.json" in result.output
 
 
-def test_a_report_replaces_an_earlier_report_but_no_other_file(tmp_path):
-    """A slip that names a log for a report: refused, the log left as it was; a report of the
-    same kind, or a new file of any name, is written."""
+def test_a_report_is_named_by_its_suffix_so_that_a_slip_replaces_no_log(tmp_path):
+    """A slip that names a log for a report: refused, the log left as it was; an earlier report of
+    the same name is replaced, run after run."""
     log = tmp_path / "drive.mcap"
     log.write_bytes(b"\x89MCAP0\r\n")
     args = ["eval", "artificial-obstacle", "--nets", "5", "--widths", "4", "--heights", "1"]
     for option in ("--json", "--csv"):
         result = CliRunner().invoke(cli, [*args, option, str(log)])
-        assert result.exit_code == 2 and f"{log} exists and is no .{option[2:]} file" in result.output
+        assert result.exit_code == 2 and f"{log} must end in .{option[2:]}" in result.output
     assert log.read_bytes() == b"\x89MCAP0\r\n"
     (tmp_path / "old.json").write_text("{}")
-    result = CliRunner().invoke(cli, [*args, "--json", str(tmp_path / "old.json"), "--csv", str(tmp_path / "rows.txt")])
-    assert result.exit_code == 0, result.output
-    assert (tmp_path / "old.json").read_text().startswith("[") and (tmp_path / "rows.txt").read_text()
+    for _ in range(2):
+        result = CliRunner().invoke(cli, [*args, "--json", str(tmp_path / "old.json"), "--csv", str(tmp_path / "rows.csv")])
+        assert result.exit_code == 0, result.output
+    assert (tmp_path / "old.json").read_text().startswith("[") and (tmp_path / "rows.csv").read_text()
 
 
 def test_bench_reports_every_stage(tmp_path, monkeypatch):

@@ -510,7 +510,7 @@ def test_outputs_never_replace_the_input_or_each_other(small_log, tmp_path):
     result = CliRunner().invoke(cli, ["process", str(log), "--config", str(config), "-o", str(config), "--overwrite"])
     assert result.exit_code == 2 and "would overwrite the input" in result.output
     result = CliRunner().invoke(cli, ["eval", "accuracy", str(log), "--json", str(log)])
-    assert result.exit_code == 2 and "--json" in result.output and "exists and is no .json file" in result.output
+    assert result.exit_code == 2 and "--json" in result.output and "must end in .json" in result.output
     same = str(tmp_path / "o.mcap")
     result = CliRunner().invoke(cli, ["process", str(log), "-o", same, "--rrd", same])
     assert result.exit_code == 2 and "same file" in result.output
