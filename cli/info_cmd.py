@@ -75,6 +75,8 @@ def info(log: str, source_opts: SourceOptions, as_json: bool, check: bool) -> No
                     if skipped:
                         readable = False
                         description["check"] += f", skipping {damaged_parts(skipped)}"
+                        if as_json:  # for scripts, every one of them
+                            description["skipped"] = skipped
                     if description.get("damage"):  # read whole all the same: a summary that fails its CRC
                         readable = False
                         description["check"] += ", but the log is damaged (see damage)"
@@ -82,8 +84,8 @@ def info(log: str, source_opts: SourceOptions, as_json: bool, check: bool) -> No
                     readable = False
                     description["check"] = f"fails after {counted(pairs, 'stereo pair')}: {_reason(exc, log)}"
     except NoStereoError as exc:
-        if source_opts.left_topic or source_opts.right_topic:  # the topics the user named: a bad option
-            raise
+        if (source_opts.left_topic or source_opts.right_topic) and not exc.contents.get("damage"):
+            raise  # the topics the user named are not in the log: a bad option (damage may hide them)
         description = {**exc.contents, "stereo_pair": f"none, so process cannot use it ({_reason(exc, log)})"}
         if check:
             readable, description["check"] = False, "fails: no stereo pair to read"

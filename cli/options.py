@@ -96,7 +96,7 @@ DAMAGE_SHOWN = 3
 
 def damaged_parts(skipped: list[str]) -> str:
     """``2 damaged parts: A; B``, or past :data:`DAMAGE_SHOWN` of them ``40 damaged parts: A; B; C;
-    and 37 more``: one line however much of a long log is damaged."""
+    and 37 more (warned as they were met)``: one line however much of a long log is damaged."""
     more = len(skipped) - DAMAGE_SHOWN
     listed = "; ".join(skipped[:DAMAGE_SHOWN]) + (f"; and {more} more (warned as they were met)" if more > 0 else "")
     return f"{counted(len(skipped), 'damaged part')}: {listed}"

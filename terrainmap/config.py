@@ -970,7 +970,7 @@ def apply_values(config: Config, values: dict[str, Any], source: str = "config",
     sections = {f.name: getattr(config, f.name) for f in fields(config)}
     for section, table in values.items():
         if section not in sections:
-            what = f"section [{section}]" if isinstance(table, dict) or text else f"top-level key {section!r}"
+            what = f"section [{section}]" if isinstance(table, dict) else f"top-level key {section!r}"
             raise ConfigError(f"{source}: unknown {what} (known sections: {', '.join(sections)})")
         if not isinstance(table, dict):
             raise ConfigError(f"{source}: [{section}] must be a table")

@@ -81,8 +81,10 @@ def traversability_cost(
     """
     check_section(config, CostConfig)
     check_section(grid_config, GridConfig)
-    if not isinstance(obstacles, list | tuple):
-        raise InputError(f"traversability_cost: obstacles must be a list of Obstacle, got {type(obstacles).__name__}")
+    try:
+        obstacles = list(obstacles)
+    except TypeError:
+        raise InputError(f"traversability_cost: obstacles must be Obstacles (a list), got {type(obstacles).__name__}") from None
     shape = grid_config.shape
     layers = {"elevation": elevation, "slope": slope, "valid": valid}
     if step is not None:

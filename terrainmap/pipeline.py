@@ -173,11 +173,13 @@ class PipelineState:
             checked = replace(config, **{f.name: replace(getattr(config, f.name)) for f in fields(config)})
         if extrinsics is not None and extrinsics is not self.checked[1]:
             name = f"{frame.source or 'frame'} (pair {frame.index}): extrinsics ({extrinsics.source})"
+            try:  # the stages use them as they are: the shapes, not only the numbers (reshaped) below
+                shapes = f"{np.shape(extrinsics.rotation)} and {np.shape(extrinsics.translation)}"
+            except ValueError:  # ragged
+                shapes = "ragged arrays"
+            if shapes != "(3, 3) and (3,)":
+                raise CalibrationError(f"{name}: rotation must be 3×3 and translation 3 numbers, got {shapes}")
             extrinsics_from_calibration(extrinsics.rotation, extrinsics.translation, name=name)
-            shapes = np.shape(extrinsics.rotation), np.shape(extrinsics.translation)  # (numbers, as checked)
-            if shapes != ((3, 3), (3,)):  # the stages use them as they are, not reshaped as checked
-                raise CalibrationError(f"{name}: rotation must be 3×3 and translation 3 numbers, "
-                                       f"got shapes {shapes[0]} and {shapes[1]}")
         self.checked = (checked, extrinsics)
 
 

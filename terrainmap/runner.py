@@ -98,7 +98,9 @@ def run(
     way, OpenCV's process-wide thread count is divided between them).
 
     ``on_frame`` is called after each frame (the result is None for a failed frame) — the CLI
-    draws its progress line there. Sinks are closed when the run ends, however it ends.
+    draws its progress line there. Sinks are closed when the run ends, however it ends. Each
+    frame's images are copied as it is read (the iterator may reuse its buffers); anything but a
+    :class:`StereoFrame` among the frames (a None too) ends the run with an error.
     """
     usable = isinstance(sinks, list | tuple) and all(callable(getattr(s, m, None)) for s in sinks for m in ("write", "close"))
     if not usable:

@@ -513,8 +513,8 @@ class StereoMatcher:
         for side, image in (("left", left), ("right", right)):
             if not isinstance(image, np.ndarray) or image.dtype != np.uint8 or image.ndim not in (2, 3):
                 got = f"{image.dtype} {image.shape}" if isinstance(image, np.ndarray) else type(image).__name__
-                raise InputError(f"{side} image must be a uint8 H×W or H×W×3 array, got {got} "
-                                 "(terrainmap.sources.images.stereo_pair makes a 16-bit pair uint8)")
+                hint = " (terrainmap.sources.images.stereo_pair makes a 16-bit pair uint8)" if "uint16" in got else ""
+                raise InputError(f"{side} image must be a uint8 H×W or H×W×3 array, got {got}{hint}")
             if image.ndim == 3 and image.shape[2] != 3:
                 hint = " (give a mono image as H×W: image[..., 0])" if image.shape[2] == 1 else ""
                 raise InputError(f"{side} image has {image.shape[2]} channels, expected 3 or an H×W mono image{hint}")

@@ -59,7 +59,7 @@ from scipy.optimize import linear_sum_assignment
 from scipy.spatial import cKDTree
 
 from .config import GridConfig, TrackingConfig, check_section
-from .errors import InputError, is_whole
+from .errors import ConfigError, InputError, is_whole
 from .extrinsics import is_rotation
 from .types import Obstacle, StereoCamera
 
@@ -86,6 +86,8 @@ class ObstacleTracker:
     def __init__(self, config: TrackingConfig, *, area: GridConfig | None = None):
         check_section(config, TrackingConfig)
         if area is not None:
+            if not isinstance(area, GridConfig):
+                raise ConfigError(f"ObstacleTracker: area must be the GridConfig, got {type(area).__name__}")
             check_section(area, GridConfig)
         self.config = config
         self.area = area

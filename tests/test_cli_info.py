@@ -69,6 +69,11 @@ def test_info_given_a_topic_the_log_lacks_is_an_error_as_process_makes_it(tmp_pa
     assert exit_info.value.code == 2
     assert capsys.readouterr().err.strip() == (f"Error: {log}: right topic '/nope' is not an image topic of this log "
                                                "(image topics: /cam/left/image_rect, /cam/right/image_rect)")
+    cut = tmp_path / "cut.mcap"  # a recording killed before the topic's first message: described, with its damage
+    cut.write_bytes(log.read_bytes()[:200])
+    result = CliRunner().invoke(info, ["--right-topic", "/cam/right/image_rect", str(cut)])
+    assert result.exit_code == 0 and "damage:" in result.output, result.output
+    assert "stereo pair: none, so process cannot use it (truncated or corrupt after 0 messages" in result.output
 
 
 @pytest.mark.parametrize("log", ["negative/rosbag2_talker", "negative/grid_map_ros1.bag"])
@@ -132,6 +137,7 @@ def test_check_reads_every_stereo_pair_and_finds_a_damaged_chunk_the_index_does_
     check = json.loads(damaged.output)["check"]
     assert check.startswith("2 stereo pairs read and decoded, to the end, skipping 1 damaged part: "), check
     assert f"{log}: chunk at byte {last.chunk_start_offset}, log time " in check and "CRC" in check.upper()
+    assert [part[: len(str(log))] for part in json.loads(damaged.output)["skipped"]] == [str(log)]  # all, for scripts
     assert "\n" not in check
 
 

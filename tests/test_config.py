@@ -336,7 +336,7 @@ def test_entry_points_given_the_wrong_object_say_what_they_want():
     config = Config()
     with pytest.raises(ConfigError, match="map_points: config must be the whole Config, got GridConfig"):
         map_points(np.zeros((10, 3)), config.grid)
-    with pytest.raises(ConfigError, match=r"expected config.grid \(a GridConfig\), got TrackingConfig"):
+    with pytest.raises(ConfigError, match="ObstacleTracker: area must be the GridConfig, got TrackingConfig"):
         ObstacleTracker(config.tracking, area=config.tracking)
     with pytest.raises(TerrainmapError, match=r"run: sinks must be a list of sinks \(write and close\), got None"):
         runner.run(iter([]), config, None)

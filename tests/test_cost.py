@@ -77,6 +77,13 @@ def test_confirmed_obstacle_occupies_its_footprint_and_clearance():
     assert occupied.sum() == 9 and occupied[1:4, 1:4].all()
 
 
+def test_obstacles_may_come_as_any_iterable():
+    zeros, ones = np.zeros(SHAPE), np.ones(SHAPE, bool)
+    listed = traversability_cost(zeros, zeros, ones, SMALL, [obstacle(1.25, 0.25)], CostConfig())
+    generated = traversability_cost(zeros, zeros, ones, SMALL, (o for o in [obstacle(1.25, 0.25)]), CostConfig())
+    np.testing.assert_array_equal(generated, listed)
+
+
 def test_unconfirmed_obstacles_do_not_occupy():
     cost = cost_of(0.0, obstacles=[obstacle(1.25, 0.25, 1.0, 1.0, confirmed=False)])
     assert np.all(cost == 0)

@@ -134,7 +134,7 @@ def test_the_pipelines_arguments_of_another_type_are_named():
                                          "got ndarray"):
         estimate_terrain(cloud(1000), C.terrain)
     zeros = np.zeros(C.grid.shape)
-    with pytest.raises(InputError, match="traversability_cost: obstacles must be a list of Obstacle, got NoneType"):
+    with pytest.raises(InputError, match=r"traversability_cost: obstacles must be Obstacles \(a list\), got NoneType"):
         traversability_cost(zeros, zeros, zeros > -1, C.grid, None, C.cost)
     with pytest.raises(InputError, match="cloud: n_points must be a whole number >= 0, got -1"):
         cloud(-1)

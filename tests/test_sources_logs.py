@@ -551,11 +551,12 @@ def test_corrupt_real_log_gives_one_line_error(tmp_path, damage):
     assert "truncated or corrupt" in str(info.value) or "not a readable MCAP file" in str(info.value)
 
 
-@pytest.mark.parametrize("data", [b"", b"garbage\n", b"\x89MCAP"])
-def test_a_file_named_mcap_that_is_no_mcap_says_so(tmp_path, data):
+@pytest.mark.parametrize(("data", "why"), [(b"", "it is empty"), (b"garbage\n", "it does not begin with MCAP's magic bytes"),
+                                         (b"\x89MCAP", "it ends within MCAP's 8 magic bytes")])
+def test_a_file_named_mcap_that_is_no_mcap_says_so(tmp_path, data, why):
     bad = tmp_path / "notes.mcap"
     bad.write_bytes(data)
-    with pytest.raises(InputError, match=rf"^{bad}: not an MCAP file \(it does not begin with MCAP's magic bytes\)$"):
+    with pytest.raises(InputError, match=rf"^{bad}: not an MCAP file \({why}\)$"):
         open_source(bad)
 
 

@@ -200,8 +200,10 @@ class McapFile(_SkipsDamage):
         decoded (("message", topic, log time) → what), met while reading messages."""
         try:
             with open(path, "rb") as stream:
-                if stream.read(len(MCAP_MAGIC)) != MCAP_MAGIC:
-                    raise InputError(f"{path}: not an MCAP file (it does not begin with MCAP's magic bytes)")
+                if (head := stream.read(len(MCAP_MAGIC))) != MCAP_MAGIC:
+                    why = ("it is empty" if not head else "it ends within MCAP's 8 magic bytes"
+                           if MCAP_MAGIC.startswith(head) else "it does not begin with MCAP's magic bytes")
+                    raise InputError(f"{path}: not an MCAP file ({why})")
                 stream.seek(0)
                 reader = make_reader(stream)
                 summary = self._summary(reader, stream)
