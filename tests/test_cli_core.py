@@ -1,5 +1,6 @@
 import json
 import os
+import re
 import sys
 import tomllib
 from pathlib import Path
@@ -42,16 +43,18 @@ def test_a_file_named_like_the_verbose_flag_is_no_flag(capsys):
 @pytest.mark.parametrize(
     ("args", "line"),
     [
-        (["process"], "Error: Missing argument 'LOG'. (see 'terrainmap process --help')"),
-        (["bogus"], "Error: No such command 'bogus'. (see 'terrainmap --help')"),
-        (["config", "--nope"], "Error: No such option '--nope'. (see 'terrainmap config --help')"),
+        (["process"], r"Error: Missing argument 'LOG'\. \(see 'terrainmap process --help'\)"),
+        (["bogus"], r"Error: No such command 'bogus'\. \(see 'terrainmap --help'\)"),
+        # (click 8.2 and 8.3 word it "No such option: --nope")
+        (["config", "--nope"], r"Error: No such option(: --nope| '--nope'\.) \(see 'terrainmap config --help'\)"),
     ],
 )
 def test_usage_errors_are_one_line(capsys, args, line):
     with pytest.raises(SystemExit) as exc:
         main(args)
     assert exc.value.code == 2
-    assert capsys.readouterr().err.splitlines() == [line]
+    (got,) = capsys.readouterr().err.splitlines()
+    assert re.fullmatch(line, got), got
 
 
 @pytest.mark.parametrize(("flags", "quiet"), [([], True), (["-v"], False)])
