@@ -188,8 +188,8 @@ def test_foxglove_protobuf_log_from_kitti_images(kitti, tmp_path):
     h, w = kitti.left.shape[:2]
     with open(path, "wb") as f, ProtobufWriter(f) as writer:
         transforms = FrameTransforms(transforms=[
-            FrameTransform(parent_frame_id="base_link", child_frame_id="camera", translation={"x": 0.5, "z": 1.6},
-                           rotation={"w": 1.0}),
+            # the rotation left unset, as a mount that only shifts is often written: no rotation
+            FrameTransform(parent_frame_id="base_link", child_frame_id="camera", translation={"x": 0.5, "z": 1.6}),
             FrameTransform(parent_frame_id="camera", child_frame_id="left_optical", rotation=dict(zip("xyzw", OPTICAL_Q, strict=True))),
         ])
         writer.write_message("/tf_static", transforms, log_time=T0, publish_time=T0)

@@ -56,11 +56,13 @@ def test_calibration_topic_by_namespace():
     assert calibration_topic("/stereo/left/image_rect_color/compressed", infos) == "/stereo/left/camera_info"
     assert calibration_topic("/stereo/right/image_rect_color", infos) == "/stereo/right/camera_info"
     assert calibration_topic("/elsewhere/image", infos) is None
+    assert calibration_topic("/left_image", infos, side=("left", "right")) is None  # only a top-level one could do
 
 
 @pytest.mark.parametrize(
     ("left_image", "left_info"),
-    [("/cam/left_image", "/cam/left_info"), ("/stereo/left/image_rect", "/stereo/camera_info_left")],
+    [("/cam/left_image", "/cam/left_info"), ("/stereo/left/image_rect", "/stereo/camera_info_left"),
+     ("/left_image", "/left_calibration")],  # top-level topics share no namespace: the side decides
 )
 def test_calibration_topics_in_one_namespace_go_by_their_side_token(left_image, left_info):
     right_image, right_info = (t.replace("left", "right") for t in (left_image, left_info))
@@ -349,3 +351,14 @@ def test_a_closed_source_reads_no_more(tmp_path):
     source.close()
     with pytest.raises(InputError, match=f"{log}: the source is closed; open it again"):
         next(source.frames())
+
+
+def test_an_image_or_calibration_of_a_foxglove_schema_without_frame_id_is_in_the_default_frame():
+    """Foxglove's RawImage, CompressedImage and CameraCalibration had no frame_id before August
+    2022: such messages are in ``camera_optical``, as those whose frame id was left empty."""
+    from types import SimpleNamespace
+
+    from terrainmap.sources.messages import frame_id
+
+    assert frame_id(SimpleNamespace(width=8, height=6)) == "camera_optical"  # an AttributeError before
+    assert frame_id(SimpleNamespace(frame_id="/cam0")) == "cam0"

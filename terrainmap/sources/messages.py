@@ -41,8 +41,9 @@ def stamp_ns(msg) -> int:
 
 def frame_id(msg) -> str:
     """The message's frame id without a leading '/'; ``camera_optical`` where the driver left it
-    empty (a transform to an unnamed frame is one tf2 ignores and Foxglove cannot name)."""
-    name = str(msg.header.frame_id if hasattr(msg, "header") else msg.frame_id).lstrip("/")
+    empty (a transform to an unnamed frame is one tf2 ignores and Foxglove cannot name) or the
+    message has none (Foxglove's image and calibration schemas before August 2022)."""
+    name = str(msg.header.frame_id if hasattr(msg, "header") else getattr(msg, "frame_id", "")).lstrip("/")
     return name or "camera_optical"
 
 
@@ -221,4 +222,6 @@ def transforms(msg, msg_type: str) -> Iterator[tuple[int, str, str, list[float],
         return
     for t in msg.transforms if msg_type == "foxglove.FrameTransforms" else [msg]:
         tr, q = t.translation, t.rotation
-        yield stamp_ns(t), t.parent_frame_id, t.child_frame_id, [tr.x, tr.y, tr.z], [q.x, q.y, q.z, q.w]
+        # a rotation left unset (a mount that only shifts) is no rotation, as Foxglove draws it
+        xyzw = [q.x, q.y, q.z, q.w] if t.HasField("rotation") else [0.0, 0.0, 0.0, 1.0]
+        yield stamp_ns(t), t.parent_frame_id, t.child_frame_id, [tr.x, tr.y, tr.z], xyzw

@@ -100,12 +100,18 @@ def calibration_topic(
 ) -> str | None:
     """The calibration topic sharing the longest namespace with ``image_topic`` (at least one level);
     among equals, the one naming ``side[0]`` (the image topic's side token, :func:`side_tokens`)
-    rather than ``side[1]`` (the other camera's)."""
+    rather than ``side[1]`` (the other camera's). Topics at the top level (``/left_image``,
+    ``/left_calibration``) share no namespace: there the one naming the side is taken."""
 
     def names_side(topic: str) -> int:
         tokens = {t.lower() for t in _tokens(topic)}
         return (side[0] in tokens) - (side[1] in tokens) if side else 0
 
+    def top_level(topic: str) -> bool:
+        return "/" not in topic.strip("/")
+
     scored = [(_shared_namespace(c, image_topic), names_side(c), c) for c in calibration_topics if c != exclude]
     best = max(scored, default=(0, 0, None))
-    return best[2] if best[0] > 0 else None
+    if best[0] == 0 and top_level(image_topic):
+        best = max(((n, c) for _, n, c in scored if top_level(c)), default=(0, None))
+    return best[-1] if best[0] > 0 else None
