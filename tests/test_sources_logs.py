@@ -766,6 +766,32 @@ def test_odometry_of_base_footprint_gives_the_pose_of_base_link_the_camera_is_mo
     np.testing.assert_allclose(frame.vehicle_pose[:3, 3], [10.0, 0.0, 0.3])
 
 
+def test_the_last_pair_before_the_camera_stops_gets_its_pose_from_the_odometry_after_it(tmp_path):
+    """Odometry at 100 Hz for 5 s, images at 10 Hz for the first second: the last pair waited for a
+    pose after its stamp and was released only by an image that never came, its pose gone by then
+    (and the tracks reset); now each odometry message releases the pairs waiting for it."""
+    path = tmp_path / "stops.mcap"
+    with open(path, "wb") as f, Ros2Writer(f) as writer:
+        image_schema = writer.register_msgdef("sensor_msgs/msg/Image", IMAGE_DEF + HEADER)
+        info_schema = writer.register_msgdef("sensor_msgs/msg/CameraInfo", INFO_DEF + HEADER)
+        tf_schema = writer.register_msgdef("tf2_msgs/msg/TFMessage", TF_DEF + HEADER)
+        writer.write_message("/tf_static", tf_schema, tf_message(T0, "base_link", "left_optical", (0.5, 0, 1.0), OPTICAL_Q), T0)
+        for side, tx in (("left", 0.0), ("right", -100.0)):
+            writer.write_message(f"/cam/{side}/camera_info", info_schema, ros_info(T0, f"{side}_optical", 8, 6, tx), T0)
+        for k in range(500):
+            stamp = T0 + k * 10_000_000
+            writer.write_message("/tf", tf_schema, tf_message(stamp, "odom", "base_link", (k * 0.01, 0, 0), (0, 0, 0, 1)), stamp)
+            if k % 10 == 0 and k < 100:  # a pair 5 ms after every tenth pose, for the first second
+                for side, image in zip(("left", "right"), pair_images(k // 10), strict=True):
+                    writer.write_message(f"/cam/{side}/image_rect", image_schema,
+                                         ros_image(stamp + 5_000_000, f"{side}_optical", image, "rgb8"), stamp + 5_000_001)
+    with open_source(path) as source:
+        frames = list(source.frames())
+    assert len(frames) == 10
+    assert all(f.vehicle_pose is not None for f in frames)
+    np.testing.assert_allclose([f.vehicle_pose[0, 3] for f in frames], [0.005 + 0.1 * i for i in range(10)])
+
+
 def test_an_indexed_mcap_without_statistics_has_unknown_counts_and_reads_whole(tmp_path):
     """The statistics record is optional in MCAP: the message counts are then unknown, not 0, in
     the log alone and in a rosbag2 folder with a second file that has them; the span comes from

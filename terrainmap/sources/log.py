@@ -231,27 +231,27 @@ class LogSource(Source):
         latched = [t for t in info_topics if self.reader.counts.get(t) == 1]
         topics = [self.left_topic, self.right_topic, *self.odometry_topics, *info_topics]
         for topic, log_time_ns, msg in self.reader.messages(topics):
-            if topic in self.odometry_topics:
+            if topic in self.odometry_topics:  # (then the pairs waiting for it below, not at the next image)
                 for transform in msgs.transforms(msg, self.reader.types[topic]):
                     poses.add(*transform)
-                continue
-            stamp_ns = log_time_ns if self._unstamped else msgs.stamp_ns(msg) or log_time_ns
-            if topic in info_topics:
-                if latched:  # one side is a single message: each new info goes with the other's newest
-                    infos[topic] = msg
-                    ready = len(infos) == 2
-                else:  # both republished: paired by stamp, as the images are
-                    made = info_pairer.push(info_topics.index(topic), stamp_ns, msg)
-                    ready = made is not None
-                    if ready:
-                        infos = dict(zip(info_topics, made[1:], strict=True))
-                if ready:
-                    calibration, warned = self._calibration_after(calibration, infos, stamp_ns, warned)
             else:
-                pair = pairer.push(0 if topic == self.left_topic else 1, stamp_ns, msg)
-                if pair is not None:
-                    pending.append((log_time_ns, (index, *pair, calibration)))
-                    index += 1
+                stamp_ns = log_time_ns if self._unstamped else msgs.stamp_ns(msg) or log_time_ns
+                if topic in info_topics:
+                    if latched:  # one side is a single message: each new info goes with the other's newest
+                        infos[topic] = msg
+                        ready = len(infos) == 2
+                    else:  # both republished: paired by stamp, as the images are
+                        made = info_pairer.push(info_topics.index(topic), stamp_ns, msg)
+                        ready = made is not None
+                        if ready:
+                            infos = dict(zip(info_topics, made[1:], strict=True))
+                    if ready:
+                        calibration, warned = self._calibration_after(calibration, infos, stamp_ns, warned)
+                else:
+                    pair = pairer.push(0 if topic == self.left_topic else 1, stamp_ns, msg)
+                    if pair is not None:
+                        pending.append((log_time_ns, (index, *pair, calibration)))
+                        index += 1
             # With odometry, a pair waits for a pose at or after its stamp, or for a second of log time.
             while pending and (not self.odometry_topics or pending[0][1][1] <= (poses.newest_ns or 0)
                                or log_time_ns - pending[0][0] >= POSE_WAIT_NS):
