@@ -792,6 +792,32 @@ def test_the_last_pair_before_the_camera_stops_gets_its_pose_from_the_odometry_a
     np.testing.assert_allclose([f.vehicle_pose[0, 3] for f in frames], [0.005 + 0.1 * i for i in range(10)])
 
 
+@pytest.mark.parametrize("good_after", [True, False])
+def test_a_first_camera_info_without_projection_gives_way_to_the_next_usable_one(tmp_path, good_after):
+    """A driver that publishes an all-zero camera info before the real one: the log's calibration
+    is the first usable one of each side; where none of the first few is, the error says so."""
+    path = tmp_path / "infos.mcap"
+    with open(path, "wb") as f, Ros2Writer(f) as writer:
+        image_schema = writer.register_msgdef("sensor_msgs/msg/Image", IMAGE_DEF + HEADER)
+        info_schema = writer.register_msgdef("sensor_msgs/msg/CameraInfo", INFO_DEF + HEADER)
+        for k in range(3):
+            for side, tx in (("left", 0.0), ("right", -100.0)):
+                info = ros_info(T0 + k, f"{side}_optical", 8, 6, tx)
+                if k == 0 or not good_after:
+                    info["p"] = [0.0] * 12
+                writer.write_message(f"/cam/{side}/camera_info", info_schema, info, T0 + k)
+        for side, image in zip(("left", "right"), pair_images(0), strict=True):
+            writer.write_message(f"/cam/{side}/image_rect", image_schema, ros_image(T0 + 10, f"{side}_optical", image, "rgb8"),
+                                 T0 + 10)
+    if good_after:
+        with open_source(path) as source:
+            assert source.calibration.baseline_m == pytest.approx(0.25)
+    else:
+        with pytest.raises(CalibrationError, match=rf"^{path}: /cam/left/camera_info: camera calibration without a "
+                                                   r"projection matrix P \(nor is any of the 2 messages after it\)$"):
+            open_source(path).frames().__next__()
+
+
 def test_an_indexed_mcap_without_statistics_has_unknown_counts_and_reads_whole(tmp_path):
     """The statistics record is optional in MCAP: the message counts are then unknown, not 0, in
     the log alone and in a rosbag2 folder with a second file that has them; the span comes from

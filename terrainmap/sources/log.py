@@ -52,6 +52,18 @@ yielded with the poses known by then."""
 UNSTAMPED_PREFIX = 5
 """Images whose topic's first this many messages are stamped 0 are taken as never stamped."""
 
+CALIBRATION_TRIES = 5
+"""How many of a calibration topic's first messages are tried for one that is usable."""
+
+
+def _info_error(message, topic: str) -> CalibrationError | None:
+    """Why a camera info message cannot serve (:func:`~terrainmap.sources.messages.camera_info`), or None."""
+    try:
+        msgs.camera_info(message, topic)
+    except CalibrationError as exc:
+        return exc
+    return None
+
 
 def _starts_with(path: Path, magic: bytes) -> bool:
     try:
@@ -146,12 +158,19 @@ class LogSource(Source):
                     f"{self.path}: no camera calibration topic for {self.left_topic} and {self.right_topic} "
                     f"(calibration topics: {', '.join(topics) or 'none'}); pass --calibration"
                 )
-            infos = [self._first(t) for t in (left, right)]
+            infos = [self._first(t, CALIBRATION_TRIES) for t in (left, right)]
             if not all(infos):
                 raise CalibrationError(f"{self.path}: {left} or {right} holds no readable message; pass --calibration")
+            chosen = []  # the first usable info of each side (a driver may publish an empty one first)
+            for found, topic in zip(infos, (left, right), strict=True):
+                errors = [_info_error(message, topic) for message in found]
+                if all(errors):  # they name the topic: name the log too
+                    more = f" (nor is any of the {len(found) - 1} messages after it)" if len(found) > 1 else ""
+                    raise CalibrationError(f"{self.path}: {errors[0]}{more}") from errors[0]
+                chosen.append(found[errors.index(None)])
             try:
-                return self._calibration_of(infos[0][0], infos[1][0])
-            except CalibrationError as exc:  # it names the topic: name the log too
+                return self._calibration_of(*chosen)
+            except CalibrationError as exc:
                 raise CalibrationError(f"{self.path}: {exc}") from exc
         except CalibrationError as exc:
             self.calibration_error = exc
