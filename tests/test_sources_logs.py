@@ -792,6 +792,31 @@ def test_the_last_pair_before_the_camera_stops_gets_its_pose_from_the_odometry_a
     np.testing.assert_allclose([f.vehicle_pose[0, 3] for f in frames], [0.005 + 0.1 * i for i in range(10)])
 
 
+def test_images_and_odometry_stamped_by_different_clocks_are_warned_about_once(tmp_path, caplog):
+    """Images stamped in seconds since boot, the tf in Unix time: no pair can have a pose, which
+    used to go without a word."""
+    path = tmp_path / "clocks.mcap"
+    with open(path, "wb") as f, Ros2Writer(f) as writer:
+        image_schema = writer.register_msgdef("sensor_msgs/msg/Image", IMAGE_DEF + HEADER)
+        info_schema = writer.register_msgdef("sensor_msgs/msg/CameraInfo", INFO_DEF + HEADER)
+        tf_schema = writer.register_msgdef("tf2_msgs/msg/TFMessage", TF_DEF + HEADER)
+        writer.write_message("/tf_static", tf_schema, tf_message(T0, "base_link", "left_optical", (0.5, 0, 1.0), OPTICAL_Q), T0)
+        for side, tx in (("left", 0.0), ("right", -100.0)):
+            writer.write_message(f"/cam/{side}/camera_info", info_schema, ros_info(T0, f"{side}_optical", 8, 6, tx), T0)
+        for i in range(3):
+            stamp = T0 + i * 100_000_000
+            writer.write_message("/tf", tf_schema, tf_message(stamp, "odom", "base_link", (i, 0, 0), (0, 0, 0, 1)), stamp)
+            for side, image in zip(("left", "right"), pair_images(i), strict=True):  # stamped 100 s after boot
+                writer.write_message(f"/cam/{side}/image_rect", image_schema,
+                                     ros_image(100 * 10**9 + i * 100_000_000, f"{side}_optical", image, "rgb8"), stamp + 1)
+    with open_source(path) as source:
+        frames = list(source.frames())
+    assert len(frames) == 3 and all(f.vehicle_pose is None for f in frames)
+    (warning,) = [m for m in caplog.messages if "different clocks" in m]
+    assert warning.startswith(f"{path}: the stereo pair stamped 100.000 s has no vehicle pose: the odometry (/tf) is "
+                              f"stamped around {T0 / 1e9:.3f} s")
+
+
 @pytest.mark.parametrize("good_after", [True, False])
 def test_a_first_camera_info_without_projection_gives_way_to_the_next_usable_one(tmp_path, good_after):
     """A driver that publishes an all-zero camera info before the real one: the log's calibration

@@ -45,6 +45,10 @@ logger = logging.getLogger(__name__)
 MAX_DYNAMIC_TF_MESSAGES = 1000
 """How many non-static tf messages are read at most while looking for the camera's parent frames."""
 
+CLOCKS_APART_NS = 3600 * 1_000_000_000
+"""A stereo pair this far from the odometry's newest pose is taken for stamped by another clock
+(time since boot against Unix time, say), which is warned about once."""
+
 POSE_WAIT_NS = 1_000_000_000
 """How long (log time) a stereo pair waits for the vehicle pose after its stamp before it is
 yielded with the poses known by then."""
@@ -237,6 +241,7 @@ class LogSource(Source):
             raise self.calibration_error
         pairer = StereoPairer(self.pair_tolerance_ns)
         poses = VehiclePoses()
+        self._clocks_told = False  # (_pair_ref: images and odometry on different clocks, said once)
         pending: deque = deque()  # (log time made, pair): pairs waiting for the pose after their stamp
         index, warned = 0, False  # warned: of an unusable camera info, once
         if self._unstamped:
@@ -287,6 +292,13 @@ class LogSource(Source):
     def _pair_ref(self, pair: tuple, poses: VehiclePoses) -> PairRef:
         index, stamp_ns = pair[:2]
         pose = poses.at(stamp_ns)
+        if pose is None and poses.newest_ns is not None and abs(stamp_ns - poses.newest_ns) > CLOCKS_APART_NS:
+            if not self._clocks_told:
+                self._clocks_told = True
+                logger.warning("%s: the stereo pair stamped %.3f s has no vehicle pose: the odometry (%s) is stamped "
+                               "around %.3f s; are the images and the tf stamped by different clocks? Obstacles are "
+                               "tracked in the vehicle frame where no pose is found", self.path, stamp_ns / 1e9,
+                               ", ".join(self.odometry_topics), poses.newest_ns / 1e9)
         if pose is not None and self.extrinsics is not None and poses.child != self.extrinsics.vehicle_frame_id:
             # odom → base_footprint poses, the camera mounted on base_link: the pose of base_link
             mount = self._tree.relative(poses.child, self.extrinsics.vehicle_frame_id)
