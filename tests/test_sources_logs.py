@@ -766,11 +766,11 @@ def test_odometry_of_base_footprint_gives_the_pose_of_base_link_the_camera_is_mo
     np.testing.assert_allclose(frame.vehicle_pose[:3, 3], [10.0, 0.0, 0.3])
 
 
-def test_the_last_pair_before_the_camera_stops_gets_its_pose_from_the_odometry_after_it(tmp_path):
-    """Odometry at 100 Hz for 5 s, images at 10 Hz for the first second: the last pair waited for a
-    pose after its stamp and was released only by an image that never came, its pose gone by then
-    (and the tracks reset); now each odometry message releases the pairs waiting for it."""
-    path = tmp_path / "stops.mcap"
+def _odometry_log(path: Path, pose_stamps, pairs) -> Path:
+    """A ROS 2 log with the camera on base_link, odometry odom → base_link moving at 1 m/s along x
+    stamped ``pose_stamps`` (ns, logged then) and a stereo pair for each ``(header stamp, log
+    time)`` of ``pairs`` (ns), in log-time order."""
+    events = [(t, 0, t) for t in pose_stamps] + [(log_time, 1, (stamp, i)) for i, (stamp, log_time) in enumerate(pairs)]
     with open(path, "wb") as f, Ros2Writer(f) as writer:
         image_schema = writer.register_msgdef("sensor_msgs/msg/Image", IMAGE_DEF + HEADER)
         info_schema = writer.register_msgdef("sensor_msgs/msg/CameraInfo", INFO_DEF + HEADER)
@@ -778,13 +778,24 @@ def test_the_last_pair_before_the_camera_stops_gets_its_pose_from_the_odometry_a
         writer.write_message("/tf_static", tf_schema, tf_message(T0, "base_link", "left_optical", (0.5, 0, 1.0), OPTICAL_Q), T0)
         for side, tx in (("left", 0.0), ("right", -100.0)):
             writer.write_message(f"/cam/{side}/camera_info", info_schema, ros_info(T0, f"{side}_optical", 8, 6, tx), T0)
-        for k in range(500):
-            stamp = T0 + k * 10_000_000
-            writer.write_message("/tf", tf_schema, tf_message(stamp, "odom", "base_link", (k * 0.01, 0, 0), (0, 0, 0, 1)), stamp)
-            if k % 10 == 0 and k < 100:  # a pair 5 ms after every tenth pose, for the first second
-                for side, image in zip(("left", "right"), pair_images(k // 10), strict=True):
-                    writer.write_message(f"/cam/{side}/image_rect", image_schema,
-                                         ros_image(stamp + 5_000_000, f"{side}_optical", image, "rgb8"), stamp + 5_000_001)
+        for log_time, kind, what in sorted(events):
+            if kind == 0:
+                pose = tf_message(what, "odom", "base_link", ((what - T0) / 1e9, 0, 0), (0, 0, 0, 1))
+                writer.write_message("/tf", tf_schema, pose, log_time)
+                continue
+            stamp, i = what
+            for side, image in zip(("left", "right"), pair_images(i), strict=True):
+                writer.write_message(f"/cam/{side}/image_rect", image_schema, ros_image(stamp, f"{side}_optical", image, "rgb8"),
+                                     log_time)
+    return path
+
+
+def test_the_last_pair_before_the_camera_stops_gets_its_pose_from_the_odometry_after_it(tmp_path):
+    """Odometry at 100 Hz for 5 s, images at 10 Hz for the first second: the last pair waited for a
+    pose after its stamp and was released only by an image that never came, its pose gone by then
+    (and the tracks reset); now each odometry message releases the pairs waiting for it."""
+    images = [T0 + 5_000_000 + i * 100_000_000 for i in range(10)]  # 5 ms after a pose each
+    path = _odometry_log(tmp_path / "stops.mcap", [T0 + k * 10_000_000 for k in range(500)], [(t, t + 1) for t in images])
     with open_source(path) as source:
         frames = list(source.frames())
     assert len(frames) == 10
@@ -795,20 +806,9 @@ def test_the_last_pair_before_the_camera_stops_gets_its_pose_from_the_odometry_a
 def test_images_and_odometry_stamped_by_different_clocks_are_warned_about_once(tmp_path, caplog):
     """Images stamped in seconds since boot, the tf in Unix time: no pair can have a pose, which
     used to go without a word."""
-    path = tmp_path / "clocks.mcap"
-    with open(path, "wb") as f, Ros2Writer(f) as writer:
-        image_schema = writer.register_msgdef("sensor_msgs/msg/Image", IMAGE_DEF + HEADER)
-        info_schema = writer.register_msgdef("sensor_msgs/msg/CameraInfo", INFO_DEF + HEADER)
-        tf_schema = writer.register_msgdef("tf2_msgs/msg/TFMessage", TF_DEF + HEADER)
-        writer.write_message("/tf_static", tf_schema, tf_message(T0, "base_link", "left_optical", (0.5, 0, 1.0), OPTICAL_Q), T0)
-        for side, tx in (("left", 0.0), ("right", -100.0)):
-            writer.write_message(f"/cam/{side}/camera_info", info_schema, ros_info(T0, f"{side}_optical", 8, 6, tx), T0)
-        for i in range(3):
-            stamp = T0 + i * 100_000_000
-            writer.write_message("/tf", tf_schema, tf_message(stamp, "odom", "base_link", (i, 0, 0), (0, 0, 0, 1)), stamp)
-            for side, image in zip(("left", "right"), pair_images(i), strict=True):  # stamped 100 s after boot
-                writer.write_message(f"/cam/{side}/image_rect", image_schema,
-                                     ros_image(100 * 10**9 + i * 100_000_000, f"{side}_optical", image, "rgb8"), stamp + 1)
+    logged = [T0 + i * 100_000_000 for i in range(3)]
+    pairs = [(100 * 10**9 + i * 100_000_000, t + 1) for i, t in enumerate(logged)]  # stamped 100 s after boot
+    path = _odometry_log(tmp_path / "clocks.mcap", logged, pairs)
     with open_source(path) as source:
         frames = list(source.frames())
     assert len(frames) == 3 and all(f.vehicle_pose is None for f in frames)
