@@ -130,10 +130,12 @@ def pair_images(i: int, shape=(6, 8, 3)) -> tuple[np.ndarray, np.ndarray]:
 
 def write_ros2_log(path: Path, n: int = 6, *, camera_info=True, tf=True, topics=("/cam/left/image_rect", "/cam/right/image_rect"),
                    encode=lambda a: (a, "rgb8"), d=(0.0,) * 5, right_offset_ns=2_000_000, chunk_size=1024,
-                   right_tx=-400.0 * 0.25, extra_tf=(), frame_ids=("left_optical", "right_optical"), r=np.eye(3)) -> Path:
+                   right_tx=-400.0 * 0.25, extra_tf=(), frame_ids=("left_optical", "right_optical"), r=np.eye(3),
+                   info_frame_ids=None) -> Path:
     """A ROS 2 MCAP: tf_static and camera_info first, then n pairs at 10 Hz (right 2 ms late) and
     one unpaired left image in the middle. ``extra_tf``: more static (parent, child, xyz, q);
-    ``frame_ids``: the left and right camera messages' header frame ids; ``d``, ``r``: both infos'."""
+    ``frame_ids``: the left and right camera messages' header frame ids (the infos' too, unless
+    ``info_frame_ids`` gives theirs); ``d``, ``r``: both infos'."""
     with open(path, "wb") as f, Ros2Writer(f, chunk_size=chunk_size) as writer:
         image_schema = writer.register_msgdef("sensor_msgs/msg/Image", IMAGE_DEF + HEADER)
         if tf:
@@ -144,7 +146,8 @@ def write_ros2_log(path: Path, n: int = 6, *, camera_info=True, tf=True, topics=
                 writer.write_message("/tf_static", tf_schema, tf_message(T0, parent, child, xyz, q), T0)
         if camera_info:
             info_schema = writer.register_msgdef("sensor_msgs/msg/CameraInfo", INFO_DEF + HEADER)
-            for side, tx, frame in (("left", 0.0, frame_ids[0]), ("right", right_tx, frame_ids[1])):
+            info_frames = info_frame_ids or frame_ids
+            for side, tx, frame in (("left", 0.0, info_frames[0]), ("right", right_tx, info_frames[1])):
                 writer.write_message(f"/cam/{side}/camera_info", info_schema, ros_info(T0, frame, 8, 6, tx, d, r), T0)
         for i in range(n):
             stamp = T0 + i * 100_000_000
@@ -966,6 +969,10 @@ def test_a_baseline_missing_from_the_camera_infos_comes_from_tf(tmp_path):
         frame = next(source.frames())
     assert frame.calibration.baseline_m == pytest.approx(0.25) and frame.calibration.rectified
     assert frame.calibration.source.endswith("stereo pose from tf (left_optical → right_optical)")
+    # infos that name no frame (a driver that leaves them empty): the images' frames are looked up
+    path = write_ros2_log(tmp_path / "unnamed.mcap", n=2, right_tx=0.0, extra_tf=[right], info_frame_ids=("", ""))
+    with open_source(path) as source:
+        assert next(source.frames()).calibration.baseline_m == pytest.approx(0.25)
     path = write_ros2_log(tmp_path / "none.mcap", n=2, right_tx=0.0)
     with open_source(path) as source, pytest.raises(
             CalibrationError, match=r"tf does not relate the cameras' frames \(left_optical → right_optical\)"):

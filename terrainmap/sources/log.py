@@ -111,7 +111,9 @@ class LogSource(Source):
         # (damage before the right topic's first message is left for frames() to meet, as it was)
         firsts = {t: self._first(t, UNSTAMPED_PREFIX, lenient=t == self.right_topic)
                   for t in (self.left_topic, self.right_topic)}
-        self.frame_id = msgs.frame_id(firsts[self.left_topic][0]) if firsts[self.left_topic] else "camera_optical"
+        self._image_frames = tuple(msgs.frame_id(firsts[t][0]) if firsts[t] else "camera_optical"
+                                   for t in (self.left_topic, self.right_topic))
+        self.frame_id = self._image_frames[0]
         # A driver that never sets the header stamp (0 on its first UNSTAMPED_PREFIX images): both
         # cameras' images are then paired and placed by log time, one clock for both.
         self._unstamped = [t for t, first in firsts.items() if first and not any(map(msgs.stamp_ns, first))]
@@ -184,6 +186,8 @@ class LogSource(Source):
         """The stereo calibration of a left and a right camera info message (``calibration_topics``)."""
         left, right = self.calibration_topics
         left_info, right_info = msgs.camera_info(left_msg, left), msgs.camera_info(right_msg, right)
+        if left_info["frame_id"] == right_info["frame_id"]:  # infos naming no frame of their own (or one
+            left_info["frame_id"], right_info["frame_id"] = self._image_frames  # for both): the images'
         return msgs.calibration_from_infos(
             left_info,
             right_info,
