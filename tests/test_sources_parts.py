@@ -132,6 +132,21 @@ def test_transform_tree_composes_up_to_the_vehicle_frame():
     assert other.extrinsics("fixed_cam") is None  # only a world frame above it: estimated instead
 
 
+def test_a_camera_drivers_own_tree_is_no_vehicle(caplog):
+    """A RealSense's tree alone (camera_link → infra1 frame → its optical frame, all at one point):
+    camera_link is the camera's body, in which the pose would be 0 m up and turned as the camera
+    is; the pose is left to the ground estimate, with a warning."""
+    tree = TransformTree()
+    tree.add("camera_link", "camera_infra1_frame", [0, 0, 0], [0, 0, 0, 1])
+    tree.add("camera_infra1_frame", "camera_infra1_optical_frame", [0, 0, 0], [-0.5, 0.5, -0.5, 0.5])
+    assert tree.extrinsics("camera_infra1_optical_frame") is None  # vehicle frame camera_link, 0 m up, before
+    assert caplog.messages == ["tf: the camera frame camera_infra1_optical_frame lies 0.00 m from the origin of "
+                               "camera_link, the highest frame above it (no base_link or base_footprint): taken for "
+                               "the camera's own body, not the vehicle; the camera pose is estimated from the ground"]
+    tree.add("rover", "camera_link", [0.4, 0, 1.2], [0, 0, 0, 1])  # mounted on something: that is the vehicle
+    assert tree.extrinsics("camera_infra1_optical_frame").vehicle_frame_id == "rover"
+
+
 def test_broken_static_transforms_are_skipped_with_a_warning(caplog):
     tree = TransformTree()
     tree.add("base_link", "camera", [0, 0, 1.5], [0, 0, 0, 0])  # zero quaternion: no rotation at all

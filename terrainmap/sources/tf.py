@@ -20,6 +20,10 @@ from ..types import Extrinsics
 logger = logging.getLogger(__name__)
 
 VEHICLE_FRAMES = ("base_link", "base_footprint")
+
+CAMERA_BODY_M = 0.25
+"""A frame above the camera (not a vehicle frame) that holds it closer to its origin than this is
+taken for the camera's own body (a stereo camera's driver tree), not for the vehicle."""
 WORLD_FRAMES = ("map", "odom", "world", "earth")
 
 
@@ -89,7 +93,11 @@ class TransformTree:
         ancestor below the world frames of REP-105, ``map``, ``odom``, ``world``, ``earth``, which
         move with respect to the vehicle).
 
-        None when the tree knows no such frame above the camera frame.
+        None when the tree knows no such frame above the camera frame, or when that highest
+        ancestor holds the camera within :data:`CAMERA_BODY_M` of its origin: the camera's own
+        body frame (``camera_link`` of a RealSense or ZED driver's tree, published alone), in
+        which the pose would put the camera at height 0, turned as the camera is (a warning says
+        so; the pose is then estimated from the ground).
         """
         chain = self.chain(camera_frame)
         body = list(itertools.takewhile(lambda name: name not in WORLD_FRAMES, chain))
@@ -97,6 +105,11 @@ class TransformTree:
         if target == chain[0]:
             return None
         T = self._up_to(chain, target)
+        if target not in VEHICLE_FRAMES and np.linalg.norm(T[:3, 3]) < CAMERA_BODY_M:
+            logger.warning("tf: the camera frame %s lies %.2f m from the origin of %s, the highest frame above it "
+                           "(no base_link or base_footprint): taken for the camera's own body, not the vehicle; "
+                           "the camera pose is estimated from the ground", chain[0], np.linalg.norm(T[:3, 3]), target)
+            return None
         return Extrinsics(
             rotation=T[:3, :3],
             translation=T[:3, 3],
