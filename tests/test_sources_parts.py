@@ -377,3 +377,14 @@ def test_an_image_or_calibration_of_a_foxglove_schema_without_frame_id_is_in_the
 
     assert frame_id(SimpleNamespace(width=8, height=6)) == "camera_optical"  # an AttributeError before
     assert frame_id(SimpleNamespace(frame_id="/cam0")) == "cam0"
+
+
+def test_a_compressed_depth_image_is_named_as_such_not_taken_for_damage():
+    from types import SimpleNamespace
+
+    from terrainmap.sources.messages import image_array
+
+    depth = SimpleNamespace(format="16UC1; compressedDepth png", data=bytes(12) + b"\x89PNG")
+    with pytest.raises(InputError, match=r"^/cam/depth: a compressedDepth image \(format '16UC1; compressedDepth png'\) "
+                                         "is a depth map, not a camera image"):
+        image_array(depth, "sensor_msgs/msg/CompressedImage", "/cam/depth")

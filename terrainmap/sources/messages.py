@@ -11,7 +11,7 @@ from collections.abc import Iterator
 
 import numpy as np
 
-from ..errors import CalibrationError, brief
+from ..errors import CalibrationError, InputError, brief
 from ..types import StereoCalibration
 from . import calibration as calib_io
 from .images import decode_compressed, decode_raw
@@ -50,6 +50,9 @@ def frame_id(msg) -> str:
 def image_array(msg, msg_type: str, topic: str) -> np.ndarray:
     """Decode an image message into an RGB / mono array (uint8 or uint16)."""
     if msg_type in COMPRESSED_IMAGE_TYPES:
+        if "compresseddepth" in str(getattr(msg, "format", "")).lower():  # a depth map behind a 12-byte header
+            raise InputError(f"{topic}: a compressedDepth image (format {msg.format!r}) is a depth map, not a "
+                             "camera image; choose the cameras' image topics")
         return decode_compressed(msg.data, topic)
     return decode_raw(
         msg.data,
