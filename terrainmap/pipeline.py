@@ -174,11 +174,12 @@ class PipelineState:
         if extrinsics is not None and extrinsics is not self.checked[1]:
             name = f"{frame.source or 'frame'} (pair {frame.index}): extrinsics ({extrinsics.source})"
             try:  # the stages use them as they are: the shapes, not only the numbers (reshaped) below
-                shapes = f"{np.shape(extrinsics.rotation)} and {np.shape(extrinsics.translation)}"
+                shapes = np.shape(extrinsics.rotation), np.shape(extrinsics.translation)
             except ValueError:  # ragged
-                shapes = "ragged arrays"
-            if shapes != "(3, 3) and (3,)":
-                raise CalibrationError(f"{name}: rotation must be 3×3 and translation 3 numbers, got {shapes}")
+                shapes = None
+            if shapes != ((3, 3), (3,)):
+                got = f"{shapes[0]} and {shapes[1]}" if shapes else "ragged arrays"
+                raise CalibrationError(f"{name}: rotation must be 3×3 and translation 3 numbers, got {got}")
             extrinsics_from_calibration(extrinsics.rotation, extrinsics.translation, name=name)
         self.checked = (checked, extrinsics)
 

@@ -144,17 +144,16 @@ def run(
 
 
 def _matched_ahead(
-    frames: Iterable[StereoFrame], config: Config, state: PipelineState
+    source: Iterator[StereoFrame], config: Config, state: PipelineState
 ) -> Iterator[tuple[StereoFrame, Matched | FrameError]]:
-    """Yield each frame in order with its :func:`match_frame` result (or the FrameError it
-    raised), the next frames being read and matched in :data:`MATCH_WORKERS` worker threads
+    """Yield each frame of ``source`` in order with its :func:`match_frame` result (or the
+    FrameError it raised), the next frames being read and matched in :data:`MATCH_WORKERS` worker threads
     meanwhile. Other errors re-raise here, in frame order.
 
     Each worker reads its frame and calls :func:`prepare_match` in turn (ticket order), so the
     state changes happen frame by frame as in :func:`process_frame`; a frame whose camera pose
     must be estimated is matched whole in its turn, so that the frames after it use that pose.
     """
-    source = iter(frames)
     turn = threading.Condition()
     served = 0  # tickets whose turn has passed
 
