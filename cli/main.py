@@ -14,14 +14,14 @@ import signal
 import sys
 import threading
 import traceback
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 
 import click
 
 # first terrainmap import: limits OpenBLAS's threads
 from terrainmap.errors import ConfigError, TerrainmapError
 
-from .options import GracefulStop
+from .options import GracefulStop, leave_hung_up_terminal, take_stop_signals
 
 # command name -> "module:attribute" (modules relative to terrainmap.cli)
 COMMANDS = {
@@ -78,30 +78,43 @@ def cli(ctx: click.Context, verbose: bool) -> None:
 
 
 def _signal_exit_code() -> int:
-    """128 + the signal that stopped the run: 130 for Ctrl-C, 143 for SIGTERM."""
+    """128 + the signal that stopped the run: 130 for Ctrl-C, 143 for SIGTERM, 129 for SIGHUP."""
     return 128 + (GracefulStop.last_signal or signal.SIGINT)
 
 
 @contextmanager
 def _terminate_as_interrupt():
-    """While the CLI runs, SIGTERM ends it as Ctrl-C does ("Interrupted.", exit code 143) instead
-    of killing it silently: commands whose outputs are written whole or not at all (``eval``,
-    ``bench``) clean up their partial files on the way out. Runs that write as they go
-    (``process``, ``simulate``) take both signals over with :class:`GracefulStop` meanwhile. A
-    SIGTERM the process was started ignoring stays ignored; off the main thread nothing changes."""
-    if threading.current_thread() is not threading.main_thread() or signal.getsignal(signal.SIGTERM) is signal.SIG_IGN:
+    """While the CLI runs, SIGTERM and SIGHUP end it as Ctrl-C does ("Interrupted.", exit code 143
+    or 129) instead of killing it silently: commands whose outputs are written whole or not at all
+    (``eval``, ``bench``) clean up their partial files on the way out. Runs that write as they go
+    (``process``, ``simulate``) take the signals over with :class:`GracefulStop` meanwhile. A signal
+    the process was started ignoring stays ignored; off the main thread nothing changes."""
+    if threading.current_thread() is not threading.main_thread():
         yield
         return
 
     def interrupt(signum, frame):
-        GracefulStop.last_signal = signum
+        GracefulStop.last_signal = signum  # kept: a destructor the signal lands in swallows the interrupt
+        leave_hung_up_terminal(signum)
         raise KeyboardInterrupt
 
-    previous = signal.signal(signal.SIGTERM, interrupt)
+    previous = take_stop_signals(interrupt)
     try:
         yield
     finally:
-        signal.signal(signal.SIGTERM, previous)
+        for s, handler in previous.items():
+            signal.signal(s, handler)
+
+
+def _exit_at_once(signum, frame) -> None:
+    """A signal after the command has ended: its outputs are all closed; end with the interrupted
+    run's exit code now, not with a traceback from an exit handler."""
+    leave_hung_up_terminal(signum)
+    with suppress(Exception):
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os.write(2, b"Interrupted.\n")
+    os._exit(128 + signum)
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -112,6 +125,8 @@ def main(argv: list[str] | None = None) -> None:
     try:
         with _terminate_as_interrupt():
             cli.main(args=argv, prog_name="terrainmap", standalone_mode=False, obj=options)
+        if GracefulStop.last_signal is not None:  # a signal whose interrupt a destructor swallowed
+            raise KeyboardInterrupt
     except click.exceptions.Abort:  # click's form of a KeyboardInterrupt outside a run's GracefulStop
         click.echo("Interrupted.", err=True)
         sys.exit(_signal_exit_code())
@@ -169,5 +184,23 @@ def _exit(code: int) -> None:
     sys.exit(code)
 
 
+def run() -> None:
+    """The ``terrainmap`` console command: :func:`main`, then the process ends at once, its output
+    streams flushed, with main's exit code. Every output is closed by then; the interpreter's own
+    exit (0.2 s, 0.5 s after a Rerun recording, whose exit handler shuts its threads down) would
+    only leave a window where a signal ends in a traceback and exit code 0, or kills the process
+    without a word. Outside main's run, a signal ends the process with the interrupted run's code."""
+    take_stop_signals(_exit_at_once)  # main takes them over while it runs, and gives these back
+    try:
+        main()
+        code = 0
+    except SystemExit as exc:
+        code = exc.code if isinstance(exc.code, int) else int(exc.code is not None)
+    with suppress(Exception):
+        sys.stdout.flush()
+        sys.stderr.flush()
+    os._exit(code)
+
+
 if __name__ == "__main__":
-    main()
+    run()

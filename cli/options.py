@@ -9,7 +9,7 @@ import signal
 import tempfile
 from collections import Counter
 from collections.abc import Callable, Iterable, Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from pathlib import Path
 
 import click
@@ -41,9 +41,41 @@ class Failed(click.ClickException):
     exit_code = 2
 
 
+STOP_SIGNALS = tuple(getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, name))
+"""The signals that end a run as Ctrl-C does: SIGTERM (a supervisor) and, where the system has it,
+SIGHUP (the terminal closed or the SSH session dropped)."""
+
+_ON_TERMINAL: dict[int, bool] = {}
+"""Whether standard output and error (1, 2) were terminals when the signals were last taken over."""
+
+
+def take_stop_signals(handler: Callable) -> dict:
+    """Install ``handler`` for :data:`STOP_SIGNALS` and give the handlers it replaced. A signal the
+    process was started ignoring (SIGINT of a `cmd &` job in a script, SIGHUP under nohup) stays
+    ignored."""
+    _ON_TERMINAL.update({fd: os.isatty(fd) for fd in (1, 2)})
+    return {s: signal.signal(s, handler) for s in STOP_SIGNALS if signal.getsignal(s) is not signal.SIG_IGN}
+
+
+def leave_hung_up_terminal(signum: int) -> None:
+    """After SIGHUP, point standard output and error at the null device where they were a terminal
+    that is gone: every write to it would fail (EIO), the clean-up's messages included."""
+    if signum != getattr(signal, "SIGHUP", None):
+        return
+    for fd, was_terminal in _ON_TERMINAL.items():
+        if was_terminal and not os.isatty(fd):
+            with suppress(OSError):
+                null = os.open(os.devnull, os.O_WRONLY)
+                try:
+                    os.dup2(null, fd)
+                finally:
+                    os.close(null)
+
+
 class GracefulStop:
-    """While active, SIGINT (Ctrl-C) and SIGTERM only ask the run to stop: :meth:`check`, called
-    between frames, then raises KeyboardInterrupt, so that no output is cut in the middle of a
+    """While active, SIGINT (Ctrl-C), SIGTERM and SIGHUP (:data:`STOP_SIGNALS`) only ask the run to
+    stop: :meth:`check`, called between frames, then raises KeyboardInterrupt, so that no output is
+    cut in the middle of a
     write and every file is finalised. A second signal interrupts at once while no output is open
     (a run stuck finding its first frame); while outputs are open (:meth:`outputs_open`) every
     signal only asks, so a quick double Ctrl-C never leaves a file without its summary or with
@@ -58,6 +90,7 @@ class GracefulStop:
 
     def _handle(self, signum, frame) -> None:
         GracefulStop.last_signal = signum
+        leave_hung_up_terminal(signum)
         if self.requested and not self._open:
             raise KeyboardInterrupt
         self.requested = True
@@ -76,9 +109,7 @@ class GracefulStop:
             self._open -= 1
 
     def __enter__(self):
-        # A signal the process was started ignoring (SIGINT of a `cmd &` job in a script) stays ignored.
-        self._previous = {s: signal.signal(s, self._handle) for s in (signal.SIGINT, signal.SIGTERM)
-                          if signal.getsignal(s) is not signal.SIG_IGN}
+        self._previous = take_stop_signals(self._handle)
         return self
 
     def __exit__(self, *exc_info) -> None:

@@ -328,7 +328,8 @@ def finish_frame(frame: StereoFrame, matched: Matched, config: Config, state: Pi
         pinhole=matched.stereo.pinhole,
         obstacles=obstacles,
         occupied=occupied,
-        stats={**terrain.stats, "points": float(len(points)), "obstacles": float(len(obstacles))},
+        stats={**terrain.stats, "points": float(len(points)), "detections": float(len(obstacles)),
+               "obstacles": float(sum(o.confirmed for o in obstacles))},
         timings_ms=watch.ms,
     )
 

@@ -5,6 +5,7 @@ import sys
 import tomllib
 from pathlib import Path
 
+import click
 import pytest
 from click.testing import CliRunner
 
@@ -467,6 +468,44 @@ def test_sigterm_ends_a_command_like_ctrl_c_and_leaves_no_partial_report(tmp_pat
     assert capsys.readouterr().err == "Interrupted.\n"  # one line: no empty one before it
     assert list(tmp_path.iterdir()) == []
     assert signal.getsignal(signal.SIGTERM) is before
+
+
+@pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning")
+def test_a_signal_a_destructor_swallows_still_ends_the_command_as_interrupted(monkeypatch, capsys):
+    """A SIGTERM that lands in a destructor (Rerun's recording, freed as a run ends) raises its
+    interrupt where Python only prints it: the command then still ends as interrupted, exit
+    code 143, not 0."""
+    import signal
+
+    class Swallows:
+        def __del__(self):
+            signal.raise_signal(signal.SIGTERM)
+
+    @click.command()
+    def swallow():
+        Swallows()
+
+    monkeypatch.setitem(cli.commands, "swallow", swallow)
+    with pytest.raises(SystemExit) as exc:
+        main(["swallow"])
+    assert exc.value.code == 128 + signal.SIGTERM
+    assert capsys.readouterr().err.splitlines()[-1] == "Interrupted."
+
+
+def test_the_console_command_flushes_its_output_and_keeps_the_exit_code():
+    """``terrainmap`` (``run``) ends the process at once after the command, not through the
+    interpreter's slow exit: what the command printed into a pipe still arrives, and the exit
+    code is the command's."""
+    import subprocess
+    import sys
+
+    code = "from terrainmap.cli.main import run; run()"
+    done = subprocess.run([sys.executable, "-c", code, "config", "--set", "grid.cell_size_m=0.25"],
+                          capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0 and "cell_size_m = 0.25" in done.stdout
+    bad = subprocess.run([sys.executable, "-c", code, "config", "--set", "grid.nope=1"],
+                         capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 2 and bad.stdout == "" and bad.stderr.startswith("Error: ")
 
 
 def test_a_report_written_through_a_symbolic_link_keeps_the_link(tmp_path):

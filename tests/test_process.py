@@ -3,6 +3,7 @@
 import dataclasses
 import os
 import shutil
+import signal
 from pathlib import Path
 
 import numpy as np
@@ -444,6 +445,9 @@ def test_a_state_given_another_config_tracks_with_that_configs_settings(small_lo
     borrowed = process_frame(frame, eager, PipelineState(Config()))
     assert sum(o.confirmed for o in alone.obstacles) > 0
     assert [(o.track_id, o.confirmed) for o in borrowed.obstacles] == [(o.track_id, o.confirmed) for o in alone.obstacles]
+    first = process_frame(frame, Config(), PipelineState(Config()))  # confirmed after 3 hits: none yet
+    assert first.stats["detections"] == len(first.obstacles) > 0 and first.stats["obstacles"] == 0
+    assert alone.stats["obstacles"] == sum(o.confirmed for o in alone.obstacles)
 
 
 def test_a_new_calibration_starts_the_camera_pose_and_the_tracks_afresh(small_log):
@@ -633,6 +637,43 @@ def test_a_terminated_run_still_finalises_its_output(small_log, tmp_path):
     assert proc.returncode == 128 + signal.SIGTERM  # what a shell or supervisor expects of a terminated job
     with open(out, "rb") as stream:
         assert make_reader(stream).get_summary() is not None  # finished: summary and index written
+
+
+_ON_A_TERMINAL = """
+import os, pty, select, sys, time
+pid, fd = pty.fork()  # the child's terminal is the pty; closing its other end hangs it up
+if pid == 0:
+    os.execv(sys.executable, [sys.executable, "-c", "from terrainmap.cli.main import run; run()", *sys.argv[1:]])
+seen, deadline = b"", time.monotonic() + 120
+while b"frames/s" not in seen and time.monotonic() < deadline:
+    if select.select([fd], [], [], 0.1)[0]:
+        try:
+            seen += os.read(fd, 4096)
+        except OSError:
+            break
+os.close(fd)
+sys.exit(os.waitstatus_to_exitcode(os.waitpid(pid, 0)[1]))
+"""
+
+
+@pytest.mark.skipif(not hasattr(signal, "SIGHUP") or not Path("/dev/ptmx").exists(), reason="needs SIGHUP and ptys")
+def test_a_hang_up_ends_the_run_like_ctrl_c_with_its_output_finalised(tmp_path):
+    """The terminal closes or the SSH session drops part way (SIGHUP): the run stops between
+    frames with exit code 129 and a finished MCAP, its last messages not failing (EIO) on the
+    terminal that is gone."""
+    import subprocess
+    import sys
+
+    from terrainmap.sim import SimConfig, simulate
+
+    log = tmp_path / "long.mcap"
+    simulate(log, SimConfig(scene="flat", frames=40, seed=1, width=320, height=240, focal_px=250.0))
+    out = tmp_path / "o.mcap"
+    done = subprocess.run([sys.executable, "-c", _ON_A_TERMINAL, "process", str(log), "-o", str(out)], timeout=180)
+    assert done.returncode == 128 + signal.SIGHUP
+    with open(out, "rb") as stream:
+        assert make_reader(stream).get_summary() is not None  # finished: summary and index written
+    assert 0 < len(_grids(out)) < 40
 
 
 def test_a_stamp_outside_the_mcap_range_ends_the_run_with_the_output_readable(small_log, tmp_path):

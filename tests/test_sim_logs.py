@@ -384,3 +384,15 @@ def test_a_stereo_frame_without_its_own_truth_is_an_error_not_the_next_frames_tr
     assert truth_at(iter([frame(100), frame(200)]), 200, Path("x.mcap"), (2, 3)).stamp_ns == 200
     with pytest.raises(InputError, match="x.mcap: no ground truth for the stereo frame at stamp 150"):
         truth_at(iter([frame(100), frame(200)]), 150, Path("x.mcap"), (2, 3))
+
+
+def test_a_folder_log_has_the_stamps_of_every_frame_written_while_it_is_written(tmp_path):
+    """timestamps.txt is written line by line: a simulation killed part way (SIGKILL, a power
+    cut) leaves a folder whose stamps agree with its images."""
+    lines = []
+
+    def after_frame(index):
+        lines.append(len((tmp_path / "drive" / "timestamps.txt").read_text().splitlines()))
+
+    simulate(tmp_path / "drive", SimConfig(format="folder", **{**SMALL, "frames": 3}), progress=after_frame)
+    assert lines == [1, 2, 3]

@@ -245,7 +245,9 @@ def test_a_recording_that_cannot_be_finished_fails_with_one_line(log, tmp_path, 
     captured = capsys.readouterr()
     assert exits == [2]
     assert captured.err.strip().splitlines()[-1] == f"Error: cannot finish Rerun output {rrd}: its file writer " \
-                                                    "stopped (File-writer thread shut down prematurely)"
+                                                    "stopped (File-writer thread shut down prematurely); the part " \
+                                                    "written is removed"
+    assert not rrd.exists()  # cut short, it would read back in no Rerun tool
     assert f"wrote 2 frames to {out} before stopping" in captured.out  # the MCAP only: it reads back
     assert rerun_recording.exit_would_hang()
 
@@ -278,9 +280,10 @@ def test_a_recording_on_a_slow_disk_is_waited_for_while_the_disk_has_room(tmp_pa
     monkeypatch.setattr(shutil, "disk_usage", lambda path: usage(1 << 30, 1 << 30, 4096))
     monkeypatch.setattr(rerun_recording, "_STUCK", [])
     full = rerun_recording.RerunSink(tmp_path / "full.rrd", config=Config())
-    with pytest.raises(InputError, match="No space left on device"):
+    with pytest.raises(InputError, match="No space left on device; the part written is removed"):
         full.close()
     assert len(calls) == 2  # the size seen, then one flush with no growth
+    assert not (tmp_path / "full.rrd").exists()
 
 
 def test_a_disk_whose_free_space_cannot_be_read_is_not_taken_for_full(tmp_path, monkeypatch):

@@ -25,7 +25,8 @@ else the vehicle frame itself; z up)::
     depth                         DepthImage (metres, from the disparity)
     timings/<stage>               Scalars, ms
     stats/fit/<name>              Scalars: iterations, mean_error_m
-    stats/counts/<name>           Scalars: points, cells, obstacles
+    stats/counts/<name>           Scalars: points, cells, obstacles (confirmed tracks), detections
+                                  (the frame's clusters, tracks not yet confirmed included)
 
 Everything the pipeline computes is logged in the vehicle frame, as computed; the per-frame
 vehicle transform places it in the odometry frame, so the 3D view follows the drive.
@@ -260,8 +261,14 @@ class RerunSink:
             self._rec.disconnect()
         except (RuntimeError, OSError) as exc:  # Rerun's file writer stopped on an error it logged itself
             _STUCK.append(self._rec)  # kept: its destructor would wait for the dead writer (exit_would_hang)
-            raise InputError(f"cannot finish Rerun output {self.path}: " + (
-                "No space left on device" if self._disk_full() else f"its file writer stopped ({exc})")) from exc
+            why = "No space left on device" if self._disk_full() else f"its file writer stopped ({exc})"
+            try:  # a recording cut mid-message, without its footer, reads back in no Rerun tool
+                self.path.unlink(missing_ok=True)
+                fate = "the part written is removed"
+            except OSError:
+                fate = "the part written does not read back"
+            raise InputError(f"cannot finish Rerun output {self.path}: {why}; {fate}") from exc
+        self._rec = None  # Rerun's destructor sweeps its recordings now, while a signal only asks the run to stop
         self.finished = True
 
     def _flush(self) -> None:
