@@ -1026,6 +1026,7 @@ def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str
         return config.validate()
     except ConfigError as exc:  # a value the file gave (and no --set replaced) is named with the file
         file_keys = {f"{section}.{name}" for section, table in data.items() for name in table}
-        if str(exc).partition(":")[0] in file_keys - set_keys:
+        section, *fields = re.findall(r"\w+", str(exc).partition(":")[0]) or [""]  # "terrain.a × b": a and b
+        if {f"{section}.{field}" for field in fields} & (file_keys - set_keys):
             raise ConfigError(f"{path}: {exc}") from None
         raise

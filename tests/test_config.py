@@ -147,6 +147,17 @@ def test_numpy_scalars_in_a_config_built_in_code_become_python_numbers():
     assert tomllib.loads(config.to_toml())["grid"]["cell_size_m"] == 0.5  # written as TOML all the same
 
 
+def test_a_limit_on_two_fields_that_a_file_broke_names_the_file(tmp_path):
+    """The check on the control net's size names two fields: where the file gave one of them (and
+    no ``--set`` replaced it), the message starts with the file, as for one field."""
+    path = tmp_path / "c.toml"
+    path.write_text("[terrain]\ncontrol_points_x = 100000\n")
+    with pytest.raises(ConfigError, match=f"^{re.escape(str(path))}: terrain.control_points_x × control_points_y: "):
+        load_config(path)
+    with pytest.raises(ConfigError, match="^terrain.control_points_x × control_points_y: "):
+        load_config(path, overrides=["terrain.control_points_x=9999"])
+
+
 @pytest.mark.parametrize(
     "toml, message",
     [

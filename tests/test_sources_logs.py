@@ -817,7 +817,7 @@ def test_images_and_odometry_stamped_by_different_clocks_are_warned_about_once(t
     assert len(frames) == 3 and all(f.vehicle_pose is None for f in frames)
     (warning,) = [m for m in caplog.messages if "different clocks" in m]
     assert warning.startswith(f"{path}: the stereo pair stamped 100.000 s has no vehicle pose: the odometry (/tf) is "
-                              f"stamped around {T0 / 1e9:.3f} s")
+                              f"stamped around {logged[1] / 1e9:.3f} s")  # the newest pose: the pair waited for two
 
 
 @pytest.mark.parametrize("good_after", [True, False])
@@ -1274,6 +1274,17 @@ def test_images_left_without_a_partner_at_the_end_of_the_log_are_counted(tmp_pat
     with open_source(_write_pairs(tmp_path / "right_stops.mcap", stamps)) as source:
         assert len(list(source.frames())) == 4
     assert "2 of 10 image messages had no partner within 10.0 ms" in caplog.text
+
+
+def test_images_left_unpaired_by_half_the_frame_period_are_reported_with_that_limit(tmp_path, caplog):
+    """Right images 60 ms after the left at 10 Hz, a tolerance of 70 ms: once the period is known
+    each right image pairs with the next left one, 40 ms away, and the warning names the limit
+    that left images unpaired, half the period, not the tolerance they were within."""
+    stamps = [(T0 + i * 100_000_000, T0 + i * 100_000_000 + 60_000_000) for i in range(6)]
+    with open_source(_write_pairs(tmp_path / "offset.mcap", stamps), pair_tolerance_ns=70_000_000) as source:
+        assert len(list(source.frames())) == 5
+    assert ("2 of 12 image messages had no partner within 50.0 ms, half the cameras' frame period (less than "
+            "--pair-tolerance-ms)") in caplog.text
 
 
 def test_images_logged_far_behind_their_partners_are_reported_as_such(tmp_path, caplog):

@@ -185,9 +185,16 @@ def test_vehicle_poses_interpolate_and_keep_to_one_odometry_frame(caplog):
     np.testing.assert_allclose(poses.at(200)[:3, :3], quaternion_to_matrix(yaw90), atol=1e-12)
     for pose in (early, late):
         np.testing.assert_allclose(pose[:3, :3] @ pose[:3, :3].T, np.eye(3), atol=1e-12)  # a rotation
-    np.testing.assert_allclose(poses.at(250)[:3, 3], [1, 2, 0])  # within the tolerance of the last
-    np.testing.assert_allclose(poses.at(50)[:3, 3], [0, 0, 0])
+    # within the tolerance beyond the first and the last: the motion between the two nearest carried on
+    np.testing.assert_allclose(poses.at(250)[:3, 3], [1.5, 3, 0])
+    np.testing.assert_allclose(poses.at(50)[:3, 3], [-0.5, -1, 0])
+    yaw = [np.degrees(np.arctan2(pose[1, 0], pose[0, 0])) for pose in (poses.at(250), poses.at(50))]
+    np.testing.assert_allclose(yaw, [135.0, -45.0])
     assert poses.at(251) is None and poses.at(49) is None
+    alone = VehiclePoses(tolerance_ns=50)
+    alone.add(100, "odom", "base_link", [1, 2, 0], yaw90)
+    np.testing.assert_allclose(alone.at(140), alone.at(100))  # one pose: no motion to carry on
+    assert alone.at(151) is None
     bounded = VehiclePoses(horizon_ns=1000)
     for k in range(100):
         bounded.add(100 * k, "odom", "base_link", [k, 0, 0], [0, 0, 0, 1])

@@ -258,7 +258,15 @@ class LogSource(Source):
         infos, info_pairer = {}, StereoPairer(self.pair_tolerance_ns)
         latched = [t for t in info_topics if self.reader.counts.get(t) == 1]
         topics = [self.left_topic, self.right_topic, *self.odometry_topics, *info_topics]
-        for topic, log_time_ns, msg in self.reader.messages(topics):
+        failed: list[Exception] = []
+
+        def messages():  # a log that ends in damage: the pairs waiting for a pose are given first
+            try:
+                yield from self.reader.messages(topics)
+            except Exception as exc:
+                failed.append(exc)
+
+        for topic, log_time_ns, msg in messages():
             if topic in self.odometry_topics:  # (then the pairs waiting for it below, not at the next image)
                 for transform in msgs.transforms(msg, self.reader.types[topic]):
                     poses.add(*transform)
@@ -280,18 +288,24 @@ class LogSource(Source):
                     if pair is not None:
                         pending.append((log_time_ns, (index, *pair, calibration)))
                         index += 1
-            # With odometry, a pair waits for a pose at or after its stamp, or for a second of log time.
-            while pending and (not self.odometry_topics or pending[0][1][1] <= (poses.newest_ns or 0)
+            # With odometry, a pair waits for the poses around its stamp, or for a second of log time.
+            while pending and (not self.odometry_topics or poses.reach(pending[0][1][1])
                                or log_time_ns - pending[0][0] >= POSE_WAIT_NS):
                 yield self._pair_ref(pending.popleft()[1], poses)
         while pending:
             yield self._pair_ref(pending.popleft()[1], poses)
+        if failed:
+            raise failed[0]
         pairer.finish()
         if pairer.dropped:
             full = (f"; {pairer.overflowed} of them left a full pairing buffer: one camera's images are logged "
                     f"over {pairer.max_buffer} messages behind the other's") if pairer.overflowed else ""
-            logger.warning("%s: %d of %d image messages had no partner within %.1f ms (--pair-tolerance-ms)%s",
-                           self.path, pairer.dropped, pairer.pushed, self.pair_tolerance_ns / 1e6, full)
+            half = pairer.half_period_ns
+            within = (f"{self.pair_tolerance_ns / 1e6:.1f} ms (--pair-tolerance-ms)" if half is None or
+                      half > self.pair_tolerance_ns else
+                      f"{half / 1e6:.1f} ms, half the cameras' frame period (less than --pair-tolerance-ms)")
+            logger.warning("%s: %d of %d image messages had no partner within %s%s",
+                           self.path, pairer.dropped, pairer.pushed, within, full)
 
     def _pair_ref(self, pair: tuple, poses: VehiclePoses) -> PairRef:
         index, stamp_ns = pair[:2]

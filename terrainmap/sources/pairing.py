@@ -65,12 +65,14 @@ class StereoPairer:
         self._waiting[side].clear()
         return (stamp_ns, item, match) if side == 0 else (match_stamp, match, item)
 
+    @property
+    def half_period_ns(self) -> float | None:
+        """Half the shorter frame period of the two cameras, once both are known, else None."""
+        return min(statistics.median_low(gaps) for gaps in self._gaps) / 2 if all(self._gaps) else None
+
     def _close(self, difference_ns: int) -> bool:
-        if difference_ns > self.tolerance_ns:
-            return False
-        if not all(self._gaps):
-            return True
-        return 2 * difference_ns < min(statistics.median_low(gaps) for gaps in self._gaps)
+        half = self.half_period_ns
+        return difference_ns <= self.tolerance_ns and (half is None or difference_ns < half)
 
     def finish(self) -> None:
         """The log has ended: the messages still waiting have no partner (counted in ``dropped``)."""

@@ -141,8 +141,10 @@ class VehiclePoses:
 
     ``at(stamp)`` interpolates between the two poses around the stamp, the translation linearly
     and the rotation along the shortest arc (slerp: a vehicle turning at 60°/s turns 6° between
-    10 Hz poses, which at 20 m moves an obstacle 2 m); a stamp outside the known poses gets the nearest one if it lies within
-    ``tolerance_ns``, else None. The first odometry frame and vehicle frame seen are kept (poses
+    10 Hz poses, which at 20 m moves an obstacle 2 m); a stamp outside the known poses but within
+    ``tolerance_ns`` of the nearest gets the motion between the two nearest carried on to it (at
+    4 m/s, the nearest pose alone would be 40 cm off 100 ms away), the one pose where only one is
+    known; else None. The first odometry frame and vehicle frame seen are kept (poses
     between others are ignored), and poses older than ``horizon_ns`` before the newest are forgotten, so memory
     stays bounded. Two poses in a row stamped more than ``horizon_ns`` before the newest, the
     second later than the first, are a clock that went back and runs again (a reset): the poses
@@ -163,6 +165,11 @@ class VehiclePoses:
     @property
     def newest_ns(self) -> int | None:
         return self._stamps[-1] if self._stamps else None
+
+    def reach(self, stamp_ns: int) -> bool:
+        """Whether :meth:`at` has all the poses it uses for ``stamp_ns``: one at or after it, and a
+        second, so that a stamp before the first pose gets their motion carried back to it."""
+        return len(self._stamps) >= 2 and self._stamps[-1] >= stamp_ns
 
     def add(self, stamp_ns: int, parent: str, child: str, translation, quaternion_xyzw) -> None:
         """Record one transform; only ``odometry frame → vehicle frame`` ones are kept."""
@@ -195,16 +202,19 @@ class VehiclePoses:
 
     def at(self, stamp_ns: int) -> np.ndarray | None:
         """``world_from_vehicle`` (4×4) at ``stamp_ns``, or None (see the class docstring)."""
-        stamps = self._stamps
+        stamps, n = self._stamps, len(self._stamps)
         k = bisect_left(stamps, stamp_ns)  # the first pose at or after the stamp
-        if 0 < k < len(stamps):
-            t0, t1 = stamps[k - 1], stamps[k]
-            a = (stamp_ns - t0) / (t1 - t0)
-            before, after = self._poses[k - 1], self._poses[k]
-            pose = before.copy()
-            turn, _ = cv2.Rodrigues(before[:3, :3].T @ after[:3, :3])  # axis × angle
-            pose[:3, :3] = before[:3, :3] @ cv2.Rodrigues(a * turn)[0]
-            pose[:3, 3] = (1 - a) * before[:3, 3] + a * after[:3, 3]
-            return pose
-        near = [i for i in (k - 1, k) if 0 <= i < len(stamps) and abs(stamps[i] - stamp_ns) <= self.tolerance_ns]
-        return self._poses[near[0]].copy() if near else None
+        if not 0 < k < n:  # outside the known poses
+            if n == 0 or abs(stamps[min(k, n - 1)] - stamp_ns) > self.tolerance_ns:
+                return None
+            if n == 1:
+                return self._poses[0].copy()
+            k = min(max(k, 1), n - 1)  # the two nearest, carried on beyond them
+        t0, t1 = stamps[k - 1], stamps[k]
+        a = (stamp_ns - t0) / (t1 - t0)
+        before, after = self._poses[k - 1], self._poses[k]
+        pose = before.copy()
+        turn, _ = cv2.Rodrigues(before[:3, :3].T @ after[:3, :3])  # axis × angle
+        pose[:3, :3] = before[:3, :3] @ cv2.Rodrigues(a * turn)[0]
+        pose[:3, 3] = (1 - a) * before[:3, 3] + a * after[:3, 3]
+        return pose
