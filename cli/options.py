@@ -75,11 +75,10 @@ def leave_hung_up_terminal(signum: int) -> None:
 class GracefulStop:
     """While active, SIGINT (Ctrl-C), SIGTERM and SIGHUP (:data:`STOP_SIGNALS`) only ask the run to
     stop: :meth:`check`, called between frames, then raises KeyboardInterrupt, so that no output is
-    cut in the middle of a
-    write and every file is finalised. A second signal interrupts at once while no output is open
-    (a run stuck finding its first frame); while outputs are open (:meth:`outputs_open`) every
-    signal only asks, so a quick double Ctrl-C never leaves a file without its summary or with
-    half a frame."""
+    cut in the middle of a write and every file is finalised. A second signal interrupts at once
+    while no output is open (a run stuck finding its first frame); while outputs are open
+    (:meth:`outputs_open`) every signal only asks, so a quick double Ctrl-C never leaves a file
+    without its summary or with half a frame."""
 
     last_signal: int | None = None
     """The signal that stopped the last run (the CLI exits with 128 + it, as a shell expects)."""

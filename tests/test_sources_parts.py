@@ -195,6 +195,10 @@ def test_vehicle_poses_interpolate_and_keep_to_one_odometry_frame(caplog):
     alone.add(100, "odom", "base_link", [1, 2, 0], yaw90)
     np.testing.assert_allclose(alone.at(140), alone.at(100))  # one pose: no motion to carry on
     assert alone.at(151) is None
+    close = VehiclePoses(tolerance_ns=50)
+    close.add(100, "odom", "base_link", [0, 0, 0], [0, 0, 0, 1])
+    close.add(101, "odom", "base_link", [0.01, 0, 0], [0, 0, 0, 1])  # (noise) 1 ns apart: carried on 1 ns at most
+    np.testing.assert_allclose(close.at(150)[:3, 3], [0.02, 0, 0])
     bounded = VehiclePoses(horizon_ns=1000)
     for k in range(100):
         bounded.add(100 * k, "odom", "base_link", [k, 0, 0], [0, 0, 0, 1])

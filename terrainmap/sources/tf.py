@@ -142,9 +142,9 @@ class VehiclePoses:
     ``at(stamp)`` interpolates between the two poses around the stamp, the translation linearly
     and the rotation along the shortest arc (slerp: a vehicle turning at 60°/s turns 6° between
     10 Hz poses, which at 20 m moves an obstacle 2 m); a stamp outside the known poses but within
-    ``tolerance_ns`` of the nearest gets the motion between the two nearest carried on to it (at
-    4 m/s, the nearest pose alone would be 40 cm off 100 ms away), the one pose where only one is
-    known; else None. The first odometry frame and vehicle frame seen are kept (poses
+    ``tolerance_ns`` of the nearest gets the motion between the two nearest carried on to it, for
+    at most their own time apart (at 4 m/s, the nearest pose alone would be 40 cm off 100 ms
+    away), the one pose where only one is known; else None. The first odometry frame and vehicle frame seen are kept (poses
     between others are ignored), and poses older than ``horizon_ns`` before the newest are forgotten, so memory
     stays bounded. Two poses in a row stamped more than ``horizon_ns`` before the newest, the
     second later than the first, are a clock that went back and runs again (a reset): the poses
@@ -211,7 +211,7 @@ class VehiclePoses:
                 return self._poses[0].copy()
             k = min(max(k, 1), n - 1)  # the two nearest, carried on beyond them
         t0, t1 = stamps[k - 1], stamps[k]
-        a = (stamp_ns - t0) / (t1 - t0)
+        a = min(max((stamp_ns - t0) / (t1 - t0), -1.0), 2.0)  # carried on at most their own gap beyond them
         before, after = self._poses[k - 1], self._poses[k]
         pose = before.copy()
         turn, _ = cv2.Rodrigues(before[:3, :3].T @ after[:3, :3])  # axis × angle
