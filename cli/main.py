@@ -196,6 +196,8 @@ def run() -> None:
         code = 0
     except SystemExit as exc:
         code = exc.code if isinstance(exc.code, int) else int(exc.code is not None)
+        if exc.code is not None and not isinstance(exc.code, int):  # sys.exit("message"), as Python prints it
+            print(exc.code, file=sys.stderr)
     with suppress(Exception):
         sys.stdout.flush()
         sys.stderr.flush()

@@ -1027,6 +1027,7 @@ def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str
     except ConfigError as exc:  # a value the file gave (and no --set replaced) is named with the file
         file_keys = {f"{section}.{name}" for section, table in data.items() for name in table}
         section, *fields = re.findall(r"\w+", str(exc).partition(":")[0]) or [""]  # "terrain.a × b": a and b
-        if {f"{section}.{field}" for field in fields} & (file_keys - set_keys):
+        named = {f"{section}.{field}" for field in fields}
+        if named & file_keys and not named & set_keys:
             raise ConfigError(f"{path}: {exc}") from None
         raise

@@ -328,7 +328,7 @@ def finish_frame(frame: StereoFrame, matched: Matched, config: Config, state: Pi
         pinhole=matched.stereo.pinhole,
         obstacles=obstacles,
         occupied=occupied,
-        stats={**terrain.stats, "points": float(len(points)), "detections": float(len(obstacles)),
+        stats={**terrain.stats, "points": float(len(points)), "detections": float(len(obstacles)),  # tracked or not
                "obstacles": float(sum(o.confirmed for o in obstacles))},
         timings_ms=watch.ms,
     )

@@ -494,17 +494,24 @@ def test_a_signal_a_destructor_swallows_still_ends_the_command_as_interrupted(mo
 
 def test_the_console_command_flushes_its_output_and_keeps_the_exit_code():
     """``terrainmap`` (``run``) ends the process at once after the command, not through the
-    interpreter's slow exit: what the command printed into a pipe still arrives, and the exit
-    code is the command's."""
+    interpreter's slow exit: what a command wrote into a pipe and left in the buffer still
+    arrives, and the exit code (and a ``sys.exit`` message) is the command's."""
     import subprocess
     import sys
 
-    code = "from terrainmap.cli.main import run; run()"
-    done = subprocess.run([sys.executable, "-c", code, "config", "--set", "grid.cell_size_m=0.25"],
-                          capture_output=True, text=True, timeout=60)
-    assert done.returncode == 0 and "cell_size_m = 0.25" in done.stdout
-    bad = subprocess.run([sys.executable, "-c", code, "config", "--set", "grid.nope=1"],
-                         capture_output=True, text=True, timeout=60)
+    def console(*args):
+        code = ("import sys, click; from terrainmap.cli.main import cli, run; "
+                "cli.add_command(click.command('buffered')(lambda: sys.stdout.write('left in the buffer'))); "
+                "cli.add_command(click.command('says')(lambda: sys.exit('fatal: a message'))); run()")
+        buffered = {k: v for k, v in os.environ.items() if k != "PYTHONUNBUFFERED"}
+        return subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True, timeout=60,
+                              env=buffered)
+
+    done = console("buffered")
+    assert done.returncode == 0 and done.stdout == "left in the buffer"
+    says = console("says")
+    assert says.returncode == 1 and says.stderr == "fatal: a message\n"
+    bad = console("config", "--set", "grid.nope=1")
     assert bad.returncode == 2 and bad.stdout == "" and bad.stderr.startswith("Error: ")
 
 

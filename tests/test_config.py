@@ -156,6 +156,9 @@ def test_a_limit_on_two_fields_that_a_file_broke_names_the_file(tmp_path):
         load_config(path)
     with pytest.raises(ConfigError, match="^terrain.control_points_x × control_points_y: "):
         load_config(path, overrides=["terrain.control_points_x=9999"])
+    path.write_text("[terrain]\ncontrol_points_x = 10\n")  # fine alone: the --set value breaks the limit
+    with pytest.raises(ConfigError, match="^terrain.control_points_x × control_points_y: "):
+        load_config(path, overrides=["terrain.control_points_y=1000"])
 
 
 @pytest.mark.parametrize(

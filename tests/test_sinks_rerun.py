@@ -279,11 +279,12 @@ def test_a_recording_on_a_slow_disk_is_waited_for_while_the_disk_has_room(tmp_pa
     usage = namedtuple("usage", "total used free")
     monkeypatch.setattr(shutil, "disk_usage", lambda path: usage(1 << 30, 1 << 30, 4096))
     monkeypatch.setattr(rerun_recording, "_STUCK", [])
+    (tmp_path / "full.rrd").symlink_to(tmp_path / "target.rrd")  # written through a link
     full = rerun_recording.RerunSink(tmp_path / "full.rrd", config=Config())
     with pytest.raises(InputError, match="No space left on device; the part written is removed"):
         full.close()
     assert len(calls) == 2  # the size seen, then one flush with no growth
-    assert not (tmp_path / "full.rrd").exists()
+    assert not (tmp_path / "target.rrd").exists() and (tmp_path / "full.rrd").is_symlink()
 
 
 def test_a_disk_whose_free_space_cannot_be_read_is_not_taken_for_full(tmp_path, monkeypatch):

@@ -64,7 +64,7 @@ class FolderLog:
             self.path / "truth" / "terrain.npz", elevation=terrain.z, x_min_m=terrain.x_min_m,
             y_min_m=terrain.y_min_m, resolution_m=terrain.resolution_m,
         )
-        # Line-buffered: a run killed part way (SIGKILL, a power cut) leaves the stamps of its frames.
+        # Line-buffered: a run killed part way (SIGKILL) leaves the stamps of the frames it wrote.
         self._stamps = open(self.path / "timestamps.txt", "w", buffering=1)  # noqa: SIM115 - closed in close()
         self.written += [self.path / name for name in ("calibration.yaml", "truth/scene.json", "truth/terrain.npz",
                                                        "timestamps.txt")]

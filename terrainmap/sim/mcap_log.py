@@ -96,10 +96,10 @@ class McapLog:
                 self._file.close()
 
     def discard(self) -> None:
-        """Remove the file (after a write failed: without its summary it is damaged)."""
+        """Remove the file, a link's target (after a write failed: without its summary it is damaged)."""
         with contextlib.suppress(OSError):
             self._file.close()
-        self.path.unlink(missing_ok=True)
+        self.path.resolve().unlink(missing_ok=True)
 
     def _log(self, topic: str, type_name: str, message: dict, stamp_ns: int) -> None:
         if type_name not in self._schemas:

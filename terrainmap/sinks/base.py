@@ -131,7 +131,7 @@ class McapSink:
                 self._stream.close()
             if not isinstance(exc, OSError):
                 raise
-            self.path.unlink(missing_ok=True)  # not even a header: no MCAP at all
+            self.path.resolve().unlink(missing_ok=True)  # not even a header: no MCAP at all (a link's target)
             raise InputError(f"cannot write MCAP output {self.path}: {exc.strerror or exc}") from exc
         self._whole = self._stream.tell()  # where the last whole frame ends (the header, before any)
 

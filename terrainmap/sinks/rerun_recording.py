@@ -26,7 +26,7 @@ else the vehicle frame itself; z up)::
     timings/<stage>               Scalars, ms
     stats/fit/<name>              Scalars: iterations, mean_error_m
     stats/counts/<name>           Scalars: points, cells, obstacles (confirmed tracks), detections
-                                  (the frame's clusters, tracks not yet confirmed included)
+                                  (the frame's obstacles as the tracker reports them, confirmed or not)
 
 Everything the pipeline computes is logged in the vehicle frame, as computed; the per-frame
 vehicle transform places it in the odometry frame, so the 3D view follows the drive.
@@ -263,7 +263,7 @@ class RerunSink:
             _STUCK.append(self._rec)  # kept: its destructor would wait for the dead writer (exit_would_hang)
             why = "No space left on device" if self._disk_full() else f"its file writer stopped ({exc})"
             try:  # a recording cut mid-message, without its footer, reads back in no Rerun tool
-                self.path.unlink(missing_ok=True)
+                self.path.resolve().unlink(missing_ok=True)  # a link's target: the file written
                 fate = "the part written is removed"
             except OSError:
                 fate = "the part written does not read back"

@@ -303,7 +303,8 @@ class LogSource(Source):
             half = pairer.half_period_ns
             within = (f"{self.pair_tolerance_ns / 1e6:.1f} ms (--pair-tolerance-ms)" if half is None or
                       half > self.pair_tolerance_ns else
-                      f"{half / 1e6:.1f} ms, half the cameras' frame period (less than --pair-tolerance-ms)")
+                      f"{half / 1e6:.1f} ms, half the cameras' frame period (--pair-tolerance-ms "
+                      f"{self.pair_tolerance_ns / 1e6:.1f})")
             logger.warning("%s: %d of %d image messages had no partner within %s%s",
                            self.path, pairer.dropped, pairer.pushed, within, full)
 
