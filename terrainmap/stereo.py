@@ -593,11 +593,11 @@ def sky_mask(grey: np.ndarray, pinhole: RectifiedPinhole, extrinsics: Extrinsics
     Sky is the region of flat pixels (grey-level standard deviation over a 5×5 window below
     ``config.min_texture``) that reaches the top row of the image through flat pixels above the
     horizon, grown by the window's half-width up to the skyline. "Above the horizon" means the ray
-    would meet level ground under the camera no nearer than ``config.max_range_m`` (horizontal
-    distance), if at all: ground seen there gives no points anyway, and sky just above distant
-    terrain lower than the vehicle still counts. The bound keeps flat ground and dark or saturated
-    objects out even where they touch the sky along an image border; flat regions closed in by
-    texture (a car's panel, a wall) are not reached.
+    would meet level ground under the camera no nearer than ``config.sky_beyond_m`` (horizontal
+    distance), if at all: sky just above a crest ahead or above distant terrain lower than the
+    vehicle still counts. The bound keeps flat ground and dark or saturated objects out even
+    where they touch the sky along an image border; flat regions closed in by texture (a car's
+    panel, a wall) are not reached.
 
     Parameters
     ----------
@@ -609,9 +609,9 @@ def sky_mask(grey: np.ndarray, pinhole: RectifiedPinhole, extrinsics: Extrinsics
         The camera's pose in the vehicle frame (its rotation orients the rays, its height sets
         the horizon's margin).
     config : StereoConfig
-        ``min_texture`` (0 finds no sky) and ``max_range_m``.
+        ``min_texture`` (0 finds no sky) and ``sky_beyond_m``.
     """
-    above = _beyond(pinhole, extrinsics, config.max_range_m)
+    above = _beyond(pinhole, extrinsics, config.sky_beyond_m)
     sky = np.zeros(grey.shape, bool)
     rows = len(above)  # the rows below hold no pixel above the horizon
     if rows == 0:

@@ -438,6 +438,26 @@ def test_sky_mask_takes_the_sky_disparities_of_a_rendered_frame_and_nothing_else
     assert not sky[frame.label != 0].any()
 
 
+def test_the_sky_just_above_a_crest_ahead_is_sky_too():
+    """Driving towards a crest (the simulated hills, ``--seed 5``, frame 13), the sky just above
+    it is seen along rays that meet level ground 20–40 m away, and SGBM gives 1790 of its pixels
+    the crest's disparity (measured; they became false obstacles): looking for sky down to rays
+    that meet level ground at 20 m (``stereo.sky_beyond_m``) takes all but 10 of them, and not
+    one terrain or obstacle pixel; at 40 m half of them stay."""
+    from terrainmap.stereo import sky_mask
+
+    config = SimConfig(scene="hills", frames=14, seed=5)
+    renderer = config.renderer(build_scene("hills", 5, length_m=config.length_m))
+    frame, rig = renderer.frame(13), renderer.rig
+    result = StereoMatcher(rig.calibration()).compute(frame.left, frame.right)
+    on_sky = np.isfinite(result.disparity) & (result.disparity > 3) & (frame.label == 0)
+    sky, at_40 = (sky_mask(frame.left, result.pinhole, rig.extrinsics(), StereoConfig(sky_beyond_m=b))
+                  for b in (20.0, 40.0))
+    assert on_sky.sum() > 1000
+    assert (on_sky & ~sky).sum() < 0.02 * on_sky.sum() and (on_sky & ~at_40).sum() > 0.3 * on_sky.sum()
+    assert not sky[frame.label != 0].any()
+
+
 def test_the_pipeline_drops_the_points_of_the_sky_unless_told_not_to():
     """``match_frame`` applies the sky mask once the camera pose is known (``stereo.drop_sky``)."""
     from terrainmap.config import Config
