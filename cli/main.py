@@ -195,9 +195,11 @@ def run() -> None:
         main()
         code = 0
     except SystemExit as exc:
-        code = exc.code if isinstance(exc.code, int) else int(exc.code is not None)
-        if exc.code is not None and not isinstance(exc.code, int):  # sys.exit("message"), as Python prints it
-            print(exc.code, file=sys.stderr)
+        code = exc.code
+        if not isinstance(code, int):  # None: 0; sys.exit("message"): 1, the message printed as Python does
+            if code is not None:
+                print(code, file=sys.stderr)
+            code = int(code is not None)
     with suppress(Exception):
         sys.stdout.flush()
         sys.stderr.flush()
