@@ -417,8 +417,8 @@ class StereoConfig:
     seen along rays that meet level ground at crest distance × camera height / (camera height −
     crest height): 34 m for a crest 1 m up at 15 m. With 40 m (``max_range_m``, until
     2026-11-28) that sky kept the crest's disparity, and on the simulated hills ``--seed 5`` its
-    points became 0.45 false obstacles per frame within 20 m (none at 20 or 25 m, and nothing
-    else changed on thirty drives: docs/accuracy.md)."""
+    points became 0.45 false obstacles per frame within 20 m (none at 20 or 25 m; on the other
+    twenty-nine drives a few sky pixels of one: docs/accuracy.md)."""
     full_width: bool = True
     """Match the left image's left border too. OpenCV's SGBM gives no disparity in the leftmost
     ``min_disparity + num_disparities`` columns (15 % of the image by default), where a pixel's
