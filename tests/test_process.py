@@ -640,9 +640,10 @@ def test_a_terminated_run_still_finalises_its_output(small_log, tmp_path):
 
 
 _ON_A_TERMINAL = """
-import os, pty, select, sys, time
+import os, pty, select, signal, sys, time
 pid, fd = pty.fork()  # the child's terminal is the pty; closing its other end hangs it up
 if pid == 0:
+    signal.signal(signal.SIGHUP, signal.SIG_DFL)  # as in a terminal's session, also where the tests run under nohup
     os.execv(sys.executable, [sys.executable, "-c", "from terrainmap.cli.main import run; run()", *sys.argv[1:]])
 seen, deadline = b"", time.monotonic() + 120
 while b"frames/s" not in seen and time.monotonic() < deadline:
