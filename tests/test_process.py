@@ -641,7 +641,10 @@ def test_a_terminated_run_still_finalises_its_output(small_log, tmp_path):
 
 _ON_A_TERMINAL = """
 import os, pty, select, signal, sys, time
-pid, fd = pty.fork()  # the child's terminal is the pty; closing its other end hangs it up
+try:
+    pid, fd = pty.fork()  # the child's terminal is the pty; closing its other end hangs it up
+except OSError:  # no pseudo-terminal to be had here
+    sys.exit(77)
 if pid == 0:
     signal.signal(signal.SIGHUP, signal.SIG_DFL)  # as in a terminal's session, also where the tests run under nohup
     os.execv(sys.executable, [sys.executable, "-c", "from terrainmap.cli.main import run; run()", *sys.argv[1:]])
@@ -671,6 +674,8 @@ def test_a_hang_up_ends_the_run_like_ctrl_c_with_its_output_finalised(tmp_path):
     simulate(log, SimConfig(scene="flat", frames=40, seed=1, width=320, height=240, focal_px=250.0))
     out = tmp_path / "o.mcap"
     done = subprocess.run([sys.executable, "-c", _ON_A_TERMINAL, "process", str(log), "-o", str(out)], timeout=180)
+    if done.returncode == 77:
+        pytest.skip("no pseudo-terminal can be opened here")
     assert done.returncode == 128 + signal.SIGHUP
     with open(out, "rb") as stream:
         assert make_reader(stream).get_summary() is not None  # finished: summary and index written
