@@ -126,7 +126,8 @@ def artificial_obstacle(
         option = next((o for f, o in _FIELD_OPTIONS.items() if field.startswith(f)), "--set" if base_log else None)
         raise ConfigError(f"{option} ({exc})" if option else str(exc)) from exc
     _print_table(results)
-    rows = [r.to_dict() for r in results]
+    scene = f"{base_log}, stereo pair {frame_index}" if base_log else "flat"  # which base the rows are of
+    rows = [{"scene": scene, **r.to_dict()} for r in results]
     if json_path:
         write_text(json_path, json.dumps(rows, indent=2) + "\n")
     if csv_path:

@@ -449,11 +449,12 @@ def test_unknown_method_lists_the_available_ones(tiny_log):
 def test_table_lists_each_true_obstacle():
     from terrainmap.evaluation.accuracy_report import format_table
 
-    report = {"log": "x.mcap", "frames": 3, "methods": {}, "obstacles": {
+    report = {"log": "x.mcap", "frames": 3, "failed_frames": {"no_ground": 2}, "methods": {}, "obstacles": {
         "min_height_m": 0.5, "range_m": 20.0,
         "frames_to_confirmation": {"1 pedestrian": 2, "3 pole": None}, "id_switches": {"1 pedestrian": 1},
         "duplicate_frames": {"1 pedestrian": 3}, "blocked_by_cost": 0.9251}}
     lines = format_table(report).splitlines()
+    assert lines[0] == "x.mcap: 3 frames, failed: no_ground ×2"
     assert lines[-3].split() == ["1", "pedestrian", "2", "1", "3"]
     assert lines[-2].split() == ["3", "pole", "never", "—", "—"]
     assert lines[-1] == "true obstacles within 20.0 m whose footprint holds a cell of cost 1, per frame: 92.5 %"
@@ -466,7 +467,7 @@ def test_cli_prints_the_table_and_writes_json_and_plot(tiny_log, tmp_path):
         "--plot", str(out_png), "--set", "terrain.control_points_x=15", "--obstacle-margin", "1",
     ])
     assert result.exit_code == 0, result.output
-    for text in ("range 0-10 m", "range 10-20 m", "range all m", "rmse_m", "terrainmap", "lowest_point", "wall time"):
+    for text in ("range 0-10 m", "range 10-20 m", "all ranges", "rmse_m", "terrainmap", "lowest_point", "wall time"):
         assert text in result.output
     report = json.loads(out_json.read_text())
     if report["obstacles"]["frames_to_confirmation"]:

@@ -120,10 +120,13 @@ def test_eval_artificial_obstacle_writes_json_csv_and_plot(tmp_path):
     assert lines[-3:] == [f"wrote {tmp_path / name}" for name in ("r.json", "r.csv", "r.png")]
     rows = json.loads((tmp_path / "r.json").read_text())
     assert len(rows) == 8
-    assert set(rows[0]) == {"control_points", "width_m", "height_m", "max_deviation_pct"}
+    assert list(rows[0]) == ["scene", "control_points", "width_m", "height_m", "max_deviation_m", "max_deviation_pct"]
+    assert rows[0]["scene"] == "flat"
+    assert all(r["max_deviation_pct"] == pytest.approx(100 * r["max_deviation_m"] / r["height_m"]) for r in rows)
     thin = [r for r in rows if r["control_points"] == 25 and r["width_m"] == 0.8]
     assert all(r["max_deviation_pct"] < 5 for r in thin)
-    assert (tmp_path / "r.csv").read_text().startswith("control_points,width_m,height_m,max_deviation_pct")
+    assert (tmp_path / "r.csv").read_text().startswith(
+        "scene,control_points,width_m,height_m,max_deviation_m,max_deviation_pct")
     assert (tmp_path / "r.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
@@ -351,6 +354,7 @@ def test_eval_artificial_obstacle_on_a_simulated_base_frame(tmp_path, capsys):
     assert result.exit_code == 0, result.output
     thin, wide = json.loads((tmp_path / "r.json").read_text())
     assert thin["max_deviation_pct"] < wide["max_deviation_pct"]
+    assert thin["scene"] == f"{log}, stereo pair 0"  # a report says which base it is of
     topics = ["--left-topic", "/stereo/left/image_rect", "--right-topic", "/stereo/right/image_rect"]
     named = CliRunner().invoke(cli, ["eval", "artificial-obstacle", "--base", str(log), "--nets", "25", "--widths",
                                      "0.8,12", "--heights", "2", "--position", "12,0", *topics,

@@ -26,11 +26,11 @@ def format_table(report: dict) -> str:
     methods = report["methods"]
     width = max(len(m) for m in methods) if methods else 6
     header = f"{'method':<{width}} " + " ".join(f"{HEADERS[m]:>8}" for m in METRICS)
-    lines = [f"{report['log']}: {report['frames']} frames"
-             + (f", failed {report['failed_frames']}" if report.get("failed_frames") else "")]
+    failed = ", ".join(f"{reason} ×{n}" for reason, n in (report.get("failed_frames") or {}).items())
+    lines = [f"{report['log']}: {report['frames']} frames" + (f", failed: {failed}" if failed else "")]
     bands = next(iter(methods.values())).keys() if methods else []
     for band in bands:
-        lines += ["", f"range {band} m", header]
+        lines += ["", "all ranges" if band == "all" else f"range {band} m", header]
         for name, scores in methods.items():
             lines.append(f"{name:<{width}} " + " ".join(f"{_cell(m, scores[band][m]):>8}" for m in METRICS))
     common = report.get("common_cells")

@@ -50,6 +50,7 @@ class Deviation:
             "control_points": self.control_points,
             "width_m": self.width_m,
             "height_m": self.height_m,
+            "max_deviation_m": self.max_deviation_m,
             "max_deviation_pct": self.max_deviation_pct,
         }
 

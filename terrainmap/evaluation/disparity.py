@@ -18,7 +18,9 @@ ground-truth disparity, and compares the disparities pixel by pixel:
 - A log written by ``terrainmap simulate`` (MCAP or folder): ``f·B / depth − doffs`` from its
   per-pixel depth truth; the sky has none.
 
-Pairs without a ground-truth file are skipped (``pairs_without_truth``); pairs the front end
+KITTI and Middlebury pairs without a ground-truth file are skipped (``pairs_without_truth``); a
+simulated log's truth must hold every stereo pair (one missing is an error naming its stamp, as
+for ``eval accuracy``: the log is damaged); pairs the front end
 cannot match are counted by reason (``failed_frames``); pairs whose images cannot be decoded are
 skipped as ``process`` skips them, and listed (``skipped``). Metrics over the pixels with a true
 disparity, per band of true camera depth ``Z = f·B / (d + doffs)`` (``0-10``, ``10-20``, ``0-20``,
