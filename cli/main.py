@@ -110,11 +110,18 @@ def _exit_at_once(signum, frame) -> None:
     """A signal after the command has ended: its outputs are all closed; end with the interrupted
     run's exit code now, not with a traceback from an exit handler."""
     leave_hung_up_terminal(signum)
+    _end_now(128 + signum, "Interrupted.")
+
+
+def _end_now(code: int, message: str = "") -> None:
+    """End the process at once (``os._exit``), after flushing standard output and error and
+    writing ``message`` as a line to the latter (a failing stream changes nothing by then)."""
     with suppress(Exception):
         sys.stdout.flush()
         sys.stderr.flush()
-        os.write(2, b"Interrupted.\n")
-    os._exit(128 + signum)
+        if message:  # (not through sys.stderr: the signal handler that calls this may have cut a write to it)
+            os.write(2, f"{message}\n".encode())
+    os._exit(code)
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -178,9 +185,7 @@ def _rerun_stuck() -> bool:
 def _exit(code: int) -> None:
     """``sys.exit(code)``, or ``os._exit`` where Rerun would keep the process from ending."""
     if _rerun_stuck():
-        sys.stdout.flush()
-        sys.stderr.flush()
-        os._exit(code)
+        _end_now(code)
     sys.exit(code)
 
 
@@ -191,19 +196,15 @@ def run() -> None:
     only leave a window where a signal ends in a traceback and exit code 0, or kills the process
     without a word. Outside main's run, a signal ends the process with the interrupted run's code."""
     take_stop_signals(_exit_at_once)  # main takes them over while it runs, and gives these back
+    code, message = 0, ""
     try:
         main()
-        code = 0
     except SystemExit as exc:
-        code = exc.code
-        if not isinstance(code, int):  # None: 0; sys.exit("message"): 1, the message printed as Python does
-            if code is not None:
-                print(code, file=sys.stderr)
-            code = int(code is not None)
-    with suppress(Exception):
-        sys.stdout.flush()
-        sys.stderr.flush()
-    os._exit(code)
+        if isinstance(exc.code, int):
+            code = exc.code
+        elif exc.code is not None:  # sys.exit("message"): 1, the message printed as Python does
+            code, message = 1, str(exc.code)
+    _end_now(code, message)
 
 
 if __name__ == "__main__":
