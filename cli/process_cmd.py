@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import itertools
+import os
 import sys
 from pathlib import Path
 
@@ -28,8 +29,9 @@ from .source_options import source_options
 def default_output(log: Path) -> Path:
     """``run.mcap`` → ``run.terrain.mcap`` beside it; a folder ``d/`` → ``d.terrain.mcap`` beside it.
     A file of a rosbag2 folder (one with ``metadata.yaml``) → beside the folder, not in it, where
-    the output would become one more file of the recording."""
-    log = log.resolve()
+    the output would become one more file of the recording. A symbolic link counts where it is, not
+    where it points: a link into a read-only dataset store gets its output beside the link."""
+    log = Path(os.path.abspath(log))  # `.` and `..` get their names; links are not followed
     stem = log.name if log.is_dir() else log.stem
     folder = log.parent.parent if log.is_file() and (log.parent / "metadata.yaml").is_file() else log.parent
     return folder / f"{stem}.terrain.mcap"

@@ -47,6 +47,9 @@ LEVEL_CAMERA = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
 
 MAX_MOUNT_M = 1e3
 """Farthest a camera may sit from the vehicle origin along any axis, metres."""
+ODD_PITCH_DEG, ODD_ROLL_DEG = 60.0, 45.0
+"""A camera pose pitched or rolled more than this is warned about: most likely a rotation given in
+another convention (the vehicle in the camera frame, or not the optical frame)."""
 
 
 def extrinsics_from_calibration(
@@ -70,7 +73,14 @@ def extrinsics_from_calibration(
     if np.abs(t).max() > MAX_MOUNT_M:  # metres taken for millimetres, or a pose in the wrong frame
         raise CalibrationError(f"{name}: the camera must lie within {MAX_MOUNT_M:g} m of the vehicle origin, "
                                f"got translation {t.tolist()}")
-    return Extrinsics(rotation=R, translation=t, source=source)
+    extrinsics = Extrinsics(rotation=R, translation=t, source=source)
+    pose = describe_extrinsics(extrinsics)
+    if abs(pose["pitch_deg"]) > ODD_PITCH_DEG or abs(pose["roll_deg"]) > ODD_ROLL_DEG:  # an identity rotation, say
+        log.warning("%s: the camera looks %.0f° %s with a roll of %.0f°, not ahead at the ground; is the rotation "
+                       "that of the camera's optical frame (x right, y down, z forward) in the vehicle frame "
+                       "(x forward, y left, z up)?", name, abs(pose["pitch_deg"]),
+                       "down" if pose["pitch_deg"] > 0 else "up", pose["roll_deg"])
+    return extrinsics
 
 
 def is_rotation(matrix: np.ndarray) -> bool:

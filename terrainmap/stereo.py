@@ -172,6 +172,8 @@ def check_calibration(calibration: StereoCalibration, *, size_known: bool = True
             if dist is not None and not np.all(np.abs(dist) < 1e6):  # False for NaN too
                 raise CalibrationError(f"{name}: dist_{side} must hold finite coefficients below 1e6, got "
                                        f"{np.ravel(dist).tolist()}")
+        if not unknown:  # a pair that cannot be rectified is refused where it is read, not at its first frame
+            _stereo_rectify(calibration)
     return calibration
 
 
@@ -194,10 +196,33 @@ def _check_plausible(name: str, field: str, value: float) -> None:
         raise CalibrationError(f"{name}: {field} must be within {low:g}..{high:g} {unit}, got {value:g}")
 
 
+def matching_pinhole(calibration: StereoCalibration) -> RectifiedPinhole:
+    """The rectified pinhole the stereo stage matches and reprojects with: the calibration's own
+    ``fx, fy, cx, cy, baseline_m`` where the images are rectified, else the one that
+    ``cv2.stereoRectify`` derives from ``K, dist, R, T`` (:class:`CalibrationError` where it cannot)."""
+    return _stereo_rectify(calibration)[-1] if not calibration.rectified else _given_pinhole(calibration)
+
+
 def _rectification(calibration: StereoCalibration) -> tuple[tuple, tuple, RectifiedPinhole]:
     """``cv2.stereoRectify`` + ``initUndistortRectifyMap``: maps for left and right, and the new
     pinhole (with R1, the rotation from the left camera's frame into the rectified one, where it
     turns at all)."""
+    (K1, D1, R1, P1), (K2, D2, R2, P2), pinhole = _stereo_rectify(calibration)
+    size = (calibration.width, calibration.height)
+    try:
+        maps_left = cv2.initUndistortRectifyMap(K1, D1, R1, P1, size, cv2.CV_16SC2)
+        maps_right = cv2.initUndistortRectifyMap(K2, D2, R2, P2, size, cv2.CV_16SC2)
+    except cv2.error as exc:
+        raise CalibrationError(
+            f"{calibration.source or 'stereo calibration'}: cannot rectify ({exc.err})"
+        ) from None
+    return maps_left, maps_right, pinhole
+
+
+def _stereo_rectify(calibration: StereoCalibration) -> tuple[tuple, tuple, RectifiedPinhole]:
+    """``cv2.stereoRectify`` of an unrectified calibration: ``(K, D, R, P)`` of the left and of the
+    right camera, and the rectified pinhole; :class:`CalibrationError` for a pair it cannot make
+    side-by-side stereo of, naming the calibration's source."""
     size = (calibration.width, calibration.height)
     K1, K2 = (np.asarray(k, np.float64).reshape(3, 3) for k in (calibration.K_left, calibration.K_right))
     D1, D2 = (
@@ -210,8 +235,6 @@ def _rectification(calibration: StereoCalibration) -> tuple[tuple, tuple, Rectif
         R1, R2, P1, P2, *_ = cv2.stereoRectify(
             K1, D1, K2, D2, size, R, T, flags=cv2.CALIB_ZERO_DISPARITY, alpha=0
         )
-        maps_left = cv2.initUndistortRectifyMap(K1, D1, R1, P1, size, cv2.CV_16SC2)
-        maps_right = cv2.initUndistortRectifyMap(K2, D2, R2, P2, size, cv2.CV_16SC2)
     except cv2.error as exc:
         raise CalibrationError(
             f"{calibration.source or 'stereo calibration'}: cannot rectify ({exc.err})"
@@ -237,10 +260,10 @@ def _rectification(calibration: StereoCalibration) -> tuple[tuple, tuple, Rectif
         float(P1[0, 0]), float(P1[1, 1]), float(P1[0, 2]), float(P1[1, 2]), float(baseline_m),
         float(P2[0, 2] - P1[0, 2]), calibration.width, calibration.height, turn,
     )  # fmt: skip
-    return maps_left, maps_right, pinhole
+    return (K1, D1, R1, P1), (K2, D2, R2, P2), pinhole
 
 
-def _rectified_pinhole(calibration: StereoCalibration) -> RectifiedPinhole:
+def _given_pinhole(calibration: StereoCalibration) -> RectifiedPinhole:
     cx_right = calibration.cx if calibration.cx_right is None else calibration.cx_right
     return RectifiedPinhole(
         float(calibration.fx), float(calibration.fy), float(calibration.cx), float(calibration.cy),
@@ -329,7 +352,7 @@ class StereoMatcher:
         self._max_disparity = np.arange(columns, dtype=np.float32) - self.config.left_margin_px
         if calibration.rectified:
             self._maps = None
-            self.pinhole = _rectified_pinhole(calibration)
+            self.pinhole = _given_pinhole(calibration)
         else:
             *self._maps, self.pinhole = _rectification(calibration)
         p = self.pinhole

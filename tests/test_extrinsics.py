@@ -128,6 +128,20 @@ def test_extrinsics_from_calibration_checks_the_rotation():
         extrinsics_from_calibration(pose.rotation, [0, 0, 1e300], name="tf")  # a mount from a broken tf
 
 
+@pytest.mark.parametrize(("pitch_deg", "roll_deg", "warned"), [(0, 0, None), (55, -40, None), (70, 0, "70° down"),
+                                                              (-65, 0, "65° up"), (10, 50, "roll of 50°")])
+def test_a_camera_not_looking_ahead_is_warned_about(caplog, pitch_deg, roll_deg, warned):
+    pose = extrinsics_from_pose(1.5, math.radians(pitch_deg), math.radians(roll_deg))
+    extrinsics_from_calibration(pose.rotation, pose.translation, name="calibration.yaml")
+    assert ("calibration.yaml: the camera looks" in caplog.text) == bool(warned) and (warned or "") in caplog.text
+
+
+def test_an_identity_rotation_is_warned_about_as_looking_up(caplog):
+    """The likely slip of giving no optical-frame turn: the camera's z (forward) becomes the vehicle's up."""
+    extrinsics_from_calibration(np.eye(3), [0, 0, 1.5], name="calibration.yaml")
+    assert "the camera looks 90° up" in caplog.text and "optical frame (x right, y down, z forward)" in caplog.text
+
+
 @pytest.fixture(scope="module")
 def kitti_points():
     """(GT-disparity points, SGBM points) of KITTI 000005 in the camera frame."""

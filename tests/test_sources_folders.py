@@ -16,6 +16,7 @@ from terrainmap.sources.folder import GenericFolder
 from terrainmap.sources.images import decode_compressed
 from terrainmap.sources.kitti import KittiOdometryFolder, KittiRawFolder, KittiStereoFolder
 from terrainmap.sources.middlebury import MiddleburyFolder
+from terrainmap.stereo import matching_pinhole
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 KITTI = DATA / "kitti2015_000005"
@@ -146,6 +147,15 @@ def test_odd_timestamps_are_warned_about(tmp_path, caplog, lines, stamps, warnin
     assert warning in caplog.text
 
 
+@pytest.mark.parametrize("lines", ["-5\n0\n5\n", f"0\n1\n{2**63}\n"])
+def test_a_stamp_no_log_can_hold_is_named_in_its_file(tmp_path, lines):
+    """Where ``info`` reads it too, not at the frame in ``process`` naming its images."""
+    root = generic_folder(tmp_path, n=3)
+    (root / "timestamps.txt").write_text(lines)
+    with pytest.raises(InputError, match=r"timestamps.txt: stamp -?\d+ ns lies outside 1970–2262"):
+        open_source(root)
+
+
 def test_calibration_toml_extrinsics_and_unrectified(tmp_path):
     root = generic_folder(tmp_path, n=1)
     (root / "calibration.yaml").unlink()
@@ -177,9 +187,6 @@ def test_calibration_toml_extrinsics_and_unrectified(tmp_path):
         ("width = 8", "width = 8.5", "width must be a whole number of pixels, got 8.5$"),
         ("width = 8", "width = true", "width must be a number, got True$"),
         ("width = 8", 'width = "abc"', "width must be a number, got 'abc'$"),
-        ("fx = 500.0", "fx = 1e308", "fx must be within 1..1e\\+06 pixels, got 1e\\+308$"),
-        ("baseline_m = 0.3", "baseline_m = 1e-300", "baseline_m must be within 0.001..100 m, got 1e-300$"),
-        ("rectified = false", "cx_right = nan\nrectified = false", "cx_right must be a finite number of pixels"),
     ],
 )
 def test_nonsense_in_a_calibration_file_is_named(tmp_path, old, new, message):
@@ -188,6 +195,42 @@ def test_nonsense_in_a_calibration_file_is_named(tmp_path, old, new, message):
     path.write_text(path.read_text().replace(old, new))
     with pytest.raises(CalibrationError, match=message):
         next(open_source(path.parent).frames())
+
+
+@pytest.mark.parametrize(
+    "old, new, message",
+    [
+        ("fx: 500.0", "fx: 1.0e+308", "fx must be within 1..1e\\+06 pixels, got 1e\\+308$"),
+        ("baseline_m: 0.3", "baseline_m: 1.0e-300", "baseline_m must be within 0.001..100 m, got 1e-300$"),
+        ("cy: 3.0", "cy: 3.0\ncx_right: .nan", "cx_right must be a finite number of pixels"),
+    ],
+)
+def test_nonsense_in_a_rectified_pinhole_is_named(tmp_path, old, new, message):
+    root = generic_folder(tmp_path, n=1, calib=CALIB_YAML.replace(old, new))
+    with pytest.raises(CalibrationError, match=message):
+        next(open_source(root).frames())
+
+
+def test_raw_images_take_their_pinhole_from_rectifying_and_a_wrong_side_is_refused_where_read(tmp_path, caplog):
+    """With ``rectified = false`` the pinhole keys are not needed, are warned about as unused when
+    given, and ``describe()`` (``info``) shows the pinhole that rectifying gives, which ``process``
+    matches with; a right camera on the left is refused when the file is read (``info --check`` too)."""
+    test_calibration_toml_extrinsics_and_unrectified(tmp_path)
+    path = next(tmp_path.rglob("calibration.toml"))
+    assert "fx, fy, cx, cy, baseline_m not used" in caplog.text
+    text = path.read_text()
+    for key in ("fx", "fy", "cx", "cy", "baseline_m"):
+        text = "\n".join(line for line in text.splitlines() if not line.startswith(f"{key} ="))
+    path.write_text(text)
+    with open_source(path.parent) as source:
+        shown, calib = source.describe()["calibration"], next(source.frames()).calibration
+    pinhole = matching_pinhole(calib)
+    assert (shown["fx"], shown["cx"], shown["cy"], shown["baseline_m"]) == (pinhole.fx, pinhole.cx, pinhole.cy,
+                                                                          pinhole.baseline_m)
+    assert shown["baseline_m"] == pytest.approx(0.3) and not shown["rectified"]
+    path.write_text(text.replace("T = [-0.3, 0, 0]", "T = [0.3, 0, 0]"))
+    with pytest.raises(CalibrationError, match="the right camera is not to the right of the left"):
+        open_source(path.parent).describe()
 
 
 def test_an_unknown_key_in_the_extrinsics_is_warned_about(tmp_path, caplog):
@@ -353,6 +396,18 @@ def test_middlebury_folder_of_scenes(tmp_path, caplog):
     (tmp_path / "Jadeplant" / "calib.txt").write_text(MIDDLEBURY_CALIB.replace("cam0=", "camera0="))
     with pytest.raises(CalibrationError, match="Jadeplant/calib.txt: Middlebury calibration lacks 'cam0'$"):
         list(open_source(tmp_path).frames())
+    for old, new, message in [
+        ("baseline=97.99", "baseline=0.09799", "baseline must be 1..100000 mm \\(Middlebury's unit\\), got 0.09799$"),
+        ("doffs=12.5", "doffs=abc", "doffs must be a number of pixels, got 'abc'$"),
+        ("cam0=[1758.23 0", "cam0=[1758.23", "cam0 must be a 3×3 matrix"),
+        ("width=8", "width=8.5", "width must be a whole number of pixels, got '8.5'$"),
+        ("doffs=12.5", "doffs=nan", "doffs must be a finite number of pixels, got nan$"),
+    ]:
+        caplog.clear()
+        (tmp_path / "Jadeplant" / "calib.txt").write_text(MIDDLEBURY_CALIB.replace(old, new))
+        with pytest.raises(CalibrationError, match=message):
+            list(open_source(tmp_path).frames())
+        assert "cam1" not in caplog.text  # one line: not a warning on the bad value before the error
 
 
 def test_sixteen_bit_grey_images_are_scaled_together(tmp_path):
@@ -544,6 +599,26 @@ def test_a_folder_named_like_an_image_is_not_an_image(tmp_path):
     (root / "right" / "000002.png").mkdir()
     with open_source(root) as source:
         assert len(list(source.frames())) == 2
+
+
+def test_two_calibration_files_are_refused_unless_one_is_named(tmp_path):
+    root = generic_folder(tmp_path, n=1)
+    (root / "calibration.toml").write_text(CALIB_YAML.replace(": ", " = "))
+    with pytest.raises(CalibrationError, match="calibration.yaml and calibration.toml are both there; keep one"):
+        open_source(root)
+    with open_source(root, calibration=root / "calibration.toml") as source:
+        assert next(source.frames()).calibration.baseline_m == 0.3
+
+
+def test_hidden_files_are_no_images(tmp_path):
+    """macOS leaves ``._NAME.png`` resource forks beside images copied to a USB or network drive:
+    they must not count as pairs (a right ``timestamps.txt`` would no longer fit the count)."""
+    root = generic_folder(tmp_path, n=2)
+    (root / "timestamps.txt").write_text("1000\n2000\n")
+    for side in ("left", "right"):
+        (root / side / "._000000.png").write_bytes(b"\x00\x05\x16\x07 not an image")
+    with open_source(root) as source:
+        assert [f.stamp_ns for f in source.frames()] == [1000, 2000]
 
 
 def test_warnings_reach_the_terminal_as_one_plain_line_each(tmp_path):

@@ -260,6 +260,11 @@ def test_rosbag2_directory_of_several_files(tmp_path):
     assert default_output(log_path(bag / "metadata.yaml")) == tmp_path / "bag.terrain.mcap"  # beside the folder
     # one of its files alone: beside the folder too, where it does not join the recording
     assert default_output(bag / "bag_1.mcap") == tmp_path / "bag_1.terrain.mcap"
+    # a link (into a read-only dataset store, say) gets its output beside the link, as named
+    (tmp_path / "links").mkdir()
+    (tmp_path / "links" / "run").symlink_to(bag, target_is_directory=True)
+    assert default_output(tmp_path / "links" / "run") == tmp_path / "links" / "run.terrain.mcap"
+    assert default_output(tmp_path / "links" / "run" / ".") == tmp_path / "links" / "run.terrain.mcap"
 
 
 def test_a_listed_file_missing_from_a_rosbag2_directory_is_damage(tmp_path, caplog):

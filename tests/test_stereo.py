@@ -16,7 +16,7 @@ from terrainmap.errors import CalibrationError, ConfigError, InputError
 from terrainmap.extrinsics import extrinsics_from_pose
 from terrainmap.sim import SimConfig
 from terrainmap.sim.scenes import build_scene
-from terrainmap.stereo import StereoMatcher, _texture_energy, to_vehicle, trim_fattening
+from terrainmap.stereo import StereoMatcher, _texture_energy, matching_pinhole, to_vehicle, trim_fattening
 from terrainmap.types import StereoCalibration
 
 
@@ -234,6 +234,7 @@ def test_rectification_recovers_disparity():
     )
     matcher = StereoMatcher(calib, StereoConfig(num_disparities=48))
     assert matcher.pinhole.baseline_m == pytest.approx(B, rel=1e-6)
+    assert matching_pinhole(calib) == matcher.pinhole  # what `info` shows (sources.calibration.summary)
     result = matcher.compute(left, right)
     points, _ = matcher.reproject(result.disparity)
     assert np.isfinite(result.disparity).mean() > 0.5

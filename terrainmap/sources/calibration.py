@@ -11,8 +11,9 @@ terrainmap's own format (``calibration.yaml``, ``.yml`` or ``.toml``)::
     baseline_m: 0.30
     cx_right: 320.0     # optional, default cx
     doffs: 0.0          # optional (Middlebury-style disparity offset, px)
-    rectified: true     # optional, default true; when false also give K_left, K_right (3x3),
+    rectified: true     # optional, default true; when false give K_left, K_right (3x3),
                         # dist_left, dist_right (lists), R (3x3), T ([x, y, z] m, right wrt left)
+                        # instead of fx ... doffs: the images are rectified with those
     extrinsics:         # optional: left camera optical frame in the vehicle frame (base_link)
       translation_m: [0.0, 0.0, 1.5]
       rotation: [[0, 0, 1], [-1, 0, 0], [0, -1, 0]]   # or quaternion_xyzw: [x, y, z, w]
@@ -37,6 +38,7 @@ import yaml
 from ..errors import CalibrationError, brief
 from ..extrinsics import MAX_MOUNT_M, is_rotation
 from ..stereo import check_calibration as stereo_check
+from ..stereo import matching_pinhole
 from ..types import Extrinsics, StereoCalibration
 from .tf import quaternion_to_matrix, usable
 
@@ -143,31 +145,40 @@ def kitti_calibration(path: Path, keys: tuple[str, str] | None = None) -> Stereo
 def middlebury_calibration(path: Path) -> StereoCalibration:
     """Calibration from a Middlebury ``calib.txt`` (cam0/cam1 matrices, doffs, baseline in mm)."""
     values = read_key_values(path, "=")
-    try:
-        K0 = _numbers(values["cam0"]).reshape(3, 3)
-        baseline_m = float(values["baseline"]) / 1000.0
-        calib = StereoCalibration(
-            width=_whole(values.get("width", 0)),
-            height=_whole(values.get("height", 0)),
-            fx=float(K0[0, 0]),
-            fy=float(K0[1, 1]),
-            cx=float(K0[0, 2]),
-            cy=float(K0[1, 2]),
-            baseline_m=baseline_m,
-            doffs=float(values.get("doffs", 0.0)),
-            source=str(path),
-        )
-        K1 = _numbers(values["cam1"]).reshape(3, 3) if "cam1" in values else None
-    except KeyError as exc:
-        raise CalibrationError(f"{path}: Middlebury calibration lacks {exc.args[0]!r}") from None
-    except ValueError:
-        raise CalibrationError(
-            f"{path}: cam0 and cam1 must be 3×3 matrices, baseline and doffs numbers, width and height whole pixels"
-        ) from None
-    if K1 is not None and not (np.isclose(K1[0, 0], K0[0, 0], rtol=0.01) and abs(K1[0, 2] - K0[0, 2] - calib.doffs) <= 0.5):
+
+    def field(key: str, parse, what: str, default=None):
+        if key not in values:
+            if default is not None:
+                return default
+            raise CalibrationError(f"{path}: Middlebury calibration lacks {key!r}")
+        try:
+            return parse(values[key])
+        except ValueError:
+            raise CalibrationError(f"{path}: {key} must be {what}, got {brief(values[key])}") from None
+
+    def matrix(text: str) -> np.ndarray:
+        return _numbers(text).reshape(3, 3)
+
+    K0 = field("cam0", matrix, "a 3×3 matrix [fx 0 cx; 0 fy cy; 0 0 1]")
+    baseline_mm = field("baseline", float, "a number of millimetres")
+    if not 1 <= baseline_mm <= 1e5:  # False for NaN; Middlebury gives millimetres, not metres
+        raise CalibrationError(f"{path}: baseline must be 1..100000 mm (Middlebury's unit), got {baseline_mm:g}")
+    calib = check_calibration(StereoCalibration(
+        width=field("width", _whole, "a whole number of pixels", 0),
+        height=field("height", _whole, "a whole number of pixels", 0),
+        fx=float(K0[0, 0]),
+        fy=float(K0[1, 1]),
+        cx=float(K0[0, 2]),
+        cy=float(K0[1, 2]),
+        baseline_m=baseline_mm / 1000.0,
+        doffs=field("doffs", float, "a number of pixels", 0.0),
+        source=str(path),
+    ))
+    K1 = field("cam1", matrix, "a 3×3 matrix [fx 0 cx; 0 fy cy; 0 0 1]", False)
+    if K1 is not False and not (np.isclose(K1[0, 0], K0[0, 0], rtol=0.01) and abs(K1[0, 2] - K0[0, 2] - calib.doffs) <= 0.5):
         logger.warning("%s: cam1 (fx %g, cx %g) is not cam0 shifted by doffs %g (fx %g, cx %g): not one rectified "
                        "pair? cam0 and doffs are used", path, K1[0, 0], K1[0, 2], calib.doffs, K0[0, 0], K0[0, 2])
-    return check_calibration(calib)
+    return calib
 
 
 def _number(data: dict, key: str, path: Path) -> float:
@@ -245,10 +256,15 @@ def _load_table(path: Path) -> dict:
 def terrainmap_calibration(path: Path) -> tuple[StereoCalibration, Extrinsics | None]:
     """Read terrainmap's YAML/TOML calibration format (see the module docstring)."""
     data = _load_table(path)
-    missing = [key for key in _REQUIRED if data.get(key) is None]  # `fx:` with no value is missing too
-    if missing:
-        raise CalibrationError(f"{path}: missing calibration keys: {', '.join(missing)}")
+    rectified = data.get("rectified", True)
+    if not isinstance(rectified, bool):
+        raise CalibrationError(f"{path}: rectified must be true or false, got {brief(rectified)}")
     unknown = sorted(set(data) - set(_KNOWN), key=str)
+    # `fx:` with no value is missing too; raw images' pinhole comes from K, dist, R and T instead
+    missing = [key for key in _REQUIRED[: None if rectified else 2] if data.get(key) is None]
+    if missing:
+        also = f" (and {', '.join(map(str, unknown))} is no key of this format)" if unknown else ""
+        raise CalibrationError(f"{path}: missing calibration keys: {', '.join(missing)}{also}")
     if unknown:  # a misspelt optional key would otherwise pass unnoticed
         logger.warning("%s: ignoring unknown calibration keys: %s (known: %s)", path, ", ".join(map(str, unknown)),
                        ", ".join(_KNOWN))
@@ -258,14 +274,19 @@ def terrainmap_calibration(path: Path) -> tuple[StereoCalibration, Extrinsics | 
             raise CalibrationError(f"{path}: {key} must be a whole number of pixels, got {brief(data[key])}")
         numbers[key] = int(numbers[key])
     cx_right = numbers.pop("cx_right", None)
-    rectified = data.get("rectified", True)
-    if not isinstance(rectified, bool):
-        raise CalibrationError(f"{path}: rectified must be true or false, got {brief(rectified)}")
     extra = {} if rectified else {
         key: _array(data, key, (3, 3) if key in ("K_left", "K_right", "R") else (3,) if key == "T" else None, path,
                     "as rectified is false")
         for key in _UNRECTIFIED
     }
+    if not rectified:  # the matcher rectifies with K, dist, R and T: a pinhole given beside them is unused
+        unused = [key for key in (*_REQUIRED[2:], "cx_right", "doffs") if data.get(key) is not None]
+        if unused:
+            logger.warning("%s: %s not used: with rectified false the rectified pinhole is derived from K_left, "
+                           "K_right, dist_left, dist_right, R and T", path, ", ".join(unused))
+        K = extra["K_left"].reshape(3, 3)  # nominal values; `info` shows the derived ones
+        numbers.update(fx=K[0, 0], fy=K[1, 1], cx=K[0, 2], cy=K[1, 2], baseline_m=math.hypot(*extra["T"].ravel()), doffs=0.0)
+        cx_right = None
     calib = StereoCalibration(
         **numbers,
         cx_right=cx_right,
@@ -293,17 +314,19 @@ def load_calibration_file(path: str | Path) -> tuple[StereoCalibration, Extrinsi
 
 
 def summary(calib: StereoCalibration | None) -> dict | None:
-    """The calibration fields a human checks first (for ``describe()``)."""
+    """The calibration fields a human checks first (for ``describe()``): for raw images
+    (``rectified`` false), the pinhole that rectifying them gives, which is what ``process`` uses."""
     if calib is None:
         return None
+    pinhole = None if calib.rectified or not calib.width else matching_pinhole(calib)
     return {
-        "fx": calib.fx,
-        "fy": calib.fy,
-        "cx": calib.cx,
-        "cy": calib.cy,
-        "cx_right": calib.cx_right,
-        "baseline_m": calib.baseline_m,
-        "doffs": calib.doffs,
+        "fx": pinhole.fx if pinhole else calib.fx,
+        "fy": pinhole.fy if pinhole else calib.fy,
+        "cx": pinhole.cx if pinhole else calib.cx,
+        "cy": pinhole.cy if pinhole else calib.cy,
+        "cx_right": pinhole.cx + pinhole.doffs if pinhole else calib.cx_right,
+        "baseline_m": pinhole.baseline_m if pinhole else calib.baseline_m,
+        "doffs": 0.0 if pinhole else calib.doffs,
         "width": calib.width,
         "height": calib.height,
         "rectified": calib.rectified,

@@ -42,11 +42,22 @@ class ImagePair:
 
 def image_names(folder: Path) -> list[str]:
     """The image file names in ``folder`` in natural order (:func:`~.base.natural_key`; empty when
-    it is not a directory)."""
+    it is not a directory). Hidden files are left out: ``._000005.png`` is the resource fork macOS
+    writes beside an image on a USB or network drive, not an image."""
     if not folder.is_dir():
         return []
-    return sorted((p.name for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and not p.is_dir()),
+    return sorted((p.name for p in folder.iterdir()
+                   if p.suffix.lower() in IMAGE_SUFFIXES and not p.name.startswith(".") and not p.is_dir()),
                   key=natural_key)
+
+
+def checked_stamps(stamps: list[int], path: Path) -> list[int]:
+    """``stamps`` (ns) read from the stamp file ``path``, or :class:`InputError` naming the file
+    where one is no time that an MCAP or ROS stamp can hold."""
+    bad = next((stamp for stamp in stamps if not 0 <= stamp <= 2**63 - 1), None)
+    if bad is not None:
+        raise InputError(f"{path}: stamp {bad} ns lies outside 1970–2262 (0 to 2^63 − 1 ns)")
+    return stamps
 
 
 def matching_pairs(left_dir: Path, right_dir: Path, calibration_for) -> list[ImagePair]:
@@ -196,8 +207,11 @@ class GenericFolder(FolderSource):
         return (path / "left").is_dir() and (path / "right").is_dir()
 
     def _calibration_file(self) -> Path | None:
-        found = [self.path / f"calibration{s}" for s in (".yaml", ".yml", ".toml")]
-        return next((p for p in found if p.is_file()), None)
+        found = [p for p in (self.path / f"calibration{s}" for s in (".yaml", ".yml", ".toml")) if p.is_file()]
+        if len(found) > 1 and self._override is None:  # which one is current is not for us to guess
+            raise CalibrationError(f"{self.path}: {' and '.join(p.name for p in found)} are both there; keep one, "
+                                   "or name the one to use with --calibration")
+        return found[0] if found else None
 
     def _find_pairs(self) -> list[ImagePair]:
         calib = self._calibration_file()
@@ -208,6 +222,6 @@ class GenericFolder(FolderSource):
         if not path.is_file():
             return None
         try:
-            return [int(line) for line in read_lines(path)]
+            return checked_stamps([int(line) for line in read_lines(path)], path)
         except ValueError:
             raise InputError(f"{path}: need one integer stamp in nanoseconds per line") from None

@@ -20,7 +20,7 @@ from pathlib import Path
 
 from ..errors import InputError, brief
 from . import calibration as calib_io
-from .folder import FolderSource, ImagePair, matching_pairs, read_lines
+from .folder import FolderSource, ImagePair, checked_stamps, matching_pairs, read_lines
 
 # (left dir, right dir, projection keys in a calib/ file)
 _STEREO_DIRS = (("image_2", "image_3", ("P2", "P3")), ("colored_0", "colored_1", ("P2", "P3")),
@@ -78,7 +78,7 @@ class KittiRawFolder(FolderSource):
         if not path.is_file():
             return None
         # one line per left image: FolderSource keeps those of the images that have a pair
-        return [_parse_kitti_time(line, path) for line in read_lines(path)] or None
+        return checked_stamps([_parse_kitti_time(line, path) for line in read_lines(path)], path) or None
 
     def _read_calibration(self, path: Path):
         return calib_io.kitti_calibration(path), None
@@ -123,9 +123,9 @@ class KittiOdometryFolder(FolderSource):
             stamps = [round(float(line) * 1e9) for line in read_lines(path)]
             if any(stamp < 0 for stamp in stamps):  # seconds since the sequence's start
                 raise ValueError
-            return stamps
         except (ValueError, OverflowError):  # OverflowError: inf
             raise InputError(f"{path}: need one finite time of 0 or more seconds per line") from None
+        return checked_stamps(stamps, path)
 
     def _read_calibration(self, path: Path):
         return calib_io.kitti_calibration(path, self._keys), None
