@@ -77,6 +77,11 @@ class Extrinsics:
     source: str = "default"
     camera_frame_id: str = "camera_optical"
     vehicle_frame_id: str = "base_link"
+    tf_path: tuple[tuple[str, str, np.ndarray], ...] = ()
+    """Where the log's tf has frames between the vehicle frame and the camera frame: its edges
+    from the vehicle frame down, ``(parent, child, T_parent_child)`` (4×4), whose product is this
+    pose. Outputs republish these edges rather than one vehicle → camera transform, which would
+    give the camera frame a second parent beside the log's tree."""
 
     def to_dict(self) -> dict:
         return {

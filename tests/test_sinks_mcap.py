@@ -687,6 +687,32 @@ def test_foxglove_layout_names_written_topics_and_fields(fox_file):
 
 
 @pytest.mark.parametrize("flavor", ["foxglove", "ros2"])
+def test_a_camera_pose_through_frames_of_the_logs_tf_is_republished_edge_by_edge(tmp_path, flavor):
+    """base_link → cam_link → left_optical in the log: the output has those two edges, not a
+    base_link → left_optical that would give the camera frame a second parent beside the log."""
+    from test_sources_logs import OPTICAL_Q, write_ros2_log
+
+    from terrainmap.sources import open_source
+
+    with open_source(write_ros2_log(tmp_path / "run.mcap", n=1)) as source:
+        extrinsics = next(source.frames()).extrinsics
+    frame, result = make_frame(0)
+    path = tmp_path / f"chain_{flavor}.mcap"
+    write_frames(path, flavor, [(frame, dataclasses.replace(result, extrinsics=extrinsics))])
+    (_, _, msg), = read_messages(path, ProtobufDecoderFactory() if flavor == "foxglove" else Ros2DecoderFactory())[
+        "/tf_static"]
+    edges = []
+    for t in msg.transforms:
+        parent, child = (t.parent_frame_id, t.child_frame_id) if flavor == "foxglove" else (t.header.frame_id,
+                                                                                          t.child_frame_id)
+        xyz = t.translation if flavor == "foxglove" else t.transform.translation
+        q = t.rotation if flavor == "foxglove" else t.transform.rotation
+        edges.append((parent, child, (xyz.x, xyz.y, xyz.z), pytest.approx((q.x, q.y, q.z, q.w), abs=1e-12)))
+    assert edges == [("base_link", "cam_link", (1.0, 0.0, 1.5), (0, 0, 0, 1)),
+                     ("cam_link", "left_optical", (0.0, 0.1, 0.0), OPTICAL_Q)]
+
+
+@pytest.mark.parametrize("flavor", ["foxglove", "ros2"])
 def test_fixed_extrinsics_that_change_go_on_tf_static_again(tmp_path, flavor):
     """Fixed extrinsics go on /tf_static when first seen and again where they change (a folder of
     scenes with their own calibrations), not on every frame."""

@@ -113,7 +113,7 @@ class McapSink:
         self._metadata = {_utf8(k): _utf8(v) for k, v in (metadata or {}).items()}
         self._extrinsics: Extrinsics | None = None  # the first frame's
         self._extrinsics_changes = 0  # frames whose camera pose differs from the frame before's
-        self._camera: tuple | None = None  # camera_transform of the frame being written
+        self._camera: tuple | None = None  # camera_transforms of the frame being written
         self._last_static: tuple | None = None
         self.frames_written = 0
         self._closed = False
@@ -159,7 +159,7 @@ class McapSink:
             raise TerrainmapError(f"frame {result.index}: {len(result.points_vehicle)} points but point labels "
                                   f"of shape {np.shape(result.point_labels)}")
         check_layers(result)  # before the frame's first message (its /tf) is written
-        camera = camera_transform(result.extrinsics)
+        camera = camera_transforms(result.extrinsics)
         if self._extrinsics is None:
             self._extrinsics = result.extrinsics
         self._extrinsics_changes += self._camera not in (None, camera)
@@ -248,7 +248,7 @@ class McapSink:
         return {**record, **self._metadata}
 
     def _transforms(self, frame: StereoFrame, result: FrameResult) -> list[tuple[str, tuple]]:
-        """``(topic, transform)`` pairs to write for this frame (transforms as :func:`camera_transform`).
+        """``(topic, transforms)`` pairs to write for this frame (transforms as :func:`camera_transforms`).
 
         Estimated extrinsics may change every frame and go on ``/tf``; fixed ones (from tf, a
         calibration file or the defaults) go on ``/tf_static`` when first seen or changed. The
@@ -262,27 +262,29 @@ class McapSink:
             self._last_static = camera
             out.append(("/tf_static", camera))
         if frame.vehicle_pose is not None:
-            out.append(("/tf", vehicle_transform(frame, result.extrinsics)))
+            out.append(("/tf", (vehicle_transform(frame, result.extrinsics),)))
         return out
 
 
-def camera_transform(extrinsics: Extrinsics) -> tuple[str, str, tuple, tuple]:
-    """``(parent, child, translation_m (x, y, z), rotation (x, y, z, w))`` of the camera in the vehicle frame."""
-    translation = tuple(float(v) for v in np.asarray(extrinsics.translation, float).reshape(3))
-    return (
-        extrinsics.vehicle_frame_id,
-        extrinsics.camera_frame_id,
-        translation,
-        quaternion_from_matrix(extrinsics.rotation),
-    )
+def camera_transforms(extrinsics: Extrinsics) -> tuple[tuple[str, str, tuple, tuple], ...]:
+    """``(parent, child, translation_m (x, y, z), rotation (x, y, z, w))`` of the camera in the
+    vehicle frame, or of each edge of the log's tf between them (``extrinsics.tf_path``)."""
+    if extrinsics.tf_path:
+        return tuple(_transform(parent, child, T[:3, :3], T[:3, 3]) for parent, child, T in extrinsics.tf_path)
+    return (_transform(extrinsics.vehicle_frame_id, extrinsics.camera_frame_id, extrinsics.rotation,
+                       extrinsics.translation),)
 
 
 def vehicle_transform(frame: StereoFrame, extrinsics: Extrinsics) -> tuple[str, str, tuple, tuple]:
     """``(parent, child, translation_m, rotation (x, y, z, w))`` of the vehicle frame in the log's
     odometry frame at this frame's stamp (``frame.vehicle_pose`` must be given)."""
     T = np.asarray(frame.vehicle_pose, float)
-    translation = tuple(float(v) for v in T[:3, 3])
-    return frame.odometry_frame_id, extrinsics.vehicle_frame_id, translation, quaternion_from_matrix(T[:3, :3])
+    return _transform(frame.odometry_frame_id, extrinsics.vehicle_frame_id, T[:3, :3], T[:3, 3])
+
+
+def _transform(parent: str, child: str, rotation, translation) -> tuple[str, str, tuple, tuple]:
+    return parent, child, tuple(float(v) for v in np.asarray(translation, float).reshape(3)), quaternion_from_matrix(
+        np.asarray(rotation, float))
 
 
 def check_layers(result: FrameResult) -> None:

@@ -15,7 +15,8 @@ Topics, all in the vehicle frame (``Extrinsics.vehicle_frame_id``: ``base_link``
   entity per confirmed obstacle (id ``obstacle/<track id>``) with a cube (coloured by kind) and a
   text ``"<id> <kind> <height> m"``, and a grey one per box of what else occupies the cost map
   (id ``occupied/<n>``, text ``"part of <id>"`` or ``"<id> unseen"``; ``FrameResult.occupied``).
-- ``/tf`` and ``/tf_static`` ``foxglove.FrameTransforms``: ``base_link`` → camera frame, and on
+- ``/tf`` and ``/tf_static`` ``foxglove.FrameTransforms``: ``base_link`` → camera frame (edge by edge
+  through the frames the log's tf has between them: ``Extrinsics.tf_path``), and on
   ``/tf`` each frame's ``odom → base_link`` where the source gave the vehicle pose (so Foxglove
   can show the drive in the odometry frame).
 - metadata record ``terrainmap``: version, config (TOML), the first frame's extrinsics (JSON) and
@@ -176,9 +177,8 @@ def obstacles_message(result: FrameResult) -> SceneUpdate:
     )
 
 
-def transforms_message(stamp_ns: int, transform: tuple[str, str, tuple, tuple]) -> FrameTransforms:
-    """``foxglove.FrameTransforms`` with one ``(parent, child, translation, rotation xyzw)``."""
-    parent, child, (x, y, z), (qx, qy, qz, qw) = transform
+def transforms_message(stamp_ns: int, transforms: tuple[tuple[str, str, tuple, tuple], ...]) -> FrameTransforms:
+    """``foxglove.FrameTransforms`` of ``(parent, child, translation, rotation xyzw)`` tuples."""
     return FrameTransforms(
         transforms=[
             FrameTransform(
@@ -188,6 +188,7 @@ def transforms_message(stamp_ns: int, transform: tuple[str, str, tuple, tuple]) 
                 translation=Vector3(x=x, y=y, z=z),
                 rotation=Quaternion(x=qx, y=qy, z=qz, w=qw),
             )
+            for parent, child, (x, y, z), (qx, qy, qz, qw) in transforms
         ]
     )
 
@@ -226,8 +227,8 @@ class FoxgloveMcapSink(McapSink):
 
     def _write_frame(self, frame: StereoFrame, result: FrameResult) -> None:
         t = frame.stamp_ns
-        for topic, transform in self._transforms(frame, result):
-            self._log(topic, transforms_message(t, transform), t)
+        for topic, transforms in self._transforms(frame, result):
+            self._log(topic, transforms_message(t, transforms), t)
         self._log("/terrainmap/grid", grid_message(result), t)
         points = encode_points(result, self._point_stride(result))
         self._writer.write_encoded("/terrainmap/points", PointCloud, points, t)

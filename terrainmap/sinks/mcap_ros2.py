@@ -21,7 +21,8 @@ Topics, all in the vehicle frame (``Extrinsics.vehicle_frame_id``: ``base_link``
   confirmed obstacle a CUBE (namespace ``obstacles``) and a TEXT_VIEW_FACING label
   (``obstacle_labels``), marker id = track id; and per box of what else occupies the cost map
   (``FrameResult.occupied``) a grey CUBE and label in ``occupied`` and ``occupied_labels``, id n.
-- ``/tf`` and ``/tf_static`` ``tf2_msgs/msg/TFMessage``: ``base_link`` → camera frame, and on
+- ``/tf`` and ``/tf_static`` ``tf2_msgs/msg/TFMessage``: ``base_link`` → camera frame (edge by edge
+  through the frames the log's tf has between them: ``Extrinsics.tf_path``), and on
   ``/tf`` each frame's ``odom → base_link`` where the source gave the vehicle pose.
 - metadata record ``terrainmap``: version, config (TOML), the first frame's extrinsics (JSON) and
   ``extrinsics_changes`` (how many later frames moved the camera; each frame's pose is on the
@@ -176,9 +177,9 @@ def marker_array_message(result: FrameResult) -> dict:
     return {"markers": markers}
 
 
-def tf_message(stamp_ns: int, transform: tuple[str, str, tuple, tuple]) -> dict:
-    """TFMessage dict with one ``(parent, child, translation, rotation xyzw)``."""
-    return {"transforms": [transform_stamped(stamp_ns, *transform)]}
+def tf_message(stamp_ns: int, transforms: tuple[tuple[str, str, tuple, tuple], ...]) -> dict:
+    """TFMessage dict of ``(parent, child, translation, rotation xyzw)`` tuples."""
+    return {"transforms": [transform_stamped(stamp_ns, *transform) for transform in transforms]}
 
 
 class Ros2Writer(Writer):
@@ -235,8 +236,8 @@ class Ros2McapSink(McapSink):
 
     def _write_frame(self, frame: StereoFrame, result: FrameResult) -> None:
         t = frame.stamp_ns
-        for topic, transform in self._transforms(frame, result):
-            self._log(topic, "tf2_msgs/msg/TFMessage", tf_message(t, transform), t)
+        for topic, transforms in self._transforms(frame, result):
+            self._log(topic, "tf2_msgs/msg/TFMessage", tf_message(t, transforms), t)
         grid_schema = self._schema("grid_map_msgs/msg/GridMap")
         self._writer.write_encoded("/terrainmap/grid_map", grid_schema, encode_grid_map(grid_map_message(result)), t)
         costmap = occupancy_grid_message(result)

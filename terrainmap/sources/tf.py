@@ -110,12 +110,14 @@ class TransformTree:
                            "(no base_link or base_footprint): taken for the camera's own body, not the vehicle; "
                            "the camera pose is estimated from the ground", chain[0], np.linalg.norm(T[:3, 3]), target)
             return None
+        edges = tuple((self._parent[child][0], child, self._parent[child][1]) for child in chain[: chain.index(target)])
         return Extrinsics(
             rotation=T[:3, :3],
             translation=T[:3, 3],
             source="tf",
             camera_frame_id=chain[0],
             vehicle_frame_id=target,
+            tf_path=edges[::-1] if len(edges) > 1 else (),
         )
 
     def _up_to(self, chain: list[str], ancestor: str) -> np.ndarray:
