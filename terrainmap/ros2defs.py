@@ -92,7 +92,7 @@ _BODIES: dict[str, str] = {
 }
 
 # Numbering of sensor_msgs/PointField.datatype (differs from foxglove.PackedElementField's).
-POINTFIELD_UINT8 = 2
+POINTFIELD_UINT32 = 6
 POINTFIELD_FLOAT32 = 7
 # visualization_msgs/Marker constants used by the writers.
 MARKER_CUBE = 1

@@ -225,7 +225,7 @@ def test_max_points_writes_every_kth_point(tmp_path, flavor):
     write_frames(path, flavor, [(frame, result)], config=config)
     factory = ProtobufDecoderFactory() if flavor == "foxglove" else Ros2DecoderFactory()
     ((_, _, cloud),) = read_messages(path, factory)["/terrainmap/points"]
-    raw = np.frombuffer(bytes(cloud.data), np.uint8).reshape(-1, 13)
+    raw = np.frombuffer(bytes(cloud.data), np.uint8).reshape(-1, 13 if flavor == "foxglove" else 16)
     assert len(raw) == 17 and (flavor == "foxglove" or cloud.width == 17)
     np.testing.assert_array_equal(raw[:, :12].copy().view("<f4"), result.points_vehicle[::3])
     np.testing.assert_array_equal(raw[:, 12], result.point_labels[::3])

@@ -155,13 +155,14 @@ def test_point_cloud2(ros_file):
     for k, (_frame, result) in enumerate(frames):
         for msg in (mcap_topics["/terrainmap/points"][k][2], rosbags_topics["/terrainmap/points"][k]):
             fields = [(f.name, f.offset, f.datatype, f.count) for f in msg.fields]
-            assert fields == [("x", 0, 7, 1), ("y", 4, 7, 1), ("z", 8, 7, 1), ("label", 12, 2, 1)]
+            # the label UINT32 (6), as PCL's PointXYZL has it: pcl::fromROSMsg matches name and datatype
+            assert fields == [("x", 0, 7, 1), ("y", 4, 7, 1), ("z", 8, 7, 1), ("label", 12, 6, 1)]
             n = len(result.points_vehicle)
-            assert (msg.height, msg.width, msg.point_step, msg.row_step) == (1, n, 13, 13 * n)
+            assert (msg.height, msg.width, msg.point_step, msg.row_step) == (1, n, 16, 16 * n)
             assert not msg.is_bigendian and msg.is_dense
-            raw = np.frombuffer(bytes(msg.data), np.uint8).reshape(n, 13)
+            raw = np.frombuffer(bytes(msg.data), np.uint8).reshape(n, 16)
             np.testing.assert_array_equal(raw[:, :12].copy().view("<f4"), result.points_vehicle)
-            np.testing.assert_array_equal(raw[:, 12], result.point_labels)
+            np.testing.assert_array_equal(raw[:, 12:].copy().view("<u4")[:, 0], result.point_labels)
 
 
 def test_marker_array(ros_file):
@@ -258,4 +259,4 @@ def test_a_cloud_with_a_point_that_is_not_finite_is_not_dense(tmp_path):
     write_frames(path, "ros2", [(frame, result)])
     ((_, _, cloud),) = read_messages(path, DecoderFactory())["/terrainmap/points"]
     assert cloud.width == 5 and not cloud.is_dense
-    assert np.isnan(np.frombuffer(bytes(cloud.data), np.uint8).reshape(5, 13)[3, 8:12].copy().view("<f4")[0])
+    assert np.isnan(np.frombuffer(bytes(cloud.data), np.uint8).reshape(5, 16)[3, 8:12].copy().view("<f4")[0])

@@ -322,17 +322,18 @@ def point_stride(n: int, max_points: int) -> int:
     return 1 if max_points <= 0 else max(1, -(-n // max_points))
 
 
-def points_record(result: FrameResult, head: bytes, tail: bytes = b"", stride: int = 1) -> bytearray:
-    """``head`` + every ``stride``-th point packed as a :data:`POINT_DTYPE` record + ``tail``, in
-    one buffer.
+def points_record(result: FrameResult, head: bytes, tail: bytes = b"", stride: int = 1,
+                  dtype: np.dtype = POINT_DTYPE) -> bytearray:
+    """``head`` + every ``stride``-th point packed as a ``dtype`` record (:data:`POINT_DTYPE`, or
+    one whose little-endian unsigned label is wider) + ``tail``, in one buffer.
 
     Both flavours serialize a point cloud as a small header, the packed points and (ROS 2) a
     trailing field; packing straight into the final buffer saves two 4 MB copies per frame at
     300k points. x, y, z go in as one 12-byte run per point (twice as fast as field by field).
     """
     points = np.ascontiguousarray(result.points_vehicle[::stride], dtype="<f4").reshape(-1, 3)
-    n, step = len(points), POINT_DTYPE.itemsize
-    record = bytearray(len(head) + n * step + len(tail))
+    n, step = len(points), dtype.itemsize
+    record = bytearray(len(head) + n * step + len(tail))  # zeros: a wider label's high bytes stay 0
     record[: len(head)] = head
     record[len(record) - len(tail) :] = tail
     raw = np.frombuffer(record, np.uint8, count=n * step, offset=len(head)).reshape(n, step)

@@ -16,7 +16,8 @@ Topics, all in the vehicle frame (``Extrinsics.vehicle_frame_id``: ``base_link``
   confirmed obstacle's footprint or ground at least ``cost.max_slope_deg`` steep), −1 where the
   cost is unknown; row-major from the cell at ``(x_min, y_min)``, ``width`` = cells along x,
   origin at that cell's corner.
-- ``/terrainmap/points`` ``sensor_msgs/msg/PointCloud2``: x, y, z FLOAT32 (7), label UINT8 (2).
+- ``/terrainmap/points`` ``sensor_msgs/msg/PointCloud2``: x, y, z FLOAT32 (7), label UINT32 (6), as
+  PCL's ``PointXYZL`` has it; 16 bytes a point.
 - ``/terrainmap/obstacles`` ``visualization_msgs/msg/MarkerArray``: a DELETEALL marker, then per
   confirmed obstacle a CUBE (namespace ``obstacles``) and a TEXT_VIEW_FACING label
   (``obstacle_labels``), marker id = track id; and per box of what else occupies the cost map
@@ -45,7 +46,7 @@ from ..ros2defs import (
     MARKER_DELETEALL,
     MARKER_TEXT_VIEW_FACING,
     POINTFIELD_FLOAT32,
-    POINTFIELD_UINT8,
+    POINTFIELD_UINT32,
     SCHEMAS,
     grid_map_frame,
     grid_map_layer,
@@ -59,7 +60,6 @@ from ..ros2defs import (
 from ..types import FrameResult, StereoFrame
 from .base import (
     METADATA_NAME,
-    POINT_DTYPE,
     Box,
     McapSink,
     grid_layers,
@@ -111,14 +111,21 @@ def occupancy_grid_message(result: FrameResult) -> dict | None:
     }
 
 
+CLOUD2_DTYPE = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("label", "<u4")])
+"""PointCloud2 point record, 16 bytes: the label is uint32 as in PCL's ``PointXYZL``, whose
+``pcl::fromROSMsg`` matches fields by name and datatype (a uint8 label reads as 0 there), and the
+floats of every point stay 4-byte aligned."""
+
+
 def encode_point_cloud2(result: FrameResult, stride: int = 1) -> bytearray:
-    """CDR bytes of a PointCloud2: one row of packed (x, y, z float32, label uint8) points, every
+    """CDR bytes of a PointCloud2: one row of packed (x, y, z float32, label uint32) points, every
     ``stride``-th of the frame's."""
-    n, step = len(result.points_vehicle[::stride]), POINT_DTYPE.itemsize
-    ros_type = {"f": POINTFIELD_FLOAT32, "u": POINTFIELD_UINT8}
+    n, step = len(result.points_vehicle[::stride]), CLOUD2_DTYPE.itemsize
+    ros_type = {"f": POINTFIELD_FLOAT32, "u": POINTFIELD_UINT32}
     fields = [
-        {"name": name, "offset": POINT_DTYPE.fields[name][1], "datatype": ros_type[POINT_DTYPE[name].kind], "count": 1}
-        for name in POINT_DTYPE.names
+        {"name": name, "offset": CLOUD2_DTYPE.fields[name][1], "datatype": ros_type[CLOUD2_DTYPE[name].kind],
+         "count": 1}
+        for name in CLOUD2_DTYPE.names
     ]
     head, tail = point_cloud2_head_tail(
         {
@@ -132,7 +139,7 @@ def encode_point_cloud2(result: FrameResult, stride: int = 1) -> bytearray:
             "is_dense": bool(np.isfinite(result.points_vehicle[::stride]).all()),
         }
     )
-    return points_record(result, head, tail, stride=stride)
+    return points_record(result, head, tail, stride=stride, dtype=CLOUD2_DTYPE)
 
 
 _NAMESPACES = {"obstacle": ("obstacles", "obstacle_labels"), "occupied": ("occupied", "occupied_labels")}
