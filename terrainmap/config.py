@@ -769,6 +769,12 @@ class McapConfig:
     """Points written per frame to ``/terrainmap/points`` at most, every k-th point kept beyond
     that (k = ⌈points / max_points⌉); 0 writes every point. A 640×480 frame has about 150k points,
     13 bytes each: capping them at 30k makes the file of a long drive about 4 times smaller."""
+    log_transforms: bool = True
+    """Write the transforms the log's own tf holds too: the vehicle's pose in the odometry frame
+    (``odom → base_link``) and a camera mount taken from tf, so that the output alone shows the
+    drive. Off for playing the output beside its log in ROS, where tf2 warns of repeated data
+    (TF_REPEATED_DATA) at every frame; transforms terrainmap made (an estimated or configured
+    camera pose) are written either way."""
 
     def validate(self) -> None:
         _check(self.max_points >= 0, "mcap.max_points", "must be >= 0 (0: every point)")

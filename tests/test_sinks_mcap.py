@@ -687,6 +687,25 @@ def test_foxglove_layout_names_written_topics_and_fields(fox_file):
 
 
 @pytest.mark.parametrize("flavor", ["foxglove", "ros2"])
+@pytest.mark.parametrize("source", ["tf", "calibration", "estimated"])
+def test_the_logs_own_transforms_can_be_left_out(tmp_path, flavor, source):
+    """``mcap.log_transforms=false``, for playing the output beside its log: neither the odometry
+    pose nor a mount from the log's tf is written again; a pose terrainmap made still is."""
+    config = Config()
+    config.mcap.log_transforms = False
+    frames = [make_frame(i, source=source) for i in range(2)]
+    frames = [(dataclasses.replace(frame, vehicle_pose=np.eye(4)), result) for frame, result in frames]
+    path = tmp_path / f"own_{flavor}.mcap"
+    write_frames(path, flavor, frames, config=config)
+    topics = read_messages(path, ProtobufDecoderFactory() if flavor == "foxglove" else Ros2DecoderFactory())
+    written = {topic: len(topics.get(topic, ())) for topic in ("/tf", "/tf_static")}
+    assert written == {"tf": {"/tf": 0, "/tf_static": 0}, "calibration": {"/tf": 0, "/tf_static": 1},
+                       "estimated": {"/tf": 2, "/tf_static": 0}}[source]
+    for _, _, msg in topics.get("/tf", ()):  # the camera's, not odom → base_link
+        assert [t.child_frame_id for t in msg.transforms] == ["left_optical"]
+
+
+@pytest.mark.parametrize("flavor", ["foxglove", "ros2"])
 def test_a_camera_pose_through_frames_of_the_logs_tf_is_republished_edge_by_edge(tmp_path, flavor):
     """base_link → cam_link → left_optical in the log: the output has those two edges, not a
     base_link → left_optical that would give the camera frame a second parent beside the log."""

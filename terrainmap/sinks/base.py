@@ -252,16 +252,18 @@ class McapSink:
 
         Estimated extrinsics may change every frame and go on ``/tf``; fixed ones (from tf, a
         calibration file or the defaults) go on ``/tf_static`` when first seen or changed. The
-        vehicle's pose in the odometry frame, where the source gave one, goes on ``/tf``.
+        vehicle's pose in the odometry frame, where the source gave one, goes on ``/tf``. Those
+        the log's tf gave are left out with ``mcap.log_transforms`` off.
         """
         out = []
         camera = self._camera  # set by write() for this frame
+        log_transforms = self._config.mcap.log_transforms
         if result.extrinsics.source == "estimated":
             out.append(("/tf", camera))
-        elif camera != self._last_static:
+        elif camera != self._last_static and (log_transforms or result.extrinsics.source != "tf"):
             self._last_static = camera
             out.append(("/tf_static", camera))
-        if frame.vehicle_pose is not None:
+        if frame.vehicle_pose is not None and log_transforms:
             out.append(("/tf", (vehicle_transform(frame, result.extrinsics),)))
         return out
 
