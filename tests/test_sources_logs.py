@@ -242,6 +242,35 @@ def test_ros2_log_pairs_by_stamp_selects_and_composes_tf(tmp_path, caplog):
         assert list(strict.frames()) == []
 
 
+def test_cameras_just_over_the_pairing_tolerance_are_told_what_would_pair_them(tmp_path, caplog):
+    path = write_ros2_log(tmp_path / "late.mcap", right_offset_ns=15_000_000)  # right 15 ms late, at 10 Hz
+    with open_source(path) as source:
+        assert list(source.frames()) == []
+    assert ("13 of 13 image messages had no partner within 10.0 ms (--pair-tolerance-ms); the cameras' stamps lie "
+            "about 15.0 ms apart: --pair-tolerance-ms 19 would pair them") in caplog.text
+    with open_source(path, pair_tolerance_ns=19_000_000) as source:
+        assert len(list(source.frames())) == 6
+
+
+def test_duplicate_image_messages_make_no_second_frame(tmp_path, caplog):
+    """A log with every image recorded twice (two recorders, a republisher): one frame per stamp."""
+    from mcap_ros2.decoder import DecoderFactory
+
+    path = write_ros2_log(tmp_path / "once.mcap", n=3)
+    twice = tmp_path / "twice.mcap"
+    with open(path, "rb") as src, open(twice, "wb") as dst, Ros2Writer(dst) as writer:
+        schemas = {}
+        for schema, channel, message, decoded in make_reader(src, decoder_factories=[DecoderFactory()]).iter_decoded_messages():
+            if schema.name not in schemas:
+                schemas[schema.name] = writer.register_msgdef(schema.name, schema.data.decode())
+            for k in range(2 if schema.name == "sensor_msgs/msg/Image" else 1):
+                writer.write_message(channel.topic, schemas[schema.name], decoded, message.log_time + k)
+    with open_source(twice) as source:
+        stamps = [f.stamp_ns for f in source.frames()]
+    assert stamps == [T0 + i * 100_000_000 for i in range(3)]
+    assert "7 image messages had the stamp of the message before them on their topic (duplicates)" in caplog.text
+
+
 def test_rosbag2_directory_of_several_files(tmp_path):
     bag = tmp_path / "bag"
     bag.mkdir()

@@ -41,6 +41,21 @@ def test_rectified_uncompressed_pair_is_preferred():
     assert stereo_topics(types, "/s/left/image_raw", None, "log") == ("/s/left/image_raw", "/s/right/image_raw")
 
 
+def test_depth_and_equally_good_pairs(caplog):
+    """image_transport's compressedDepth carries depth maps: never a camera pair of its own; two
+    pairs that rank alike (two rigs, or a colour and a mono rendering) are named in a warning."""
+    depth = {"/s/left/image_rect/compressedDepth": COMPRESSED, "/s/right/image_rect/compressedDepth": COMPRESSED}
+    with pytest.raises(InputError, match="no stereo image topics found"):
+        stereo_topics(depth, None, None, "log")
+    cameras = {**depth, "/s/left/image_raw/compressed": COMPRESSED, "/s/right/image_raw/compressed": COMPRESSED}
+    assert stereo_topics(cameras, None, None, "log") == ("/s/left/image_raw/compressed", "/s/right/image_raw/compressed")
+    assert "several" not in caplog.text
+    rigs = {f"/{rig}/{side}/image_raw": IMAGE for rig in ("front", "rear") for side in ("left", "right")}
+    assert stereo_topics(rigs, None, None, "log") == ("/front/left/image_raw", "/front/right/image_raw")
+    assert ("log: several stereo pairs of image topics: /front/left/image_raw + /front/right/image_raw is used; also "
+            "/rear/left/image_raw + /rear/right/image_raw (choose with --left-topic and --right-topic)") in caplog.text
+
+
 def test_unrelated_topics_do_not_pair():
     assert side_tokens("/front/image", "/rear/image") is None
     assert side_tokens("/cam0/image", "/cam0/depth") is None
@@ -97,6 +112,17 @@ def test_after_a_dropped_image_the_pairs_are_not_made_one_frame_apart(period_ms,
                       + [((i * period_ms + right_late_ms) * ms, 1, i) for i in range(20)])
     pairs = [p for t, side, i in messages if (p := pairer.push(side, t, i)) is not None]
     assert [(left, right) for _, left, right in pairs] == [(i, i) for i in range(20) if i != 5]
+
+
+def test_pairer_skips_duplicates_and_measures_what_the_tolerance_missed():
+    pairer = StereoPairer(tolerance_ns=10)
+    assert pairer.push(0, 100, "L") is None and pairer.push(0, 100, "L again") is None  # recorded twice
+    assert pairer.push(1, 101, "R") == (100, "L", "R") and pairer.push(1, 101, "R again") is None
+    assert pairer.repeated == 2 and pairer.dropped == 0
+    for i in range(1, 5):  # right 15 past left: over the tolerance
+        pairer.push(0, 100 + 100 * i, i)
+        pairer.push(1, 115 + 100 * i, i)
+    assert pairer.offset_ns == 15  # not 85, from each left to the right before it
 
 
 def test_a_topic_is_taken_for_rectified_by_a_word_of_its_name():

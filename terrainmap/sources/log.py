@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import itertools
 import logging
+import math
 from abc import abstractmethod
 from collections import deque
 from collections.abc import Iterator
@@ -305,8 +306,15 @@ class LogSource(Source):
                       half > self.pair_tolerance_ns else
                       f"{half / 1e6:.1f} ms, half the cameras' frame period (--pair-tolerance-ms "
                       f"{self.pair_tolerance_ns / 1e6:.1f})")
-            logger.warning("%s: %d of %d image messages had no partner within %s%s",
-                           self.path, pairer.dropped, pairer.pushed, within, full)
+            missed = pairer.offset_ns or 0
+            hint = (f"; the cameras' stamps lie about {missed / 1e6:.1f} ms apart: --pair-tolerance-ms "
+                    f"{math.ceil(missed * 1.25 / 1e6)} would pair them"
+                    if missed > self.pair_tolerance_ns and (half is None or missed < half) else "")
+            logger.warning("%s: %d of %d image messages had no partner within %s%s%s",
+                           self.path, pairer.dropped, pairer.pushed, within, full, hint)
+        if pairer.repeated:
+            logger.warning("%s: %d image messages had the stamp of the message before them on their topic "
+                           "(duplicates) and were skipped", self.path, pairer.repeated)
 
     def _pair_ref(self, pair: tuple, poses: VehiclePoses) -> PairRef:
         index, stamp_ns = pair[:2]

@@ -33,16 +33,26 @@ class StereoPairer:
         self.tolerance_ns, self.max_buffer = int(tolerance_ns), max_buffer
         self._waiting: tuple[deque, deque] = (deque(maxlen=max_buffer), deque(maxlen=max_buffer))
         self._gaps: tuple[deque, deque] = (deque(maxlen=PERIOD_GAPS), deque(maxlen=PERIOD_GAPS))
-        self._last: list[int | None] = [None, None]
+        self._last: list[int | None] = [None, None]  # the latest stamp of each side
+        self._previous: list[int | None] = [None, None]  # the stamp of each side's message before
         self.pushed = 0
         self.dropped = 0
         self.overflowed = 0
         """Of ``dropped``, the messages pushed out of a full buffer (one side logged far behind the other)."""
+        self.repeated = 0
+        """Messages skipped for the stamp of the message before on their side (a duplicate)."""
+        self._missed_by: deque = deque(maxlen=64)  # ns from recent unpaired messages to the nearest waiting partner
 
     def push(self, side: int, stamp_ns: int, item: Any) -> tuple[int, Any, Any] | None:
         """Add a message of ``side`` (0 left, 1 right); return ``(left_stamp_ns, left, right)``
-        when it completes a pair, else None."""
+        when it completes a pair, else None. A message with the stamp of the one before it on its
+        side is a duplicate (a log recorded twice over, a driver republishing): skipped, counted
+        in ``repeated``, so that no frame is made twice."""
         self.pushed += 1
+        previous, self._previous[side] = self._previous[side], stamp_ns
+        if stamp_ns == previous:
+            self.repeated += 1
+            return None
         last = self._last[side]
         if last is None or stamp_ns > last:
             if last is not None:
@@ -51,6 +61,8 @@ class StereoPairer:
         other = self._waiting[1 - side]
         best = min(range(len(other)), key=lambda i: abs(other[i][0] - stamp_ns), default=None)
         if best is None or not self._close(abs(other[best][0] - stamp_ns)):
+            if best is not None:
+                self._missed_by.append(abs(other[best][0] - stamp_ns))
             own = self._waiting[side]
             if len(own) == own.maxlen:
                 self.dropped += 1
@@ -64,6 +76,14 @@ class StereoPairer:
             other.popleft()
         self._waiting[side].clear()
         return (stamp_ns, item, match) if side == 0 else (match_stamp, match, item)
+
+    @property
+    def offset_ns(self) -> int | None:
+        """How far apart the two cameras' stamps lie where they found no partner in time (ns), or
+        None: the lower quartile of the distances from recent unpaired messages to the nearest
+        waiting message of the other side, which is their partner (δ) for one side and the
+        partner's predecessor (period − δ) for the other."""
+        return sorted(self._missed_by)[len(self._missed_by) // 4] if self._missed_by else None
 
     @property
     def half_period_ns(self) -> float | None:

@@ -12,10 +12,13 @@ token it names (``/cam/left_info`` ↔ ``/cam/left_image``).
 
 from __future__ import annotations
 
+import logging
 import re
 
 from ..errors import InputError
 from .messages import COMPRESSED_IMAGE_TYPES, IMAGE_TYPES, VIDEO_TYPES
+
+logger = logging.getLogger(__name__)
 
 SIDE_PAIRS = (("left", "right"), ("l", "r"), ("0", "1"), ("00", "01"), ("1", "2"), ("2", "3"), ("02", "03"))
 _TOKEN = re.compile(r"[A-Za-z]+|\d+|[^A-Za-z\d]+")
@@ -76,14 +79,26 @@ def stereo_topics(
             given = left_topic or right_topic
             raise InputError(f"{where}: no partner image topic found for {given!r}; give both --left-topic and --right-topic")
         return (left_topic, other) if left_topic else (other, right_topic)
-    pairs = [(a, b) for a in images for b in images if types[a] == types[b] and side_tokens(a, b)]
+    cameras = [t for t in images if not depth_transport(t)]
+    pairs = [(a, b) for a in cameras for b in cameras if types[a] == types[b] and side_tokens(a, b)]
     if not pairs:
         everything = ", ".join(f"{t} [{k}]" for t, k in sorted(types.items())) or "none"
         hint = "; give --left-topic and --right-topic" if len(images) >= 2 else ""  # none to choose from else
         raise InputError(
             f"{where}: no stereo image topics found (image topics: {listing}; all topics: {everything}){hint}{video_note}"
         )
-    return min(pairs, key=lambda pair: _preference(*pair, types))
+    best = min(pairs, key=lambda pair: _preference(*pair, types))
+    alike = [pair for pair in pairs if pair != best and _preference(*pair, types)[:3] == _preference(*best, types)[:3]]
+    if alike:  # two rigs (front and rear), or two renderings of one (colour and mono): say which is used
+        logger.warning("%s: several stereo pairs of image topics: %s + %s is used; also %s (choose with --left-topic "
+                       "and --right-topic)", where, *best, "; ".join(f"{a} + {b}" for a, b in sorted(alike)))
+    return best
+
+
+def depth_transport(topic: str) -> bool:
+    """Whether ``topic`` is image_transport's ``compressedDepth`` of a depth image (its last name
+    part), which carries depth maps in CompressedImage messages, not camera images."""
+    return topic.rstrip("/").rsplit("/", 1)[-1] == "compressedDepth"
 
 
 def _shared_namespace(a: str, b: str) -> int:
