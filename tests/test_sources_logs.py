@@ -131,11 +131,12 @@ def pair_images(i: int, shape=(6, 8, 3)) -> tuple[np.ndarray, np.ndarray]:
 def write_ros2_log(path: Path, n: int = 6, *, camera_info=True, tf=True, topics=("/cam/left/image_rect", "/cam/right/image_rect"),
                    encode=lambda a: (a, "rgb8"), d=(0.0,) * 5, right_offset_ns=2_000_000, chunk_size=1024,
                    right_tx=-400.0 * 0.25, extra_tf=(), frame_ids=("left_optical", "right_optical"), r=np.eye(3),
-                   info_frame_ids=None) -> Path:
+                   info_frame_ids=None, dynamic_tf=()) -> Path:
     """A ROS 2 MCAP: tf_static and camera_info first, then n pairs at 10 Hz (right 2 ms late) and
     one unpaired left image in the middle. ``extra_tf``: more static (parent, child, xyz, q);
-    ``frame_ids``: the left and right camera messages' header frame ids (the infos' too, unless
-    ``info_frame_ids`` gives theirs); ``d``, ``r``: both infos'."""
+    ``dynamic_tf``: such transforms on /tf, after the static ones; ``frame_ids``: the left and
+    right camera messages' header frame ids (the infos' too, unless ``info_frame_ids`` gives
+    theirs); ``d``, ``r``: both infos'."""
     with open(path, "wb") as f, Ros2Writer(f, chunk_size=chunk_size) as writer:
         image_schema = writer.register_msgdef("sensor_msgs/msg/Image", IMAGE_DEF + HEADER)
         if tf:
@@ -144,6 +145,8 @@ def write_ros2_log(path: Path, n: int = 6, *, camera_info=True, tf=True, topics=
                                           ("cam_link", "left_optical", (0.0, 0.1, 0.0), OPTICAL_Q),
                                           ("odom", "base_link", (5.0, 5.0, 0.0), (0, 0, 0, 1)), *extra_tf):
                 writer.write_message("/tf_static", tf_schema, tf_message(T0, parent, child, xyz, q), T0)
+            for parent, child, xyz, q in dynamic_tf:
+                writer.write_message("/tf", tf_schema, tf_message(T0, parent, child, xyz, q), T0)
         if camera_info:
             info_schema = writer.register_msgdef("sensor_msgs/msg/CameraInfo", INFO_DEF + HEADER)
             info_frames = info_frame_ids or frame_ids
@@ -1011,6 +1014,12 @@ def test_a_baseline_missing_from_the_camera_infos_comes_from_tf(tmp_path):
     with open_source(path) as source, pytest.raises(
             CalibrationError, match=r"tf does not relate the cameras' frames \(left_optical → right_optical\)"):
         next(source.frames())
+    # the stereo pose on the dynamic /tf (ROS 1's static_transform_publisher sends it there), also
+    # where /tf_static already places the left camera; and in ROS 1 tf's own message type
+    path = write_ros2_log(tmp_path / "dynamic.mcap", n=2, right_tx=0.0, dynamic_tf=[right])
+    with open_source(path) as source:
+        frame = next(source.frames())
+    assert frame.calibration.baseline_m == pytest.approx(0.25) and frame.extrinsics.source == "tf"
     above = ("cam_link", "right_optical", (0.0, -0.15, 0.1), OPTICAL_Q)
     path = write_ros2_log(tmp_path / "above.mcap", n=2, right_tx=0.0, extra_tf=[above])
     with open_source(path) as source, pytest.raises(

@@ -7,6 +7,7 @@ import struct
 import tracemalloc
 from pathlib import Path
 
+import numpy as np
 import pytest
 from rosbags.rosbag1 import Reader, Writer
 from rosbags.typesys import Stores, get_typestore
@@ -255,6 +256,17 @@ def _changed(path: Path, dst: Path, find: bytes, nth: int, at: int, value: int) 
     return dst
 
 
+def test_a_bag_header_that_counts_too_few_chunks_does_not_hide_the_rest(tmp_path, caplog):
+    """The index ends the file: records past those the header counts mean the header lost count,
+    and the bag is read from start to end, every message found (not only the counted chunks')."""
+    path = write_bag(tmp_path / "x.bag", 60)
+    counted = Ros1Bag(path)
+    assert len(counted._chunks) > 2
+    short = Ros1Bag(_changed(path, tmp_path / "short.bag", b"chunk_count=", 0, 12, 1))  # its low byte: 1 chunk
+    assert "holds more records than the bag header counts (2 connections, 1 chunks)" in short.damage
+    assert read(short) == expected(path)
+
+
 def test_a_message_record_without_its_fields_loses_its_chunk_only(tmp_path, caplog):
     path = write_bag(tmp_path / "x.bag", 60)
     bad = Ros1Bag(_changed(path, tmp_path / "bad.bag", b"conn=", 30, 1, ord("X")))  # 'cXnn=' in a message
@@ -314,3 +326,59 @@ def test_what_is_no_bag_is_named(tmp_path, data, why):
     path.write_bytes(data)
     with pytest.raises(InputError, match=rf"^{path}: not a readable ROS 1 bag \(.*{why}"):
         Ros1Bag(path)
+
+
+def test_a_bag_of_ros1_tf_messages_places_the_cameras(tmp_path):
+    """``tf/tfMessage`` (ROS 1's tf before tf2) on ``/tf``, as older bags and static_transform_publisher
+    record the mount and the stereo pose: both are read, the stereo pose where the camera infos
+    give no baseline (right Tx = 0), though the mount came first."""
+    from rosbags.typesys import get_types_from_msg
+
+    from terrainmap.sources import open_source
+
+    store = get_typestore(Stores.ROS1_NOETIC)
+    store.register(get_types_from_msg("geometry_msgs/TransformStamped[] transforms", "tf/msg/tfMessage"))
+    t = store.types
+    path, t0 = tmp_path / "old_tf.bag", 10**18
+
+    def header(frame):
+        return t["std_msgs/msg/Header"](seq=0, stamp=t["builtin_interfaces/msg/Time"](sec=t0 // 10**9, nanosec=0),
+                                        frame_id=frame)
+
+    def tf(parent, child, xyz, q):
+        transform = t["geometry_msgs/msg/Transform"](translation=t["geometry_msgs/msg/Vector3"](*xyz),
+                                                     rotation=t["geometry_msgs/msg/Quaternion"](*q))
+        return t["tf/msg/tfMessage"](transforms=[t["geometry_msgs/msg/TransformStamped"](
+            header=header(parent), child_frame_id=child, transform=transform)])
+
+    def info(frame):
+        roi = t["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
+        return t["sensor_msgs/msg/CameraInfo"](
+            header=header(frame), height=6, width=8, distortion_model="plumb_bob", D=np.zeros(5),
+            K=np.array([400.0, 0, 4, 0, 400, 3, 0, 0, 1]), R=np.eye(3).ravel(),
+            P=np.array([400.0, 0, 4, 0, 0, 400, 3, 0, 0, 0, 1, 0]), binning_x=0, binning_y=0, roi=roi)
+
+    def image(frame, seed):
+        pixels = np.random.default_rng(seed).integers(0, 255, 48, dtype=np.uint8)
+        return t["sensor_msgs/msg/Image"](header=header(frame), height=6, width=8, encoding="mono8", is_bigendian=0,
+                                          step=8, data=pixels)
+
+    optical = (-0.5, 0.5, -0.5, 0.5)
+    messages = [("/tf", "tf/msg/tfMessage", tf("base_link", "left_optical", (0.0, 0.0, 1.65), optical)),
+                ("/tf", "tf/msg/tfMessage", tf("left_optical", "right_optical", (0.3, 0.0, 0.0), (0, 0, 0, 1))),
+                *[(f"/stereo/{side}/camera_info", "sensor_msgs/msg/CameraInfo", info(f"{side}_optical"))
+                  for side in ("left", "right")],
+                *[(f"/stereo/{side}/image_rect", "sensor_msgs/msg/Image", image(f"{side}_optical", k))
+                  for k, side in enumerate(("left", "right"))]]
+    writer = Writer(path)
+    writer.open()
+    connections = {}
+    for topic, kind, message in messages:
+        if topic not in connections:
+            connections[topic] = writer.add_connection(topic, kind, typestore=store)
+        writer.write(connections[topic], t0, store.serialize_ros1(message, kind))
+    writer.close()
+    with open_source(path) as source:
+        frame = next(source.frames())
+    assert frame.extrinsics.source == "tf" and frame.extrinsics.translation[2] == pytest.approx(1.65)
+    assert frame.calibration.baseline_m == pytest.approx(0.3)

@@ -223,17 +223,24 @@ class LogSource(Source):
 
     def _tf_tree(self) -> TransformTree:
         """The static transforms, and the dynamic ones of the first ``MAX_DYNAMIC_TF_MESSAGES``
-        messages where the static ones do not place the camera."""
+        messages where the static ones do not place the camera in the vehicle frame and the right
+        camera's frame in the left's (which a camera info without a baseline needs: ROS 1's
+        static_transform_publisher sends either on ``/tf``)."""
         tree = TransformTree()
+        left, right = self._image_frames
+
+        def placed() -> bool:
+            return tree.resolves(left) and (left == right or tree.relative(left, right) is not None)
+
         for topics, limit in ((self._static_tf_topics, None), (self.odometry_topics, MAX_DYNAMIC_TF_MESSAGES)):
-            if not topics or tree.resolves(self.frame_id):
+            if not topics or placed():
                 continue
             stream = self.reader.messages(topics)
             try:
                 for topic, _, msg in itertools.islice(stream, limit):
                     for _, *transform in msgs.transforms(msg, self.reader.types[topic]):
                         tree.add(*transform)
-                    if limit and tree.resolves(self.frame_id):
+                    if limit and placed():
                         break
             except InputError as exc:  # a damaged log (reader.damage): keep the transforms read before it
                 logger.warning("reading transforms: %s", exc)

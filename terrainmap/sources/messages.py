@@ -22,7 +22,8 @@ IMAGE_TYPES = RAW_IMAGE_TYPES + COMPRESSED_IMAGE_TYPES
 VIDEO_TYPES = ("foxglove.CompressedVideo", "foxglove_msgs/msg/CompressedVideo", "foxglove_msgs/CompressedVideo")
 """Video streams (H.264, H.265, ...): not read; named in the error when a log has only those."""
 CALIBRATION_TYPES = ("sensor_msgs/msg/CameraInfo", "foxglove.CameraCalibration")
-TF_TYPES = ("tf2_msgs/msg/TFMessage", "foxglove.FrameTransform", "foxglove.FrameTransforms")
+TF_TYPES = ("tf2_msgs/msg/TFMessage", "tf/msg/tfMessage", "foxglove.FrameTransform", "foxglove.FrameTransforms")
+"""``tf/tfMessage``: ROS 1's tf (before tf2), as older bags record ``/tf``; the same fields."""
 
 
 def normalize_type(name: str) -> str:
@@ -218,7 +219,7 @@ def _right_projection(left: dict, right: dict, right_in_left: np.ndarray | None,
 
 def transforms(msg, msg_type: str) -> Iterator[tuple[int, str, str, list[float], list[float]]]:
     """(stamp ns, parent, child, translation xyz, quaternion xyzw) of each transform in a TF message."""
-    if msg_type == "tf2_msgs/msg/TFMessage":
+    if msg_type in ("tf2_msgs/msg/TFMessage", "tf/msg/tfMessage"):
         for t in msg.transforms:
             tr, q = t.transform.translation, t.transform.rotation
             yield stamp_ns(t), t.header.frame_id, t.child_frame_id, [tr.x, tr.y, tr.z], [q.x, q.y, q.z, q.w]

@@ -271,6 +271,9 @@ class Ros1Bag(_SkipsDamage):
                 counts = dict(struct.iter_unpack("<II", data[: len(data) // 8 * 8]))
                 self._chunks.append(_Chunk(_get(fields, "chunk_pos", _U64), _get(fields, "start_time", _TIME),
                                            _get(fields, "end_time", _TIME), counts))
+            if stream.read(1):  # the index ends the file: more records than counted, a header that lost count
+                raise BagError(f"it holds more records than the bag header counts ({_get(header, 'conn_count', _U32)} "
+                               f"connections, {_get(header, 'chunk_count', _U32)} chunks)")
         except BagError as exc:
             self.damage = f"{self.path}: its index is damaged ({exc}); reading the bag from start to end"
             logger.warning("%s", self.damage)
