@@ -79,7 +79,8 @@ def info(log: str, source_opts: SourceOptions, as_json: bool, check: bool) -> No
                             description["skipped"] = skipped
                     if description.get("damage"):  # read whole all the same: a summary that fails its CRC
                         readable = False
-                        description["check"] += ", but the log is damaged (see damage)"
+                        if not skipped:  # (else the parts named above are the damage)
+                            description["check"] += ", but the log is damaged (see damage)"
                 except InputError as exc:
                     readable = False
                     description["check"] = f"fails after {counted(pairs, 'stereo pair')}: {_reason(exc, log)}"

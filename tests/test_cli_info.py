@@ -141,6 +141,27 @@ def test_check_reads_every_stereo_pair_and_finds_a_damaged_chunk_the_index_does_
     assert "\n" not in check
 
 
+def test_a_damaged_chunk_met_while_describing_is_shown_as_damage(tmp_path):
+    """Plain ``info`` reads the first camera infos and transforms: a chunk that fails there is named
+    on the ``damage:`` line, not only in a warning above a line saying "-"."""
+    from mcap.reader import make_reader
+
+    from terrainmap.sim import SimConfig
+    from terrainmap.sim.simulate import simulate
+
+    log = tmp_path / "sim.mcap"
+    simulate(log, SimConfig(scene="flat", frames=3, seed=1, width=320, height=240, focal_px=250.0))
+    with open(log, "rb") as f:  # the second chunk holds the first frame's camera infos
+        second = sorted(make_reader(f).get_summary().chunk_indexes, key=lambda c: c.chunk_start_offset)[1]
+    data = bytearray(log.read_bytes())
+    middle = second.chunk_start_offset + second.chunk_length // 2
+    data[middle : middle + 16] = bytes(b ^ 0xFF for b in data[middle : middle + 16])
+    log.write_bytes(bytes(data))
+    result = CliRunner().invoke(info, [str(log)])
+    assert result.exit_code == 0
+    assert f"damage:             {log}: chunk at byte {second.chunk_start_offset}, log time" in result.output
+
+
 def test_check_fails_when_no_left_and_right_images_pair_up(tmp_path):
     """Stereo topics whose stamps never agree within the pairing tolerance hold no stereo pair for
     process: ``--check`` says so and exits 1."""

@@ -391,7 +391,8 @@ class LogSource(Source):
             "path": str(self.path),
             "files": [str(p) for p in self.reader.paths],
             "duration_s": None if span is None else (span[1] - span[0]) / 1e9,  # of all its messages
-            "damage": self.reader.damage,
+            # in the file as a whole, else the parts skipped so far (reading its calibration and tf)
+            "damage": self.reader.damage or "; ".join(self.reader.skipped) or None,
             "topics": [{"topic": t, "type": k, "count": counts.get(t)} for t, k in sorted(self.reader.types.items())],
         }
 
