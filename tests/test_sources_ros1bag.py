@@ -187,6 +187,35 @@ def test_a_recording_killed_keeps_the_messages_of_its_open_chunk(tmp_path):
     assert got == [f"m{k}" for k in range(8)]
 
 
+@pytest.mark.parametrize("compression", ["none", "bz2", "lz4"])
+def test_a_chunk_cut_off_keeps_its_complete_messages(tmp_path, compression):
+    """C++ rosbag writes an open chunk through its compressor: the chunk's header (size and length
+    still 0), then the compressed stream, which a killed recording cuts off; a closed chunk (its
+    size and length written) can be cut off by the file's end too. Their complete messages are
+    read (for bz2 and lz4, those of the compressed blocks that are whole), then the damage is named."""
+    import lz4.frame
+
+    open_header = _record(op=b"\x05", compression=b"none", size=bytes(4))
+    killed = _killed_recording(tmp_path / "plain.bag", 5, 0).read_bytes()  # a closed chunk of m0..m4, then the open one
+    closed_part = killed[: -len(open_header)]
+    rng = random.Random(0)
+    texts = [f"m{k}" for k in range(5)] + [f"m{k} " + "".join(rng.choices("abcdefgh", k=2000)) for k in range(5, 300)]
+    records = b"".join(_record(STORE.serialize_ros1(STRING(data=texts[k]), STRING.__msgtype__), op=b"\x02",
+                               conn=struct.pack("<I", 0), time=struct.pack("<II", 1000, k * 1_000_000))
+                       for k in range(5, 300))  # 590 KB: blocks of 100 KB (bz2 -1), 64 KB (lz4) decompress whole
+    stream = {"none": records, "bz2": bz2.compress(records, 1), "lz4": lz4.frame.compress(records)}[compression]
+    open_chunk = _record(op=b"\x05", compression=compression.encode(), size=bytes(4)) + stream
+    closed_chunk = _record(stream, op=b"\x05", compression=compression.encode(), size=struct.pack("<I", len(records)))
+    for name, chunk in (("open", open_chunk), ("closed", closed_chunk)):
+        path = tmp_path / f"{name}.bag"
+        path.write_bytes(closed_part + chunk[: len(chunk) * 2 // 3])
+        got = []
+        with pytest.raises(InputError, match="truncated or corrupt"):
+            for _, _, m in Ros1Bag(path).messages(["/a"]):
+                got.append(m.data)
+        assert got == texts[: len(got)] and 5 + 100 < len(got) < 300, name
+
+
 def test_a_bag_cut_short_is_read_up_to_the_cut_then_named(tmp_path):
     path = write_bag(tmp_path / "x.bag", 200)
     cut = tmp_path / "cut.bag"

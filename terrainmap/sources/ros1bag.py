@@ -55,6 +55,9 @@ class _Chunk:
     counts: dict[int, int] = field(default_factory=dict)
     end: int | None = None
     """Where the records of a chunk left open end (they start at ``pos``); None for a chunk record."""
+    cut: bool = False
+    """A chunk record that the file's end (at ``end``) cuts off, or still open with its records
+    compressed: read as far as its complete records go (:func:`_cut_chunk_contents`)."""
 
 
 def _fields(header: bytes) -> dict[str, bytes]:
@@ -148,9 +151,37 @@ def _chunk_contents(fields: dict[str, bytes], data: bytes) -> tuple[list[_Connec
     return _contents(io.BytesIO(records), len(records))
 
 
+def _cut_chunk_contents(stream: BinaryIO, end: int) -> tuple[list[_Connection], list[tuple[int, int, bytes]]]:
+    """:func:`_contents` of the complete records of the chunk record at ``stream``'s position that
+    byte ``end`` cuts off: a file cut short in it, or a recording killed while C++ rosbag wrote it
+    compressed (its size and length still 0, the compressed stream up to ``end``). Reads at most
+    ``max(its length, 64 MB)`` of it."""
+    fields = _fields(_read(stream, _U32.unpack(_read(stream, 4))[0]))
+    if fields.get("op") != bytes([_CHUNK]):
+        raise BagError("no chunk record")
+    length, left = _U32.unpack(_read(stream, 4))[0], end - stream.tell()
+    if 0 < length <= left:
+        raise BagError("a chunk that is not cut off")  # damaged otherwise: nothing of it is trusted
+    data = stream.read(min(left, length or _CUT_READ))
+    records = io.BytesIO(_decompress(_text(fields, "compression"), data, 0, cut=True))
+    connections, messages = [], []
+    try:
+        while True:
+            fields, op, data = _record(records)
+            if op == _CONNECTION:
+                connections.append(_connection(fields, data))
+            elif op == _MESSAGE:
+                messages.append((_get(fields, "conn", _U32), _get(fields, "time", _TIME), data))
+    except BagError:  # the record the cut falls in (or the end of the records)
+        return connections, messages
+
+
 _STEP = 1 << 22
 """Bytes a chunk is decompressed by at a time (lz4 sets its output limit aside at once: a 4 GB size
 field read as the limit took 4 GB; 4 MB costs a 24 MB chunk 9 ms more than decompressing it whole)."""
+
+_CUT_READ = 64 << 20
+"""Bytes read at most of a chunk still open (its length unknown, :func:`_cut_chunk_contents`)."""
 
 _MAX_RATIO = 1000
 """A compressed chunk may say it holds at most this many times its compressed bytes (or 64 MB,
@@ -158,14 +189,18 @@ whichever is more): bz2 turns 1.4 KB of a crafted file into 3 GB of zeros. Real 
 768 KB; images and point clouds compress far less than this."""
 
 
-def _decompress(compression: str, data: bytes, size: int) -> bytes | bytearray:
+def _decompress(compression: str, data: bytes, size: int, *, cut: bool = False) -> bytes | bytearray:
     """A chunk's records, decompressed (``size``: their length, as its header gives it). Output
     comes :data:`_STEP` bytes at a time and stops once past ``size``, and ``size`` is held to
-    :data:`_MAX_RATIO`, so that neither a crafted chunk nor a damaged ``size`` fills the memory."""
+    :data:`_MAX_RATIO`, so that neither a crafted chunk nor a damaged ``size`` fills the memory.
+    ``cut``: ``data`` is cut off; what it decompresses to, up to :data:`_MAX_RATIO` times its length."""
+    bound = max(64 << 20, _MAX_RATIO * len(data))
+    if cut:
+        size = bound
     if compression == "none":
         out = data
     elif compression in ("bz2", "lz4"):
-        if size > max(64 << 20, _MAX_RATIO * len(data)):
+        if size > bound:
             raise BagError(f"a chunk of {len(data)} compressed bytes says it holds {size}, more than "
                            f"{_MAX_RATIO} times as many")
         if compression == "bz2":
@@ -179,6 +214,8 @@ def _decompress(compression: str, data: bytes, size: int) -> bytes | bytearray:
             while not decompressor.eof and len(out) <= size:
                 out += decompressor.decompress(pending, max_length=_STEP)
                 if decompressor.needs_input and not decompressor.eof:
+                    if cut:
+                        return out
                     raise BagError("a chunk's compressed data is cut off")
                 pending = b""
         except BagError:
@@ -187,6 +224,8 @@ def _decompress(compression: str, data: bytes, size: int) -> bytes | bytearray:
             raise BagError(f"a chunk does not decompress ({_reason(exc)})") from None
     else:
         raise BagError(f"chunk compression {compression!r} is not bz2, lz4 or none")
+    if cut:
+        return out
     if len(out) > size:
         raise BagError(f"a chunk holds more than the {size} bytes its header says")
     if len(out) < size:
@@ -325,9 +364,27 @@ class Ros1Bag(_SkipsDamage):
                     chunk.counts[cid] = chunk.counts.get(cid, 0) + 1
                 messages += len(contents)
         except BagError as exc:
+            messages += self._cut_chunk(stream, pos, end)
             self._scan_error = str(exc)
             self.damage = f"{self.path}: truncated or corrupt after {counted(messages, 'message')} ({exc})"
             logger.info("%s", self.damage)  # not a warning: ``info`` shows it, reading the messages raises it
+
+    def _cut_chunk(self, stream: BinaryIO, pos: int, end: int) -> int:
+        """The chunk record at ``pos`` where the scan failed, if it is one that ``end`` cuts off:
+        its complete messages, as a chunk of their own; how many."""
+        stream.seek(pos)
+        try:
+            connections, contents = _cut_chunk_contents(stream, end)
+        except BagError:  # no chunk, or one whose header is cut off too
+            return 0
+        for c in connections:
+            self._connections.setdefault(c.id, c)
+        if contents:
+            chunk = _Chunk(pos, min(t for _, t, _ in contents), max(t for _, t, _ in contents), end=end, cut=True)
+            for cid, _, _ in contents:
+                chunk.counts[cid] = chunk.counts.get(cid, 0) + 1
+            self._chunks.append(chunk)
+        return len(contents)
 
     def messages(self, topics: list[str]) -> Iterator[tuple[str, int, Any]]:
         """(topic, log_time_ns, decoded message) of ``topics`` in log-time order (:meth:`_SkipsDamage._decoded`)."""
@@ -349,7 +406,9 @@ class Ros1Bag(_SkipsDamage):
                     continue
                 try:
                     stream.seek(pos)
-                    if item.end is not None:  # the records of a chunk left open
+                    if item.cut:
+                        _, contents = _cut_chunk_contents(stream, item.end)
+                    elif item.end is not None:  # the records of a chunk left open
                         _, contents = _contents(stream, item.end)
                     else:
                         fields, op, data = _record(stream)
