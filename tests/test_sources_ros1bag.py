@@ -411,3 +411,31 @@ def test_a_bag_of_ros1_tf_messages_places_the_cameras(tmp_path):
         frame = next(source.frames())
     assert frame.extrinsics.source == "tf" and frame.extrinsics.translation[2] == pytest.approx(1.65)
     assert frame.calibration.baseline_m == pytest.approx(0.3)
+
+
+def test_a_folder_of_split_bags_is_one_log_read_in_name_order(tmp_path):
+    """``rosbag record --split`` writes run_0.bag, run_1.bag, ...: read one after the other, numbers
+    by value (2 before 10); a folder with an image layout stays an image folder."""
+    from terrainmap.errors import NoStereoError
+    from terrainmap.sources import open_source, source_class
+    from terrainmap.sources.log import Ros1BagSource
+    from terrainmap.sources.readers import SplitLog
+
+    folder = tmp_path / "run"
+    folder.mkdir()
+    for k in (2, 10):  # 10 sorts before 2 as text
+        write_bag(folder / f"run_{k}.bag", 4, seed=k)
+    assert source_class(folder) is Ros1BagSource
+    with pytest.raises(NoStereoError) as exc:  # strings, no images: described all the same
+        open_source(folder)
+    assert exc.value.contents["files"] == [str(folder / "run_2.bag"), str(folder / "run_10.bag")]
+    assert exc.value.contents["topics"] == [{"topic": t, "type": "std_msgs/msg/String", "count": 4} for t in TOPICS]
+    parts = [Ros1Bag(folder / f"run_{k}.bag") for k in (2, 10)]
+    assert [m.data for _, _, m in SplitLog(folder, parts).messages(TOPICS)] == [
+        m.data for part in parts for _, _, m in part.messages(TOPICS)]
+    images = tmp_path / "images"
+    for side in ("left", "right"):
+        (images / side).mkdir(parents=True)
+    (images / "calibration.yaml").write_text("width: 8\n")
+    write_bag(images / "stray.bag", 2)
+    assert source_class(images) is not Ros1BagSource

@@ -22,8 +22,9 @@
 
 A rosbag2's ``metadata.yaml`` stands for its folder (:func:`log_path`). A directory of ``.mcap``
 files without ``metadata.yaml`` that no layout above matches is read as a
-rosbag2 whose recording was cut before it wrote its metadata (its files in name order); a stray
-``.mcap`` in an image folder does not make the folder a log.
+rosbag2 whose recording was cut before it wrote its metadata (its files in name order), and one
+of ROS 1 ``.bag`` files as the bags of one recording split by ``rosbag record --split``; a stray
+``.mcap`` or ``.bag`` in an image folder does not make the folder a log.
 
 Every source yields uint8 images (RGB or mono, left and right of one size) with a
 :class:`~terrainmap.types.StereoCalibration` and, when the source has them, extrinsics.
@@ -83,6 +84,8 @@ def source_class(path: str | Path) -> type[Source]:
             return cls
     if path.is_dir() and any(path.glob("*.mcap")):  # a rosbag2 without metadata.yaml (module docstring)
         return McapSource
+    if path.is_dir() and any(f.is_file() for f in path.glob("*.bag")):  # ROS 1 bags split by `rosbag record --split`
+        return Ros1BagSource
     listed = bag_metadata(path).get("relative_file_paths") if path.is_dir() else None
     if listed and isinstance(listed, list):  # a rosbag2 whose files are gone (moved, not copied along)
         raise InputError(f"{path}: a rosbag2 folder whose metadata.yaml lists {', '.join(map(str, listed))}, "

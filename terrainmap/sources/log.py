@@ -32,10 +32,10 @@ from ..errors import CalibrationError, DamagedImageError, InputError, NoStereoEr
 from ..types import Extrinsics, StereoCalibration, StereoFrame
 from . import calibration as calib_io
 from . import messages as msgs
-from .base import PairRef, Source, extrinsics_entry
+from .base import PairRef, Source, extrinsics_entry, natural_key
 from .images import stereo_pair
 from .pairing import StereoPairer
-from .readers import MCAP_MAGIC, McapLog, Rosbag2Bag, bag_metadata
+from .readers import MCAP_MAGIC, McapLog, Rosbag2Bag, SplitLog, bag_metadata
 from .ros1bag import MAGIC as ROS1_MAGIC
 from .ros1bag import Ros1Bag
 from .tf import TransformTree, VehiclePoses
@@ -455,7 +455,9 @@ class Rosbag2Source(LogSource):
 
 
 class Ros1BagSource(LogSource):
-    """A ROS 1 bag (v2.0)."""
+    """A ROS 1 bag (v2.0), or a folder of the bags ``rosbag record --split`` writes (read one
+    after the other in name order, numbers by value: ``run_2.bag`` before ``run_10.bag``; taken
+    for one when no image-folder layout matches it, see :func:`terrainmap.sources.source_class`)."""
 
     format = "ros1-bag"
 
@@ -463,8 +465,12 @@ class Ros1BagSource(LogSource):
     def matches(cls, path: Path) -> bool:
         return path.is_file() and (path.suffix.lower() == ".bag" or _starts_with(path, ROS1_MAGIC))
 
-    def _open_reader(self) -> Ros1Bag:
-        return Ros1Bag(self.path)
+    def _open_reader(self) -> Ros1Bag | SplitLog:
+        if self.path.is_file():
+            return Ros1Bag(self.path)
+        bags = sorted((f for f in self.path.glob("*.bag") if f.is_file() and not f.name.startswith(".")),
+                      key=lambda f: natural_key(f.name))
+        return SplitLog(self.path, [Ros1Bag(f) for f in bags])
 
 
 def _brief(calibration: StereoCalibration) -> str:

@@ -414,15 +414,13 @@ def mcap_files(path: Path) -> list[Path]:
     return [f for f in bag_files(path) if f.suffix == ".mcap"] or sorted(path.glob("*.mcap"), key=lambda f: natural_key(f.name))
 
 
-class McapLog:
-    """An MCAP file or a rosbag2 directory of MCAP files, read one file at a time."""
+class SplitLog:
+    """A log of one or more files read one after the other (``files``: readers with ``path``,
+    ``types``, ``counts``, ``span_ns``, ``damage``, ``skipped`` and ``messages``): a rosbag2's
+    MCAP files, or the bags ``rosbag record --split`` writes."""
 
-    format = "mcap"
-
-    def __init__(self, path: Path):
-        self.files = [McapFile(f) for f in mcap_files(path)]
-        if not self.files:
-            raise InputError(f"{path}: no .mcap files in this folder")
+    def __init__(self, path: Path, files: list):
+        self.files = files
         self.types: dict[str, str] = {}
         self.counts: dict[str, int | None] = {}
         self.span_ns: tuple[int, int] | None = None  # of all its files' messages
@@ -452,6 +450,18 @@ class McapLog:
     def messages(self, topics: list[str]) -> Iterator[tuple[str, int, Any]]:
         for f in self.files:
             yield from f.messages(topics)
+
+
+class McapLog(SplitLog):
+    """An MCAP file or a rosbag2 directory of MCAP files, read one file at a time."""
+
+    format = "mcap"
+
+    def __init__(self, path: Path):
+        files = [McapFile(f) for f in mcap_files(path)]
+        if not files:
+            raise InputError(f"{path}: no .mcap files in this folder")
+        super().__init__(path, files)
 
 
 def _widened(span: tuple[int, int] | None, start_ns: int, end_ns: int) -> tuple[int, int]:
