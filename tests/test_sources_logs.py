@@ -123,6 +123,21 @@ def tf_message(stamp_ns: int, parent: str, child: str, xyz, q) -> dict:
         "translation": {"x": x, "y": y, "z": z}, "rotation": dict(zip("xyzw", q, strict=True))}}]}
 
 
+def rewrite_ros2_log(src: Path, dst: Path, edit) -> Path:
+    """``src`` (a ROS 2 MCAP) copied message by message by mcap_ros2's writer, each decoded message
+    passed through ``edit(type name, message) -> messages`` (written 1 ns apart in log time)."""
+    from mcap_ros2.decoder import DecoderFactory
+
+    with open(src, "rb") as f, open(dst, "wb") as out, Ros2Writer(out) as writer:
+        schemas = {}
+        for schema, channel, message, decoded in make_reader(f, decoder_factories=[DecoderFactory()]).iter_decoded_messages():
+            if schema.name not in schemas:
+                schemas[schema.name] = writer.register_msgdef(schema.name, schema.data.decode())
+            for k, edited in enumerate(edit(schema.name, decoded)):
+                writer.write_message(channel.topic, schemas[schema.name], edited, message.log_time + k)
+    return dst
+
+
 def pair_images(i: int, shape=(6, 8, 3)) -> tuple[np.ndarray, np.ndarray]:
     rng = np.random.default_rng(i)
     return rng.integers(0, 255, shape, dtype=np.uint8), rng.integers(0, 255, shape, dtype=np.uint8)
@@ -257,17 +272,8 @@ def test_cameras_just_over_the_pairing_tolerance_are_told_what_would_pair_them(t
 
 def test_duplicate_image_messages_make_no_second_frame(tmp_path, caplog):
     """A log with every image recorded twice (two recorders, a republisher): one frame per stamp."""
-    from mcap_ros2.decoder import DecoderFactory
-
-    path = write_ros2_log(tmp_path / "once.mcap", n=3)
-    twice = tmp_path / "twice.mcap"
-    with open(path, "rb") as src, open(twice, "wb") as dst, Ros2Writer(dst) as writer:
-        schemas = {}
-        for schema, channel, message, decoded in make_reader(src, decoder_factories=[DecoderFactory()]).iter_decoded_messages():
-            if schema.name not in schemas:
-                schemas[schema.name] = writer.register_msgdef(schema.name, schema.data.decode())
-            for k in range(2 if schema.name == "sensor_msgs/msg/Image" else 1):
-                writer.write_message(channel.topic, schemas[schema.name], decoded, message.log_time + k)
+    twice = rewrite_ros2_log(write_ros2_log(tmp_path / "once.mcap", n=3), tmp_path / "twice.mcap",
+                             lambda name, msg: [msg, msg] if name == "sensor_msgs/msg/Image" else [msg])
     with open_source(twice) as source:
         stamps = [f.stamp_ns for f in source.frames()]
     assert stamps == [T0 + i * 100_000_000 for i in range(3)]
@@ -1108,20 +1114,15 @@ def test_camera_info_binning_and_region_of_interest_give_the_published_images_ca
 
 def test_a_log_of_binned_images_uses_the_binned_camera(tmp_path):
     """Images of 8×6 published with camera infos calibrated at 16×12 and binning 2."""
-    from mcap_ros2.decoder import DecoderFactory
+    def binned_infos(name, msg):
+        if name == "sensor_msgs/msg/CameraInfo":
+            msg.width, msg.height, msg.binning_x, msg.binning_y = 16, 12, 2, 2
+            msg.k = [2 * v if i in (0, 2, 4, 5) else v for i, v in enumerate(msg.k)]
+            msg.p = [2 * v if i in (0, 2, 3, 5, 6) else v for i, v in enumerate(msg.p)]
+        return [msg]
 
     path = write_ros2_log(tmp_path / "plain.mcap", n=1)
-    binned = tmp_path / "binned.mcap"
-    with open(path, "rb") as src, open(binned, "wb") as dst, Ros2Writer(dst) as writer:
-        schemas = {}
-        for schema, channel, message, decoded in make_reader(src, decoder_factories=[DecoderFactory()]).iter_decoded_messages():
-            if schema.name not in schemas:
-                schemas[schema.name] = writer.register_msgdef(schema.name, schema.data.decode())
-            if schema.name == "sensor_msgs/msg/CameraInfo":
-                decoded.width, decoded.height, decoded.binning_x, decoded.binning_y = 16, 12, 2, 2
-                decoded.k = [2 * v if i in (0, 2, 4, 5) else v for i, v in enumerate(decoded.k)]
-                decoded.p = [2 * v if i in (0, 2, 3, 5, 6) else v for i, v in enumerate(decoded.p)]
-            writer.write_message(channel.topic, schemas[schema.name], decoded, message.log_time, message.publish_time)
+    binned = rewrite_ros2_log(path, tmp_path / "binned.mcap", binned_infos)
     with open_source(path) as a, open_source(binned) as b:
         expected, frame = next(a.frames()), next(b.frames())
     for field in ("width", "height", "fx", "fy", "cx", "cy", "baseline_m"):
