@@ -124,6 +124,9 @@ def run(
                 summary.failures[exc.reason] += 1
                 log.info("frame %d: %s", frame.index, exc)
                 result = None
+                for sink in sinks:  # those that show a timeline say so there (Sink.failed)
+                    if callable(getattr(sink, "failed", None)):
+                        sink.failed(frame, exc)
             else:
                 for sink in sinks:
                     sink.write(frame, result)

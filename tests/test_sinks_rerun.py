@@ -13,7 +13,7 @@ from rerun.chunk import RrdReader
 from terrainmap import runner
 from terrainmap.cli.main import cli
 from terrainmap.config import Config
-from terrainmap.sinks.rerun_recording import RerunSink
+from terrainmap.sinks.rerun_recording import NO_POINT, RerunSink
 from terrainmap.sources import open_source
 
 ENTITIES = {
@@ -166,7 +166,8 @@ def test_what_the_recording_shows_is_what_was_computed(log, tmp_path, keep_sink)
     rrd = tmp_path / "content.rrd"
     keep = keep_sink
     with open_source(log) as source:
-        runner.run(source.frames(), Config(), [keep, RerunSink(rrd, config=Config())])
+        sink = RerunSink(rrd, config=Config())
+        runner.run(source.frames(), Config(), [keep, sink])
     mesh = _columns(rrd, "/world/vehicle/terrain/elevation", "Mesh3D:vertex_positions")
     equalized = _columns(rrd, "/world/vehicle/grid/equalized", "Points3D:positions")
     boxes = _columns(rrd, "/world/vehicle/obstacles", "Boxes3D:half_sizes")
@@ -186,6 +187,53 @@ def test_what_the_recording_shows_is_what_was_computed(log, tmp_path, keep_sink)
         np.testing.assert_allclose(grey, [o.size_m / 2 for o in result.occupied] or np.zeros((0, 3)), atol=1e-6)
         image = np.array(labels[k][0], np.uint8).reshape(result.image.shape[:2])  # one image, its bytes
         np.testing.assert_array_equal(image[result.pixels[:, 1], result.pixels[:, 0]], result.point_labels)
+        pointless = np.ones(image.shape, bool)
+        pointless[result.pixels[:, 1], result.pixels[:, 0]] = False
+        assert pointless.any() and (image[pointless] == NO_POINT).all()  # transparent, not "unknown" grey
+        depth = np.array(_columns(rrd, "/depth", "DepthImage:buffer")[k][0], np.uint8).view(np.float32)
+        assert depth.max() <= Config().stereo.max_range_m and (depth == 0).any()  # no data beyond the points' range
+    elevation = np.concatenate([r.layers["elevation"][r.grid.valid] for r in keep.results])
+    assert sink._elevation_span == (elevation.min(), elevation.max())  # one colour scale for the whole run
+
+
+def test_a_failed_frame_clears_the_results_and_says_why(log, tmp_path):
+    """A frame the pipeline cannot process (blank images: no disparity) keeps its place on the
+    timeline: the results of the frame before are cleared, a warning names it."""
+    import dataclasses
+
+    import numpy as np
+
+    rrd = tmp_path / "failed.rrd"
+    with open_source(log) as source:
+        frames = list(source.frames())
+    blank = np.zeros_like(frames[1].left)
+    frames[1] = dataclasses.replace(frames[1], left=blank, right=blank)
+    summary = runner.run(frames, Config(), [RerunSink(rrd, config=Config())])
+    assert summary.frames_done == 2 and summary.frames_failed == 1
+    _verify(rrd)
+    (reason,) = summary.failures
+    ((frame, (text,)),) = _columns(rrd, "/log", "TextLog:text").items()
+    assert frame == 1 and text.startswith(f"frame 1 failed ({reason}): ")
+    assert set(_columns(rrd, "/world/vehicle/points", "Points3D:positions")) == {0, 2}
+    for entity in ("/world/vehicle/points", "/world/vehicle/terrain", "/world/vehicle/obstacles"):
+        assert 1 in _columns(rrd, entity, "Clear:is_recursive"), entity  # not frame 0's results
+
+
+def test_the_blueprint_hides_the_other_meshes_and_plots_the_counts(log, tmp_path):
+    rrd = tmp_path / "layout.rrd"
+    with open_source(log) as source:
+        runner.run(source.frames(max_frames=1), Config(), [RerunSink(rrd, config=Config())])
+    reader = RrdReader(str(rrd))
+    hidden, origins = set(), set()
+    for chunk in reader.store(store=reader.blueprints()[0]).stream().to_chunks():
+        batch = chunk.to_record_batch()
+        if "EntityBehavior:visible" in batch.schema.names and batch.column("EntityBehavior:visible").to_pylist() == [[False]]:
+            hidden.add(str(chunk.entity_path).split("/overrides", 1)[1].removesuffix("/visualizers"))
+        for name in batch.schema.names:
+            if name.endswith(":space_origin"):
+                origins.update(origin for row in batch.column(name).to_pylist() for origin in row)
+    assert hidden == {"/world/vehicle/terrain/elevation", "/world/vehicle/terrain/cost"}
+    assert {"/stats/counts", "/log"} <= origins
 
 
 def test_camera_model_and_pose_are_logged_per_frame_where_they_change(log, tmp_path):

@@ -80,7 +80,10 @@ def _utf8(value) -> str:
 @runtime_checkable
 class Sink(Protocol):
     """Receives each processed frame; ``close`` finalises the output (idempotent) and sets
-    ``finished`` once the output is complete and readable."""
+    ``finished`` once the output is complete and readable. A sink may also have
+    ``failed(frame, error)``, which the runner calls for a frame the pipeline could not process
+    (:class:`~terrainmap.errors.FrameError`): the Rerun recording marks it on its timeline; an
+    MCAP writes nothing for it (the latest messages' stamps say how old they are)."""
 
     path: Path
     finished: bool

@@ -17,12 +17,18 @@ else the vehicle frame itself; z up)::
     world/vehicle/grid/samples    grid samples before equalization (eq. 1, valid cells)
     world/vehicle/grid/equalized  samples after the last equalization
     world/vehicle/terrain/slope   Mesh3D over the valid cells' centres, coloured by slope (0–30°)
-    world/vehicle/terrain/elevation  the same mesh coloured by elevation (hidden in the blueprint)
+    world/vehicle/terrain/elevation  the same mesh coloured by elevation, lowest to highest drawn so
+                                  far in the run (hidden in the blueprint)
     world/vehicle/terrain/cost    the same mesh coloured by traversability cost (hidden)
     world/vehicle/obstacles       Boxes3D of the confirmed obstacles, "id kind height" labels
     world/vehicle/occupied        Boxes3D, grey, of what else occupies the cost map ("part of id",
                                   "id unseen"; FrameResult.occupied)
-    depth                         DepthImage (metres, from the disparity)
+    world/vehicle/camera/image/labels  SegmentationImage: each point's Label at its pixel, the
+                                  pixels without a point transparent (class NO_POINT)
+    depth                         DepthImage (metres, from the disparity; 0, no data, outside
+                                  the stereo.min_range_m..max_range_m that points are kept in)
+    log                           TextLog: a warning for each frame that failed, and why (its
+                                  results cleared: the views show nothing there, not the frame before)
     timings/<stage>               Scalars, ms
     stats/fit/<name>              Scalars: iterations, mean_error_m
     stats/counts/<name>           Scalars: points, cells, obstacles (confirmed tracks), detections
@@ -58,25 +64,34 @@ LABEL_COLORS = {
     Label.OBSTACLE: (230, 25, 75),
     Label.BELOW: (0, 130, 200),
 }
+NO_POINT = 255
+"""Class id of the label image's pixels that hold no point: transparent (the image shows through),
+where the classes of :data:`LABEL_COLORS` are drawn over it."""
 SLOPE_RANGE_RAD = (0.0, np.radians(30.0))
 VEHICLE = "world/vehicle"
 """Entity of the vehicle frame; everything computed per frame is logged under it."""
+RESULTS = ("points", "grid", "terrain", "obstacles", "occupied", "camera/image/labels")
+"""Entities under :data:`VEHICLE` that a failed frame clears (with ``depth``)."""
 
 
 def blueprint() -> rrb.Blueprint:
     """The default layout embedded in every recording."""
+    hidden = rrb.EntityBehavior(visible=False)  # in the view, a click away
     return rrb.Blueprint(
         rrb.Horizontal(
             rrb.Spatial3DView(
                 name="terrain",
                 origin="/world",
-                contents=["+ /world/**", f"- /{VEHICLE}/terrain/elevation", f"- /{VEHICLE}/terrain/cost"],
+                contents=["+ /world/**"],
+                overrides={f"/{VEHICLE}/terrain/elevation": hidden, f"/{VEHICLE}/terrain/cost": hidden},
             ),
             rrb.Vertical(
                 rrb.Spatial2DView(name="left image and labels", origin=f"/{VEHICLE}/camera"),
                 rrb.Spatial2DView(name="depth", origin="/depth"),
                 rrb.TimeSeriesView(name="stage times (ms)", origin="/timings"),
                 rrb.TimeSeriesView(name="fit: iterations, mean error (m)", origin="/stats/fit"),
+                rrb.TimeSeriesView(name="counts: points, cells, obstacles", origin="/stats/counts"),
+                rrb.TextLogView(name="frames that failed", origin="/log"),
             ),
             column_shares=[3, 2],
         ),
@@ -147,6 +162,7 @@ class RerunSink:
         self.finished = False
         self._mesh_key: tuple | None = None
         self._camera_key: tuple | None = None
+        self._elevation_span: tuple[float, float] | None = None  # lowest and highest drawn so far, m
         self.frames_written = 0
         self._rec = rr.RecordingStream(application_id)
         try:
@@ -154,19 +170,14 @@ class RerunSink:
         except Exception as exc:  # rerun reports an unwritable path with its own exception types
             raise InputError(f"cannot create Rerun output {self.path}: {exc}") from exc
         self._rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
-        context = rr.AnnotationContext([(int(k), k.name.lower(), c) for k, c in LABEL_COLORS.items()])
+        context = rr.AnnotationContext([(int(k), k.name.lower(), c) for k, c in LABEL_COLORS.items()]
+                                       + [(NO_POINT, "no point", (0, 0, 0, 0))])
         self._rec.log("world", context, static=True)
 
     def write(self, frame: StereoFrame, result: FrameResult) -> None:
-        if self._closed:
-            raise TerrainmapError(f"Rerun output {self.path} is already closed")
         check_frame(f"Rerun output {self.path}", frame, result, 63)  # (Rerun's timestamps are signed)
+        self._start_frame(frame)
         rec = self._rec
-        rec.set_time("frame", sequence=frame.index)
-        rec.set_time("stamp", timestamp=np.datetime64(frame.stamp_ns, "ns"))
-        if frame.vehicle_pose is not None:
-            pose = np.asarray(frame.vehicle_pose, float)
-            rec.log(VEHICLE, rr.Transform3D(translation=pose[:3, 3], mat3x3=pose[:3, :3]))
         self._log_camera(frame, result)
         self._log_points(result)
         self._log_terrain(result)
@@ -177,6 +188,32 @@ class RerunSink:
             group = "fit" if name in ("iterations", "mean_error_m") else "counts"
             rec.log(f"stats/{group}/{name}", rr.Scalars(value))
         self.frames_written += 1
+
+    def failed(self, frame: StereoFrame, error: Exception) -> None:
+        """A frame the pipeline could not process: its vehicle pose and (already rectified) left
+        image, the results of the frame before cleared (so that the views do not pass them off as
+        this frame's), and a warning line under ``log`` naming it and why."""
+        check_frame(f"Rerun output {self.path}", frame, frame, 63)  # (a frame has the index and stamp it checks)
+        self._start_frame(frame)
+        image = rr.Image(frame.left) if frame.calibration.rectified else rr.Clear(recursive=False)
+        self._rec.log(f"{VEHICLE}/camera/image", image)
+        for path in RESULTS:
+            self._rec.log(f"{VEHICLE}/{path}", rr.Clear(recursive=True))
+        self._rec.log("depth", rr.Clear(recursive=False))
+        reason = getattr(error, "reason", None)  # a FrameError's, by which the run's summary counts it
+        why = f" ({reason})" if reason and reason != str(error) else ""
+        self._rec.log("log", rr.TextLog(f"frame {frame.index} failed{why}: {error}", level=rr.TextLogLevel.WARN))
+
+    def _start_frame(self, frame: StereoFrame) -> None:
+        """The frame's place on the timelines, and the vehicle's pose where the source gives it."""
+        if self._closed:
+            raise TerrainmapError(f"Rerun output {self.path} is already closed")
+        rec = self._rec
+        rec.set_time("frame", sequence=frame.index)
+        rec.set_time("stamp", timestamp=np.datetime64(frame.stamp_ns, "ns"))
+        if frame.vehicle_pose is not None:
+            pose = np.asarray(frame.vehicle_pose, float)
+            rec.log(VEHICLE, rr.Transform3D(translation=pose[:3, 3], mat3x3=pose[:3, :3]))
 
     def _log_camera(self, frame: StereoFrame, result: FrameResult) -> None:
         rec = self._rec
@@ -194,14 +231,15 @@ class RerunSink:
             self._camera_key = key
         if result.image is not None:
             rec.log(f"{VEHICLE}/camera/image", rr.Image(result.image))
-            labels = np.zeros(result.image.shape[:2], np.uint8)
+            labels = np.full(result.image.shape[:2], NO_POINT, np.uint8)
             labels[result.pixels[:, 1], result.pixels[:, 0]] = result.point_labels
             rec.log(f"{VEHICLE}/camera/image/labels", rr.SegmentationImage(labels, opacity=0.45))
         if result.disparity is not None:
             with np.errstate(divide="ignore", invalid="ignore"):
                 depth = (c.fx * c.baseline_m / (result.disparity[::2, ::2] + c.doffs)).astype(np.float32)
-            depth[~np.isfinite(depth)] = 0.0
-            rec.log("depth", rr.DepthImage(depth, meter=1.0, depth_range=[0.0, self._config.stereo.max_range_m]))
+            stereo = self._config.stereo
+            depth[~((depth >= stereo.min_range_m) & (depth <= stereo.max_range_m))] = 0.0  # no point there: no data
+            rec.log("depth", rr.DepthImage(depth, meter=1.0, depth_range=[0.0, stereo.max_range_m]))
 
     def _log_points(self, result: FrameResult) -> None:
         step = point_stride(len(result.points_vehicle), self._config.rerun.max_points)
@@ -223,9 +261,13 @@ class RerunSink:
         if grid.shape != self._mesh_key:  # the full triangle list depends on the grid shape only
             self._triangles, self._mesh_key = _triangles(*grid.shape), grid.shape
         triangles = self._triangles[valid.ravel()[self._triangles].all(axis=1)]  # cells with data only
+        lo, hi = _span(layers["elevation"][valid])  # one scale for the whole drive, widened where needed
+        if self._elevation_span is not None:
+            lo, hi = min(lo, self._elevation_span[0]), max(hi, self._elevation_span[1])
+        self._elevation_span = lo, hi
         colorings = {
             "slope": _colormap(layers["slope"].ravel(), *SLOPE_RANGE_RAD),
-            "elevation": _colormap(layers["elevation"].ravel(), *_span(layers["elevation"][valid])),
+            "elevation": _colormap(layers["elevation"].ravel(), lo, hi),
         }
         if "cost" in layers:
             colorings["cost"] = _colormap(layers["cost"].ravel(), 0.0, 1.0)
