@@ -79,7 +79,7 @@ def info(log: str, source_opts: SourceOptions, as_json: bool, check: bool) -> No
                             description["skipped"] = skipped
                     if description.get("damage"):  # read whole all the same: a summary that fails its CRC
                         readable = False
-                        if not skipped:  # (else the parts named above are the damage)
+                        if description["damage"] not in "; ".join(skipped):  # not the parts named above
                             description["check"] += ", but the log is damaged (see damage)"
                 except InputError as exc:
                     readable = False

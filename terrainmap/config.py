@@ -768,7 +768,8 @@ class McapConfig:
     max_points: int = 0
     """Points written per frame to ``/terrainmap/points`` at most, every k-th point kept beyond
     that (k = ⌈points / max_points⌉); 0 writes every point. A 640×480 frame has about 150k points,
-    13 bytes each: capping them at 30k makes the file of a long drive about 4 times smaller."""
+    13 bytes each (16 in the ROS 2 flavour): capping them at 30k makes the file of a long drive
+    about 4 times smaller."""
     log_transforms: bool = True
     """Write the transforms the log's own tf holds too: the vehicle's pose in the odometry frame
     (``odom → base_link``) and a camera mount taken from tf, so that the output alone shows the

@@ -25,6 +25,7 @@ points), so a pipeline may estimate once per log or every few frames rather than
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 
@@ -47,9 +48,10 @@ LEVEL_CAMERA = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
 
 MAX_MOUNT_M = 1e3
 """Farthest a camera may sit from the vehicle origin along any axis, metres."""
-ODD_PITCH_DEG, ODD_ROLL_DEG = 60.0, 45.0
-"""A camera pose pitched or rolled more than this is warned about: most likely a rotation given in
-another convention (the vehicle in the camera frame, or not the optical frame)."""
+UP_PITCH_DEG = 30.0
+"""A camera pose that looks up more than this, degrees, is warned about: it sees no ground ahead,
+most likely a rotation given in another convention (an identity rotation looks straight up).
+Down, rolled or upside down a camera may be mounted."""
 
 
 def extrinsics_from_calibration(
@@ -74,13 +76,17 @@ def extrinsics_from_calibration(
         raise CalibrationError(f"{name}: the camera must lie within {MAX_MOUNT_M:g} m of the vehicle origin, "
                                f"got translation {t.tolist()}")
     extrinsics = Extrinsics(rotation=R, translation=t, source=source)
-    pose = describe_extrinsics(extrinsics)
-    if abs(pose["pitch_deg"]) > ODD_PITCH_DEG or abs(pose["roll_deg"]) > ODD_ROLL_DEG:  # an identity rotation, say
-        log.warning("%s: the camera looks %.0f° %s with a roll of %.0f°, not ahead at the ground; is the rotation "
-                       "that of the camera's optical frame (x right, y down, z forward) in the vehicle frame "
-                       "(x forward, y left, z up)?", name, abs(pose["pitch_deg"]),
-                       "down" if pose["pitch_deg"] > 0 else "up", pose["roll_deg"])
+    pitch_deg = describe_extrinsics(extrinsics)["pitch_deg"]
+    if pitch_deg < -UP_PITCH_DEG:  # an identity rotation, say: the optical z axis taken for the vehicle's up
+        _warn_looking_up(name, round(pitch_deg))
     return extrinsics
+
+
+@functools.lru_cache(maxsize=64)  # once per pose and source, however often its extrinsics are built
+def _warn_looking_up(name: str, pitch_deg: int) -> None:
+    log.warning("%s: the camera looks %d° up, where it sees no ground; is the rotation that of the camera's "
+                "optical frame (x right, y down, z forward) in the vehicle frame (x forward, y left, z up)?",
+                name, -pitch_deg)
 
 
 def is_rotation(matrix: np.ndarray) -> bool:

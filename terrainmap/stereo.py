@@ -74,7 +74,7 @@ def rectified_camera(extrinsics: Extrinsics, pinhole: RectifiedPinhole) -> Extri
     if pinhole.rectifying_rotation is None:
         return extrinsics
     r1 = np.reshape(pinhole.rectifying_rotation, (3, 3))
-    return replace(extrinsics, rotation=np.asarray(extrinsics.rotation, np.float64) @ r1.T)
+    return replace(extrinsics, rotation=np.asarray(extrinsics.rotation, np.float64) @ r1.T, tf_path=())  # (no tf frame)
 
 
 def rig_camera(pinhole: RectifiedPinhole, extrinsics: Extrinsics) -> StereoCamera:

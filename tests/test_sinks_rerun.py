@@ -191,7 +191,9 @@ def test_what_the_recording_shows_is_what_was_computed(log, tmp_path, keep_sink)
         pointless[result.pixels[:, 1], result.pixels[:, 0]] = False
         assert pointless.any() and (image[pointless] == NO_POINT).all()  # transparent, not "unknown" grey
         depth = np.array(_columns(rrd, "/depth", "DepthImage:buffer")[k][0], np.uint8).view(np.float32)
-        assert depth.max() <= Config().stereo.max_range_m and (depth == 0).any()  # no data beyond the points' range
+        stereo = Config().stereo  # no data outside the range that points are kept in
+        assert ((depth == 0) | ((depth >= stereo.min_range_m) & (depth <= stereo.max_range_m))).all()
+        assert (depth == 0).any() and (depth > 0).any()
     elevation = np.concatenate([r.layers["elevation"][r.grid.valid] for r in keep.results])
     assert sink._elevation_span == (elevation.min(), elevation.max())  # one colour scale for the whole run
 

@@ -277,7 +277,7 @@ def test_duplicate_image_messages_make_no_second_frame(tmp_path, caplog):
     with open_source(twice) as source:
         stamps = [f.stamp_ns for f in source.frames()]
     assert stamps == [T0 + i * 100_000_000 for i in range(3)]
-    assert "7 image messages had the stamp of the message before them on their topic (duplicates)" in caplog.text
+    assert "7 image messages repeated the message before them on their topic, stamp and image (duplicates)" in caplog.text
 
 
 def test_rosbag2_directory_of_several_files(tmp_path):

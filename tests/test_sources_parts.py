@@ -50,6 +50,9 @@ def test_depth_and_equally_good_pairs(caplog):
     cameras = {**depth, "/s/left/image_raw/compressed": COMPRESSED, "/s/right/image_raw/compressed": COMPRESSED}
     assert stereo_topics(cameras, None, None, "log") == ("/s/left/image_raw/compressed", "/s/right/image_raw/compressed")
     assert "several" not in caplog.text
+    renderings = {f"/s/{side}/image_rect{colour}": IMAGE for side in ("left", "right") for colour in ("", "_color")}
+    assert stereo_topics(renderings, None, None, "log") == ("/s/left/image_rect", "/s/right/image_rect")
+    assert "several" not in caplog.text  # stereo_image_proc's mono and colour images: one rig
     rigs = {f"/{rig}/{side}/image_raw": IMAGE for rig in ("front", "rear") for side in ("left", "right")}
     assert stereo_topics(rigs, None, None, "log") == ("/front/left/image_raw", "/front/right/image_raw")
     assert ("log: several stereo pairs of image topics: /front/left/image_raw + /front/right/image_raw is used; also "
@@ -115,11 +118,14 @@ def test_after_a_dropped_image_the_pairs_are_not_made_one_frame_apart(period_ms,
 
 
 def test_pairer_skips_duplicates_and_measures_what_the_tolerance_missed():
-    pairer = StereoPairer(tolerance_ns=10)
+    pairer = StereoPairer(tolerance_ns=10, same=lambda a, b: a[0] == b[0])  # (a message's content: its first letter)
     assert pairer.push(0, 100, "L") is None and pairer.push(0, 100, "L again") is None  # recorded twice
     assert pairer.push(1, 101, "R") == (100, "L", "R") and pairer.push(1, 101, "R again") is None
     assert pairer.repeated == 2 and pairer.dropped == 0
-    for i in range(1, 5):  # right 15 past left: over the tolerance
+    # a clock coarser than the frame rate: two images, one stamp; both kept, the second pairs on
+    assert pairer.push(0, 300, "A") is None and pairer.push(1, 301, "B") == (300, "A", "B")
+    assert pairer.push(0, 300, "C") is None and pairer.push(1, 301, "D") == (300, "C", "D") and pairer.repeated == 2
+    for i in range(5, 9):  # right 15 past left: over the tolerance
         pairer.push(0, 100 + 100 * i, i)
         pairer.push(1, 115 + 100 * i, i)
     assert pairer.offset_ns == 15  # not 85, from each left to the right before it

@@ -425,12 +425,15 @@ def test_a_folder_of_split_bags_is_one_log_read_in_name_order(tmp_path):
     folder.mkdir()
     for k in (2, 10):  # 10 sorts before 2 as text
         write_bag(folder / f"run_{k}.bag", 4, seed=k)
+    write_bag(folder / "run_11.bag.active", 4, seed=11)  # the one it was writing when the recording was killed
+    (folder / "._run_2.bag").write_bytes(b"\x00\x05\x16\x07 macOS resource fork")
     assert source_class(folder) is Ros1BagSource
     with pytest.raises(NoStereoError) as exc:  # strings, no images: described all the same
         open_source(folder)
-    assert exc.value.contents["files"] == [str(folder / "run_2.bag"), str(folder / "run_10.bag")]
-    assert exc.value.contents["topics"] == [{"topic": t, "type": "std_msgs/msg/String", "count": 4} for t in TOPICS]
-    parts = [Ros1Bag(folder / f"run_{k}.bag") for k in (2, 10)]
+    names = ["run_2.bag", "run_10.bag", "run_11.bag.active"]
+    assert exc.value.contents["files"] == [str(folder / name) for name in names]
+    assert exc.value.contents["topics"] == [{"topic": t, "type": "std_msgs/msg/String", "count": 6} for t in TOPICS]
+    parts = [Ros1Bag(folder / name) for name in names]
     assert [m.data for _, _, m in SplitLog(folder, parts).messages(TOPICS)] == [
         m.data for part in parts for _, _, m in part.messages(TOPICS)]
     images = tmp_path / "images"
@@ -439,3 +442,8 @@ def test_a_folder_of_split_bags_is_one_log_read_in_name_order(tmp_path):
     (images / "calibration.yaml").write_text("width: 8\n")
     write_bag(images / "stray.bag", 2)
     assert source_class(images) is not Ros1BagSource
+    hidden = tmp_path / "hidden"  # resource forks alone are no bags
+    hidden.mkdir()
+    (hidden / "._run_0.bag").write_bytes(b"\x00\x05\x16\x07")
+    with pytest.raises(InputError, match="not a known stereo source"):
+        source_class(hidden)

@@ -39,7 +39,8 @@ GRID_LAYERS = ("elevation", "slope", "cost", "label", "valid")
 FLOAT_LAYERS = frozenset({"elevation", "slope", "cost"})
 """float32 layers; the others (``label``, ``valid``) are written as uint8."""
 POINT_DTYPE = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("label", "u1")])
-"""Packed point record of both flavours: 13 bytes, x, y, z in metres (vehicle frame), Label."""
+"""Packed point record of the Foxglove flavour: 13 bytes, x, y, z in metres (vehicle frame), Label
+(the ROS 2 flavour's label is 4 bytes wide: ``mcap_ros2.CLOUD2_DTYPE``)."""
 OBSTACLE_RGBA = {"positive": (1.0, 0.35, 0.1, 0.85), "negative": (0.3, 0.3, 1.0, 0.85)}
 """Box colour by :attr:`Obstacle.kind`."""
 OCCUPIED_RGBA = (0.6, 0.6, 0.6, 0.5)

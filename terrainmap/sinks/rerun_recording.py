@@ -190,9 +190,10 @@ class RerunSink:
         self.frames_written += 1
 
     def failed(self, frame: StereoFrame, error: Exception) -> None:
-        """A frame the pipeline could not process: its vehicle pose and (already rectified) left
-        image, the results of the frame before cleared (so that the views do not pass them off as
-        this frame's), and a warning line under ``log`` naming it and why."""
+        """A frame the pipeline could not process: its vehicle pose and left image (where the
+        source's images are rectified; else none), the results of the frame before cleared (so that
+        the views do not pass them off as this frame's), and a warning line under ``log`` naming
+        it and why."""
         check_frame(f"Rerun output {self.path}", frame, frame, 63)  # (a frame has the index and stamp it checks)
         self._start_frame(frame)
         image = rr.Image(frame.left) if frame.calibration.rectified else rr.Clear(recursive=False)
@@ -261,10 +262,11 @@ class RerunSink:
         if grid.shape != self._mesh_key:  # the full triangle list depends on the grid shape only
             self._triangles, self._mesh_key = _triangles(*grid.shape), grid.shape
         triangles = self._triangles[valid.ravel()[self._triangles].all(axis=1)]  # cells with data only
-        lo, hi = _span(layers["elevation"][valid])  # one scale for the whole drive, widened where needed
-        if self._elevation_span is not None:
-            lo, hi = min(lo, self._elevation_span[0]), max(hi, self._elevation_span[1])
-        self._elevation_span = lo, hi
+        drawn = layers["elevation"][valid]
+        drawn = drawn[np.isfinite(drawn)]
+        lo, hi = self._elevation_span or _span(drawn)  # one scale for the whole drive, widened where needed
+        if drawn.size:
+            self._elevation_span = lo, hi = min(lo, float(drawn.min())), max(hi, float(drawn.max()))
         colorings = {
             "slope": _colormap(layers["slope"].ravel(), *SLOPE_RANGE_RAD),
             "elevation": _colormap(layers["elevation"].ravel(), lo, hi),

@@ -41,7 +41,7 @@ from ..errors import ConfigError, InputError, is_whole
 from .base import Source
 from .folder import GenericFolder
 from .kitti import KittiOdometryFolder, KittiRawFolder, KittiStereoFolder
-from .log import LogSource, McapSource, Ros1BagSource, Rosbag2Source
+from .log import LogSource, McapSource, Ros1BagSource, Rosbag2Source, split_bags
 from .middlebury import MiddleburyFolder
 from .readers import bag_metadata
 
@@ -84,7 +84,7 @@ def source_class(path: str | Path) -> type[Source]:
             return cls
     if path.is_dir() and any(path.glob("*.mcap")):  # a rosbag2 without metadata.yaml (module docstring)
         return McapSource
-    if path.is_dir() and any(f.is_file() for f in path.glob("*.bag")):  # ROS 1 bags split by `rosbag record --split`
+    if path.is_dir() and split_bags(path):  # ROS 1 bags split by `rosbag record --split`
         return Ros1BagSource
     listed = bag_metadata(path).get("relative_file_paths") if path.is_dir() else None
     if listed and isinstance(listed, list):  # a rosbag2 whose files are gone (moved, not copied along)

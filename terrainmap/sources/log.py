@@ -28,6 +28,8 @@ from dataclasses import replace
 from functools import partial
 from pathlib import Path
 
+import numpy as np
+
 from ..errors import CalibrationError, DamagedImageError, InputError, NoStereoError
 from ..types import Extrinsics, StereoCalibration, StereoFrame
 from . import calibration as calib_io
@@ -121,6 +123,7 @@ class LogSource(Source):
         override = calib_io.load_calibration_file(calibration) if calibration else None
         self._static_tf_topics, self.odometry_topics = self._tf_topics()
         tree = self._tree = self._tf_tree()
+        self._stereo_tf_read = False  # (_stereo_pose)
         self.calibration_topics: tuple[str | None, str | None] = (None, None)
         self.calibration_error: CalibrationError | None = None
         self.calibration: StereoCalibration | None = override[0] if override else self._log_calibration()
@@ -189,12 +192,13 @@ class LogSource(Source):
         left_info, right_info = msgs.camera_info(left_msg, left), msgs.camera_info(right_msg, right)
         if left_info["frame_id"] == right_info["frame_id"]:  # infos naming no frame of their own (or one
             left_info["frame_id"], right_info["frame_id"] = self._image_frames  # for both): the images'
+        no_baseline = left_info["P"][0, 3] == right_info["P"][0, 3]  # (then tf's pose of the right camera is used)
         return msgs.calibration_from_infos(
             left_info,
             right_info,
             rectified_images=rectified_name(self.left_topic),
             source=f"{left} + {right}",
-            right_in_left=self._tree.relative(left_info["frame_id"], right_info["frame_id"]),
+            right_in_left=self._stereo_pose(left_info["frame_id"], right_info["frame_id"]) if no_baseline else None,
         )
 
     def _calibration_after(
@@ -223,35 +227,44 @@ class LogSource(Source):
 
     def _tf_tree(self) -> TransformTree:
         """The static transforms, and the dynamic ones of the first ``MAX_DYNAMIC_TF_MESSAGES``
-        messages where the static ones do not place the camera in the vehicle frame and the right
-        camera's frame in the left's (which a camera info without a baseline needs: ROS 1's
-        static_transform_publisher sends either on ``/tf``)."""
+        messages where the static ones do not place the camera."""
         tree = TransformTree()
-        left, right = self._image_frames
-
-        def placed() -> bool:
-            return tree.resolves(left) and (left == right or tree.relative(left, right) is not None)
-
         for topics, limit in ((self._static_tf_topics, None), (self.odometry_topics, MAX_DYNAMIC_TF_MESSAGES)):
-            if not topics or placed():
-                continue
-            stream = self.reader.messages(topics)
-            try:
-                for topic, _, msg in itertools.islice(stream, limit):
-                    for _, *transform in msgs.transforms(msg, self.reader.types[topic]):
-                        tree.add(*transform)
-                    if limit and placed():
-                        break
-            except InputError as exc:  # a damaged log (reader.damage): keep the transforms read before it
-                logger.warning("reading transforms: %s", exc)
-            finally:
-                stream.close()
+            if topics and not tree.resolves(self.frame_id):
+                self._read_transforms(tree, topics, limit, lambda: tree.resolves(self.frame_id))
         return tree
+
+    def _read_transforms(self, tree: TransformTree, topics: list[str], limit: int | None, enough) -> None:
+        """Add the transforms of the first ``limit`` messages of ``topics`` (all: None) to ``tree``,
+        stopping early once ``enough()`` (with a limit)."""
+        stream = self.reader.messages(topics)
+        try:
+            for topic, _, msg in itertools.islice(stream, limit):
+                for _, *transform in msgs.transforms(msg, self.reader.types[topic]):
+                    tree.add(*transform)
+                if limit and enough():
+                    break
+        except InputError as exc:  # a damaged log (reader.damage): keep the transforms read before it
+            logger.warning("reading transforms: %s", exc)
+        finally:
+            stream.close()
+
+    def _stereo_pose(self, left: str, right: str) -> np.ndarray | None:
+        """tf's pose of camera frame ``right`` in ``left`` (4×4), for camera infos that give no
+        baseline; where the transforms read do not relate them, the first ``MAX_DYNAMIC_TF_MESSAGES``
+        dynamic ones are read for it (ROS 1's static_transform_publisher sends it on ``/tf``), once."""
+        pose = self._tree.relative(left, right)
+        if pose is None and self.odometry_topics and not self._stereo_tf_read:
+            self._stereo_tf_read = True
+            self._read_transforms(self._tree, self.odometry_topics, MAX_DYNAMIC_TF_MESSAGES,
+                                  lambda: self._tree.relative(left, right) is not None)
+            pose = self._tree.relative(left, right)
+        return pose
 
     def _pairs(self) -> Iterator[PairRef]:
         if self.calibration is None:
             raise self.calibration_error
-        pairer = StereoPairer(self.pair_tolerance_ns)
+        pairer = StereoPairer(self.pair_tolerance_ns, same=msgs.same_data)
         poses = VehiclePoses()
         self._clocks_told = False  # (_pair_ref: images and odometry on different clocks, said once)
         pending: deque = deque()  # (log time made, pair): pairs waiting for the pose after their stamp
@@ -320,8 +333,8 @@ class LogSource(Source):
             logger.warning("%s: %d of %d image messages had no partner within %s%s%s",
                            self.path, pairer.dropped, pairer.pushed, within, full, hint)
         if pairer.repeated:
-            logger.warning("%s: %d image messages had the stamp of the message before them on their topic "
-                           "(duplicates) and were skipped", self.path, pairer.repeated)
+            logger.warning("%s: %d image messages repeated the message before them on their topic, stamp and "
+                           "image (duplicates), and were skipped", self.path, pairer.repeated)
 
     def _pair_ref(self, pair: tuple, poses: VehiclePoses) -> PairRef:
         index, stamp_ns = pair[:2]
@@ -468,9 +481,15 @@ class Ros1BagSource(LogSource):
     def _open_reader(self) -> Ros1Bag | SplitLog:
         if self.path.is_file():
             return Ros1Bag(self.path)
-        bags = sorted((f for f in self.path.glob("*.bag") if f.is_file() and not f.name.startswith(".")),
-                      key=lambda f: natural_key(f.name))
-        return SplitLog(self.path, [Ros1Bag(f) for f in bags])
+        return SplitLog(self.path, [Ros1Bag(f) for f in split_bags(self.path)])
+
+
+def split_bags(folder: Path) -> list[Path]:
+    """The ROS 1 bags of ``folder`` in name order, numbers by value, the one ``rosbag record`` was
+    still writing when it stopped (``NAME.bag.active``) included, hidden files (``._NAME.bag``,
+    macOS's) not."""
+    bags = (f for pattern in ("*.bag", "*.bag.active") for f in folder.glob(pattern))
+    return sorted((f for f in bags if f.is_file() and not f.name.startswith(".")), key=lambda f: natural_key(f.name))
 
 
 def _brief(calibration: StereoCalibration) -> str:

@@ -217,6 +217,11 @@ def _right_projection(left: dict, right: dict, right_in_left: np.ndarray | None,
     return P
 
 
+def same_data(a, b) -> bool:
+    """Whether two image messages (ROS or Foxglove, raw or compressed) hold the same bytes."""
+    return bytes(a.data) == bytes(b.data)
+
+
 def transforms(msg, msg_type: str) -> Iterator[tuple[int, str, str, list[float], list[float]]]:
     """(stamp ns, parent, child, translation xyz, quaternion xyzw) of each transform in a TF message."""
     if msg_type in ("tf2_msgs/msg/TFMessage", "tf/msg/tfMessage"):

@@ -29,28 +29,32 @@ class StereoPairer:
     would otherwise pair every later image with its neighbour's partner, one frame apart.
     """
 
-    def __init__(self, tolerance_ns: int, max_buffer: int = 32):
+    def __init__(self, tolerance_ns: int, max_buffer: int = 32, same=None):
         self.tolerance_ns, self.max_buffer = int(tolerance_ns), max_buffer
+        self._same = same
+        """``same(a, b)``: whether two messages of one side with one stamp are one message twice
+        (skipped, :attr:`repeated`); None: never (both kept)."""
         self._waiting: tuple[deque, deque] = (deque(maxlen=max_buffer), deque(maxlen=max_buffer))
         self._gaps: tuple[deque, deque] = (deque(maxlen=PERIOD_GAPS), deque(maxlen=PERIOD_GAPS))
         self._last: list[int | None] = [None, None]  # the latest stamp of each side
-        self._previous: list[int | None] = [None, None]  # the stamp of each side's message before
+        self._previous: list[tuple | None] = [None, None]  # each side's message before: (stamp, item)
         self.pushed = 0
         self.dropped = 0
         self.overflowed = 0
         """Of ``dropped``, the messages pushed out of a full buffer (one side logged far behind the other)."""
         self.repeated = 0
-        """Messages skipped for the stamp of the message before on their side (a duplicate)."""
+        """Messages skipped as the message before on their side again (its stamp and, by ``same``, content)."""
         self._missed_by: deque = deque(maxlen=64)  # ns from recent unpaired messages to the nearest waiting partner
 
     def push(self, side: int, stamp_ns: int, item: Any) -> tuple[int, Any, Any] | None:
         """Add a message of ``side`` (0 left, 1 right); return ``(left_stamp_ns, left, right)``
-        when it completes a pair, else None. A message with the stamp of the one before it on its
-        side is a duplicate (a log recorded twice over, a driver republishing): skipped, counted
-        in ``repeated``, so that no frame is made twice."""
+        when it completes a pair, else None. A message that is the one before it on its side
+        again (its stamp, and its content by ``same``: a log recorded twice over, a driver
+        republishing) is skipped and counted in ``repeated``, so that no frame is made twice; one
+        with the same stamp but other content (a clock coarser than the frame rate) is kept."""
         self.pushed += 1
-        previous, self._previous[side] = self._previous[side], stamp_ns
-        if stamp_ns == previous:
+        previous, self._previous[side] = self._previous[side], (stamp_ns, item)
+        if self._same is not None and previous is not None and previous[0] == stamp_ns and self._same(previous[1], item):
             self.repeated += 1
             return None
         last = self._last[side]

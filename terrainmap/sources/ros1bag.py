@@ -154,8 +154,8 @@ def _chunk_contents(fields: dict[str, bytes], data: bytes) -> tuple[list[_Connec
 def _cut_chunk_contents(stream: BinaryIO, end: int) -> tuple[list[_Connection], list[tuple[int, int, bytes]]]:
     """:func:`_contents` of the complete records of the chunk record at ``stream``'s position that
     byte ``end`` cuts off: a file cut short in it, or a recording killed while C++ rosbag wrote it
-    compressed (its size and length still 0, the compressed stream up to ``end``). Reads at most
-    ``max(its length, 64 MB)`` of it."""
+    compressed (its size and length still 0, the compressed stream up to ``end``). Reads what
+    ``end`` leaves of its length, or of 64 MB where its length is still 0."""
     fields = _fields(_read(stream, _U32.unpack(_read(stream, 4))[0]))
     if fields.get("op") != bytes([_CHUNK]):
         raise BagError("no chunk record")

@@ -88,8 +88,9 @@ def stereo_topics(
             f"{where}: no stereo image topics found (image topics: {listing}; all topics: {everything}){hint}{video_note}"
         )
     best = min(pairs, key=lambda pair: _preference(*pair, types))
-    alike = [pair for pair in pairs if pair != best and _preference(*pair, types)[:3] == _preference(*best, types)[:3]]
-    if alike:  # two rigs (front and rear), or two renderings of one (colour and mono): say which is used
+    rank, namespace = _preference(*best, types)[:3], best[0].rsplit("/", 1)[0]
+    alike = [pair for pair in pairs if _preference(*pair, types)[:3] == rank and pair[0].rsplit("/", 1)[0] != namespace]
+    if alike:  # two rigs (front and rear) rank alike, not two renderings of one (image_rect and image_rect_color)
         logger.warning("%s: several stereo pairs of image topics: %s + %s is used; also %s (choose with --left-topic "
                        "and --right-topic)", where, *best, "; ".join(f"{a} + {b}" for a, b in sorted(alike)))
     return best
