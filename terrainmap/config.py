@@ -880,6 +880,14 @@ def _passed_before(section: Any, grid: GridConfig | None) -> bool:
     return passed is not None and same_values(passed, (section, grid))
 
 
+def check_config(what: str, config: Config) -> None:
+    """:class:`ConfigError` naming ``what`` (an output, an evaluation) unless ``config`` is a valid
+    :class:`Config`."""
+    if not isinstance(config, Config):
+        raise ConfigError(f"{what}: config must be a Config, got {type(config).__name__}")
+    config.validate()
+
+
 def same_values(a: Any, b: Any) -> bool:
     """Whether ``a`` and ``b`` (configs, sections, or tuples of them) hold equal values of the same
     types: ``True``, ``1`` and ``1+0j`` equal ``1.0`` to Python but are no float setting, and a

@@ -145,7 +145,8 @@ class PipelineState:
     (another camera, or the next scene of a folder of unrelated scenes, each with its calibration
     file) starts the estimated pose and the tracks afresh, and so do new stereo settings (a new
     matcher), whether in a new config or changed in place; another config with other tracking or
-    grid settings starts a tracker of its own (one changed in place is followed by the tracker).
+    grid settings replaces the tracker with a new one, its tracks starting afresh (one changed in
+    place is followed by the tracker): give each config a state of its own.
     """
 
     config: Config
@@ -210,6 +211,8 @@ def check_arguments(frame: StereoFrame, config: Config, state: PipelineState) ->
     for name, value, kind in (("frame", frame, StereoFrame), ("state", state, PipelineState)):
         if not isinstance(value, kind):
             raise InputError(f"process_frame: {name} must be a {kind.__name__}, got {type(value).__name__}")
+    if not is_whole(frame.index):  # the outputs number frames by it
+        raise InputError(f"process_frame: frame.index must be a whole number, got {frame.index!r}")
     if frame.extrinsics is not None and not isinstance(frame.extrinsics, Extrinsics):
         raise InputError(f"process_frame: frame.extrinsics must be an Extrinsics or None, got "
                          f"{type(frame.extrinsics).__name__}")
@@ -355,8 +358,10 @@ def process_frame(frame: StereoFrame, config: Config, state: PipelineState) -> F
     FrameResult
         Points (N×3 float32, vehicle frame, m) with their pixels and labels, the grid's layers
         (``elevation`` m, ``slope`` rad, ``label``, ``valid``, ``cost`` in [0, 1], indexed
-        ``[ix, iy]``), the tracked obstacles (vehicle frame), the disparity and per-stage timings
-        (ms); see :class:`~terrainmap.types.FrameResult`.
+        ``[ix, iy]``), the tracked obstacles (vehicle frame; tentative tracks too: those with
+        ``confirmed`` true are the obstacles the outputs show), the disparity and per-stage
+        timings (ms); see :class:`~terrainmap.types.FrameResult`. ``image`` is the frame's own
+        left array where it came rectified: copy it to keep it past a buffer the camera reuses.
 
     Raises
     ------

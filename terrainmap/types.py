@@ -126,7 +126,11 @@ class Obstacle:
     (length along ``yaw_rad``, width, height) and ``height_m`` its top above the terrain surface
     (depth below it for ``kind == "negative"``), metres. ``range_m`` is the distance from the
     vehicle origin to the cluster's nearest point (not to the centre), ``point_count`` the points
-    it holds. ``track_id`` is -1 before tracking.
+    it holds. ``track_id`` is -1 before tracking; ``confirmed`` says whether its track has been
+    seen in ``tracking.confirm_hits`` frames (only confirmed tracks are obstacles to the outputs
+    and the cost); ``velocity_mps`` is the track's estimated velocity (vx, vy, 0), m/s, in vehicle
+    axes: over ground where the source gives the vehicle's pose, else relative to the vehicle;
+    None before tracking.
     """
 
     center_m: np.ndarray
@@ -163,9 +167,9 @@ class FrameResult:
     terrain: object  # terrainmap.terrain.TerrainEstimate (surface, equalized samples, weights, ...)
     layers: dict[str, np.ndarray] = field(default_factory=dict)
     disparity: np.ndarray | None = None  # H×W float32 px, NaN where invalid
-    image: np.ndarray | None = None  # rectified left image
+    image: np.ndarray | None = None  # rectified left image (the frame's own array where it came rectified)
     pinhole: object | None = None  # terrainmap.stereo.RectifiedPinhole of image and disparity
-    obstacles: list[Obstacle] = field(default_factory=list)
+    obstacles: list[Obstacle] = field(default_factory=list)  # tracked, confirmed or not (Obstacle.confirmed)
     stats: dict[str, float] = field(default_factory=dict)
     timings_ms: dict[str, float] = field(default_factory=dict)
     occupied: list[Obstacle] = field(default_factory=list)

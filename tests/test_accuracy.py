@@ -786,7 +786,7 @@ def test_table_puts_each_metric_under_its_own_title():
     ({"obstacle_range_m": -1.0}, "obstacle_range_m: must be a finite number >= 0, got -1.0"),
     ({"min_visible_pixels": "20"}, "min_visible_pixels: must be a whole number >= 0, got '20'"),
     ({"min_terrain_pixels": 0}, "min_terrain_pixels: must be a whole number >= 1, got 0"),
-    ({"methods": "terrainmap"}, "--methods: give a list of method names, got the string 'terrainmap'"),
+    ({"methods": "terrainmap"}, "methods (--methods): give a list of method names, got the string 'terrainmap'"),
 ])
 def test_evaluate_refuses_scoring_options_that_would_give_wrong_scores(tmp_path, options, message):
     """Checked before the log is opened: a NaN margin scored every detection false, silently."""

@@ -117,6 +117,8 @@ def test_the_pipelines_arguments_of_another_type_are_named():
          "process_frame: frame.extrinsics must be an Extrinsics or None, got tuple"),
         ((dataclasses.replace(frame, stamp_ns=1.5e18), C, state), InputError,
          "frame 0 has stamp 1.5e.18; a stamp is a whole number of nanoseconds"),
+        ((dataclasses.replace(frame, index="a"), C, state), InputError,  # refused by the sinks only, before
+         "process_frame: frame.index must be a whole number, got 'a'"),
         ((dataclasses.replace(frame, frame_id=5), C, state), InputError,  # a TypeError in the sinks before
          r"process_frame: frame.frame_id must be a frame name \(a non-empty str\), got 5"),
         ((dataclasses.replace(frame, extrinsics=Extrinsics(np.eye(3), np.zeros(3), vehicle_frame_id=None)), C, state),
@@ -138,6 +140,16 @@ def test_the_pipelines_arguments_of_another_type_are_named():
         traversability_cost(zeros, zeros, zeros > -1, C.grid, None, C.cost)
     with pytest.raises(InputError, match="cloud: n_points must be a whole number >= 0, got -1"):
         cloud(-1)
+
+
+def test_the_evaluations_name_a_config_that_is_none():
+    from terrainmap.evaluation import accuracy, disparity, robustness
+
+    for call, what in ((lambda: accuracy.evaluate("log.mcap", None), "eval accuracy"),
+                       (lambda: disparity.evaluate_disparity("folder", None), "eval stereo"),
+                       (lambda: robustness.run(None), "robustness")):
+        with pytest.raises(ConfigError, match=f"^{what}: config must be a Config, got NoneType$"):
+            call()
 
 
 def test_the_surface_and_the_truth_name_points_that_are_no_arrays_of_numbers(tmp_path):

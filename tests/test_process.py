@@ -524,7 +524,7 @@ def test_outputs_never_replace_the_input_or_each_other(small_log, tmp_path):
 def test_options_or_a_selection_that_fail_before_the_first_frame_leave_an_earlier_output_alone(small_log, tmp_path):
     out = tmp_path / "o.mcap"
     out.write_bytes(b"an earlier run's output")
-    for extra, message in ((["--start", "5", "--end", "1"], "end (--end) 1.0 s is before start (--start) 5.0 s"),
+    for extra, message in ((["--start", "5", "--end", "1"], "end_s (--end) 1.0 s is before start_s (--start) 5.0 s"),
                            (["--start", "500"], "--start/--end select none of the 2 stereo pairs read, up to "
                                                 "0.100 s from the first (--start and --end count from it)"),
                            (["--start", "0.01", "--end", "0.02"], "--start/--end select none of the 2 stereo pairs "

@@ -401,6 +401,11 @@ def test_a_recording_of_bad_arguments_is_refused_naming_them(log, tmp_path):
                          (dataclasses.replace(frame, index="x"), "the frame index must be a whole number, got 'x'")):
         with pytest.raises(InputError, match=message):
             sink.write(bad, result)
-    sink.write(frame, result)
+    with pytest.raises(InputError, match="the result of frame 0 .* given with frame 1 .*: a result goes with its own frame"):
+        sink.write(dataclasses.replace(frame, index=1), result)
+    import numpy as np
+
+    numpy_stamped = dataclasses.replace(frame, stamp_ns=np.int64(frame.stamp_ns))  # stamps read from an array
+    sink.write(numpy_stamped, dataclasses.replace(result, stamp_ns=numpy_stamped.stamp_ns))
     sink.close()
     _verify(tmp_path / "o.rrd")

@@ -568,7 +568,7 @@ def test_unknown_and_missing_paths(tmp_path):
 
 def test_topics_given_for_an_image_folder_are_an_error(tmp_path):
     root = generic_folder(tmp_path, n=1)
-    with pytest.raises(ConfigError, match="--left-topic/--right-topic: .* is an image folder"):
+    with pytest.raises(ConfigError, match=r"left_topic/right_topic \(--left-topic/--right-topic\): .* is an image folder"):
         open_source(root, left_topic="/camera/left")
 
 
@@ -642,7 +642,7 @@ def test_a_window_that_starts_where_it_ends_selects_the_pair_stamped_there(tmp_p
     root = generic_folder(tmp_path, n=4)  # stamped 0, 0.1, 0.2, 0.3 s
     with open_source(root) as source:
         assert [f.index for f in source.frames(start_s=0.2, end_s=0.2)] == [2]
-        with pytest.raises(ConfigError, match=r"end \(--end\) 0.1 s is before start \(--start\) 0.2 s"):
+        with pytest.raises(ConfigError, match=r"end_s \(--end\) 0.1 s is before start_s \(--start\) 0.2 s"):
             list(source.frames(start_s=0.2, end_s=0.1))
 
 

@@ -404,11 +404,14 @@ def test_a_closed_source_reads_no_more(tmp_path):
     from terrainmap.sources import open_source
 
     log = tmp_path / "drive.mcap"
-    simulate(log, SimConfig(scene="flat", frames=2, width=64, height=48, focal_px=50.0))
+    simulate(log, SimConfig(scene="flat", frames=3, width=64, height=48, focal_px=50.0))
     source = open_source(log)
+    frames = source.frames()
+    next(frames)  # being read when it is closed: the log's reader would read on
     source.close()
-    with pytest.raises(InputError, match=f"{log}: the source is closed; open it again"):
-        next(source.frames())
+    for reading in (frames, source.frames()):
+        with pytest.raises(InputError, match=f"{log}: the source is closed; open it again"):
+            next(reading)
 
 
 def test_an_image_or_calibration_of_a_foxglove_schema_without_frame_id_is_in_the_default_frame():

@@ -72,7 +72,7 @@ from pathlib import Path
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from ..config import Config
+from ..config import Config, check_config
 from ..errors import ConfigError, FrameError, brief
 from ..grid import cell_centers, cell_index
 from ..pipeline import PipelineState, process_frame
@@ -101,15 +101,15 @@ def select_methods(methods: list[str] | None) -> list[str]:
     if methods is None:
         return available
     if isinstance(methods, str):
-        raise ConfigError(f"--methods: give a list of method names, got the string {methods!r}")
+        raise ConfigError(f"methods (--methods): give a list of method names, got the string {methods!r}")
     for name in methods:
         if name not in baselines.METHODS:
-            raise ConfigError(f"--methods: unknown method {name!r}; available: {', '.join(available)}")
+            raise ConfigError(f"methods (--methods): unknown method {name!r}; available: {', '.join(available)}")
         if name not in available:
-            raise ConfigError(f"--methods: {name!r} needs an optional package that is not installed "
+            raise ConfigError(f"methods (--methods): {name!r} needs an optional package that is not installed "
                               f"(pip install 'terrainmap[baselines]'); available: {', '.join(available)}")
     if not methods:
-        raise ConfigError(f"--methods: no method given; available: {', '.join(available)}")
+        raise ConfigError(f"methods (--methods): no method given; available: {', '.join(available)}")
     return list(dict.fromkeys(methods))
 
 
@@ -346,7 +346,7 @@ def evaluate(
         Bad config, method names or scoring options (NaN or negative margins, say).
     """
     start = time.perf_counter()
-    config.validate()
+    check_config("eval accuracy", config)
     names = select_methods(methods)
     _check_options(obstacle_margin_m=obstacle_margin_m, obstacle_min_height_m=obstacle_min_height_m,
                    obstacle_range_m=obstacle_range_m, min_visible_pixels=min_visible_pixels,

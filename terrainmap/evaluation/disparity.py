@@ -48,7 +48,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..config import Config
+from ..config import Config, check_config
 from ..errors import FrameError, InputError
 from ..pipeline import PipelineState, match_frame
 from ..sim.truth import NoTruthError, open_truth, truth_at
@@ -185,7 +185,7 @@ def evaluate_disparity(
     (the message says what is looked for) or a file cannot be read, and :class:`ConfigError` for
     a bad config.
     """
-    config.validate()
+    check_config("eval stereo", config)
     stats = {name: _BandStats() for name in BANDS}
     failed: Counter = Counter()
     scored = without_truth = 0

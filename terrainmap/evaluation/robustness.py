@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..config import Config
+from ..config import Config, check_config
 from ..grid import cell_centers
 from ..synthetic import grid_samples
 from ..terrain import estimate_terrain, fitter_for
@@ -18,7 +18,9 @@ from ..terrain import estimate_terrain, fitter_for
 
 def run(config: Config, *, seeds=range(5), noise_m=0.03, outlier_fraction=0.1, outlier_max_m=2.0,
         empty_fraction=0.3) -> dict[str, float]:
-    """Mean over ``seeds`` of the RMSE (m) of ``iterative`` and ``single`` fits, and their ratio."""
+    """Mean over ``seeds`` of the RMSE (m) of ``iterative`` and ``single`` fits, and their ratio
+    (:class:`ConfigError` for a bad config)."""
+    check_config("robustness", config)
     xs, ys = cell_centers(config.grid)
     t = config.terrain
     fit = fitter_for(config.grid, t.control_points_x, t.control_points_y, t.degree)

@@ -26,7 +26,7 @@ from mcap.data_stream import RecordBuilder
 from mcap.records import DataEnd, Footer, Metadata
 from mcap.writer import MCAP0_MAGIC
 
-from ..config import Config
+from ..config import Config, check_config
 from ..errors import ConfigError, InputError, TerrainmapError, counted, is_whole
 from ..ros2defs import quaternion_from_matrix
 from ..types import Extrinsics, FrameResult, Obstacle, StereoFrame
@@ -47,22 +47,19 @@ OCCUPIED_RGBA = (0.6, 0.6, 0.6, 0.5)
 """Box colour of what occupies the cost map without being a confirmed obstacle of the frame."""
 
 
-def check_config(what: str, config: Config) -> None:
-    """:class:`ConfigError` naming ``what`` (an output) unless ``config`` is a valid Config."""
-    if not isinstance(config, Config):
-        raise ConfigError(f"{what}: config must be a Config, got {type(config).__name__}")
-    config.validate()
-
-
 def check_frame(what: str, frame: StereoFrame, result: FrameResult, bits: int) -> None:
-    """:class:`InputError` naming ``what`` (an output) unless the frame's index is a whole number
-    and the frame's and the result's stamps whole numbers of nanoseconds in [0, 2^bits)."""
+    """:class:`InputError` naming ``what`` (an output) unless the frame's index is a whole number,
+    the result is that frame's (the same index and stamp) and the stamp a whole number of
+    nanoseconds in [0, 2^bits)."""
     if not is_whole(frame.index):
         raise InputError(f"{what}: the frame index must be a whole number, got {frame.index!r}")
     for stamp in {frame.stamp_ns, result.stamp_ns}:
         if not is_whole(stamp) or not 0 <= stamp < 2**bits:
             raise InputError(f"{what}: frame {result.index}: the stamp must be a whole number of nanoseconds in "
                              f"[0, 2^{bits}), got {stamp!r}")
+    if (frame.index, frame.stamp_ns) != (result.index, result.stamp_ns):
+        raise InputError(f"{what}: the result of frame {result.index!r} (stamp {result.stamp_ns!r} ns) given with "
+                         f"frame {frame.index!r} (stamp {frame.stamp_ns!r} ns): a result goes with its own frame")
 
 
 def _to_disk(file) -> None:

@@ -50,13 +50,13 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
-from ..config import Config
+from ..config import Config, check_config
 from ..errors import InputError, TerrainmapError
 from ..grid import cell_centers
 from ..ros2defs import yaw_quaternion
 from ..stereo import rectified_camera
 from ..types import FrameResult, Label, StereoFrame
-from .base import check_config, check_frame, point_stride, shown_boxes
+from .base import check_frame, point_stride, shown_boxes
 
 LABEL_COLORS = {
     Label.UNKNOWN: (140, 140, 140),
@@ -211,7 +211,7 @@ class RerunSink:
             raise TerrainmapError(f"Rerun output {self.path} is already closed")
         rec = self._rec
         rec.set_time("frame", sequence=frame.index)
-        rec.set_time("stamp", timestamp=np.datetime64(frame.stamp_ns, "ns"))
+        rec.set_time("stamp", timestamp=np.datetime64(int(frame.stamp_ns), "ns"))  # (numpy's ints too)
         if frame.vehicle_pose is not None:
             pose = np.asarray(frame.vehicle_pose, float)
             rec.log(VEHICLE, rr.Transform3D(translation=pose[:3, 3], mat3x3=pose[:3, :3]))

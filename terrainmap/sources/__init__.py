@@ -128,5 +128,5 @@ def open_source(
         return cls(path, left_topic=left_topic, right_topic=right_topic, calibration=calibration,
                    pair_tolerance_ns=pair_tolerance_ns)
     if left_topic or right_topic:
-        raise ConfigError(f"--left-topic/--right-topic: {path} is an image folder, not a log with topics")
+        raise ConfigError(f"left_topic/right_topic (--left-topic/--right-topic): {path} is an image folder, not a log with topics")
     return cls(path, calibration=calibration)

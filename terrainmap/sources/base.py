@@ -63,7 +63,7 @@ def check_selection(start_s: float | None, end_s: float | None, every: int, max_
     if max_frames is not None and max_frames < 0:
         raise ConfigError(f"max_frames: must be >= 0, got {max_frames}")
     if start_s is not None and end_s is not None and end_s < start_s:
-        raise ConfigError(f"end (--end) {end_s} s is before start (--start) {start_s} s")
+        raise ConfigError(f"end_s (--end) {end_s} s is before start_s (--start) {start_s} s")
 
 
 @dataclass
@@ -132,12 +132,15 @@ class Source(ABC):
         :class:`InputError`, as does reading a source that was closed.
         """
         check_selection(start_s, end_s, every, max_frames)
+        closed = InputError(f"{self.path}: the source is closed; open it again to read its frames")
         if self._closed:
-            raise InputError(f"{self.path}: the source is closed; open it again to read its frames")
+            raise closed
         first_ns: int | None = None
         in_window = kept = damaged_in_a_row = 0
         tally = self.tally = Tally()
         for ref in self._pairs():
+            if self._closed:  # closed while frames were being read (a log's reader may still read on)
+                raise closed
             if max_frames is not None and kept >= max_frames:
                 return
             first_ns = ref.stamp_ns if first_ns is None else first_ns
