@@ -254,7 +254,8 @@ def frame_stages(config: Config, frame: StereoFrame | None = None) -> dict[str, 
     # take it for a frame logged twice and skip its update, as process never does.
     stamps = itertools.count(frame.stamp_ns, 10**8)
     for _ in range(3):  # by the third frame the obstacles are confirmed tracks, which the MCAP stage writes
-        result = process_frame(dataclasses.replace(frame, stamp_ns=next(stamps)), config, state)
+        written = dataclasses.replace(frame, stamp_ns=next(stamps))
+        result = process_frame(written, config, state)
     every_row = copy.deepcopy(config)  # a frame with no rows of only sky: SGBM matches them all
     every_row.stereo.drop_sky = False
     every_row_state = PipelineState(every_row)
@@ -276,7 +277,7 @@ def frame_stages(config: Config, frame: StereoFrame | None = None) -> dict[str, 
         "frame_every_row": lambda: process_frame(dataclasses.replace(frame, stamp_ns=next(every_row_stamps)),
                                                  every_row, every_row_state),
         "upright": upright_stage,
-        "mcap_write": lambda: sink.write(frame, result),
+        "mcap_write": lambda: sink.write(written, result),
     }
 
 
