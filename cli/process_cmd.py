@@ -39,12 +39,12 @@ def default_output(log: Path) -> Path:
 
 @click.command()
 @click.argument("log", type=click.Path(exists=True, path_type=Path))
-@click.option("-o", "--output", type=click.Path(dir_okay=False), callback=output_file(), help="Output MCAP (default: <log>.terrain.mcap beside the input).")
+@click.option("-o", "--output", type=click.Path(dir_okay=False), callback=output_file(".mcap"), help="Output MCAP (default: <log>.terrain.mcap beside the input).")
 @click.option("--flavor", type=click.Choice(["foxglove", "ros2"]), default="foxglove", show_default=True,
               help="Message family of the MCAP: Foxglove protobuf schemas or ROS 2 messages (GridMap, PointCloud2).")
 @click.option("--compression", type=click.Choice(["lz4", "zstd", "none"]), default="lz4", show_default=True,
               help="MCAP chunk compression.")
-@click.option("--rrd", type=click.Path(dir_okay=False), callback=output_file(), help="Also write a Rerun recording here.")
+@click.option("--rrd", type=click.Path(dir_okay=False), callback=output_file(".rrd"), help="Also write a Rerun recording here.")
 @click.option("--overwrite", is_flag=True, help="Replace existing output files.")
 @source_options
 @config_options

@@ -13,6 +13,7 @@ Units: metres, radians, seconds; ``*_deg`` fields are degrees (human-facing limi
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import math
 import os
 import re
@@ -1003,7 +1004,9 @@ def apply_values(config: Config, values: dict[str, Any], source: str = "config",
         names = {f.name for f in fields(target)}
         for name, value in table.items():
             if name not in names:
-                raise ConfigError(f"{source}: unknown field {section}.{name}")
+                near = difflib.get_close_matches(str(name), sorted(names), n=1)
+                hint = f" (did you mean {section}.{near[0]}?)" if near else f" (fields: {', '.join(sorted(names))})"
+                raise ConfigError(f"{source}: unknown field {section}.{name}{hint}")
             try:
                 setattr(target, name, _coerce(section, name, getattr(target, name), value, text))
             except ConfigError as exc:  # a --set names the value already; a file is named here
@@ -1014,7 +1017,7 @@ def apply_values(config: Config, values: dict[str, Any], source: str = "config",
 def parse_override(text: str) -> dict[str, dict[str, str]]:
     """``"terrain.degree=2"`` → ``{"terrain": {"degree": "2"}}``."""
     key, sep, value = text.partition("=")
-    section, dot, name = key.strip().partition(".")
+    section, dot, name = (part.strip() for part in key.partition("."))
     if not sep or not dot or not section or not name:
         raise ConfigError(f"--set {text!r}: expected section.field=value, e.g. terrain.degree=3")
     return {section: {name: value.strip()}}
@@ -1032,7 +1035,7 @@ def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str
             raise ConfigError(f"config file: expected a path, got {brief(path)}")
         path = Path(path)
         try:
-            data = tomllib.loads(path.read_text())
+            data = tomllib.loads(path.read_text(encoding="utf-8-sig"))  # (a Windows editor's byte order mark)
         except FileNotFoundError:
             raise ConfigError(f"{path}: config file does not exist") from None
         except (OSError, UnicodeDecodeError) as exc:

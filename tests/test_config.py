@@ -36,7 +36,8 @@ def test_toml_round_trip_and_overrides(tmp_path):
     "override, message",
     [
         ("terrain.degree=x", "terrain.degree: cannot use 'x'"),
-        ("terrain.nope=1", "unknown field terrain.nope"),
+        ("terrain.nope=1", r"unknown field terrain.nope \(fields: .*control_points_x.*degree"),
+        ("grid.cellsize=1", r"unknown field grid.cellsize \(did you mean grid.cell_size_m\?\)"),
         ("nope.x=1", "unknown section"),
         ("degree=3", "expected section.field=value"),
         ("grid.length_m=33.3", "whole number of cells"),
@@ -366,3 +367,11 @@ def test_a_misspelt_field_set_in_code_is_an_error_not_a_new_attribute():
         config.grid.cellsize_m = 1.0  # silently ignored, with the default used, before
     with pytest.raises(AttributeError):
         config.segmentaton = None
+
+
+def test_a_config_file_with_a_byte_order_mark_and_a_set_with_spaces_are_read(tmp_path):
+    """Windows Notepad saves UTF-8 with a byte order mark; a --set may have spaces around its parts."""
+    path = tmp_path / "bom.toml"
+    path.write_bytes("\ufeff[terrain]\ndegree = 2\n".encode())
+    config = load_config(path, overrides=["grid. cell_size_m = 0.25"])
+    assert config.terrain.degree == 2 and config.grid.cell_size_m == 0.25

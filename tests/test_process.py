@@ -495,9 +495,15 @@ def test_outputs_never_replace_the_input_or_each_other(small_log, tmp_path):
     log = tmp_path / "in.mcap"
     shutil.copy(small_log, log)
     before = log.read_bytes()
-    for extra in (["-o", str(log)], ["-o", str(tmp_path / "." / "in.mcap")], ["--rrd", str(log)]):
+    for extra in (["-o", str(log)], ["-o", str(tmp_path / "." / "in.mcap")]):
         result = CliRunner().invoke(cli, ["process", str(log), "--overwrite", *extra])
         assert result.exit_code == 2 and "would overwrite the input" in result.output, extra
+    for option, suffix in (("-o", ".mcap"), ("--rrd", ".rrd")):  # each output's own suffix: no other file by a slip
+        result = CliRunner().invoke(cli, ["process", str(log), "--overwrite", option, str(tmp_path / "notes.txt")])
+        assert result.exit_code == 2 and f"notes.txt must end in {suffix}" in result.output, option
+    (tmp_path / "in.rrd").symlink_to(log)
+    result = CliRunner().invoke(cli, ["process", str(log), "--overwrite", "--rrd", str(tmp_path / "in.rrd")])
+    assert result.exit_code == 2 and "would overwrite the input" in result.output
     folder = tmp_path / "bag"
     folder.mkdir()
     shutil.copy(small_log, folder / "bag_0.mcap")
@@ -511,12 +517,14 @@ def test_outputs_never_replace_the_input_or_each_other(small_log, tmp_path):
     assert result.exit_code == 2 and "would overwrite the input" in result.output  # a hard link too
     config = tmp_path / "my.toml"
     config.write_text("[terrain]\ndegree = 3\n")
-    result = CliRunner().invoke(cli, ["process", str(log), "--config", str(config), "-o", str(config), "--overwrite"])
+    (tmp_path / "my.mcap").symlink_to(config)
+    result = CliRunner().invoke(cli, ["process", str(log), "--config", str(config), "-o", str(tmp_path / "my.mcap"),
+                                      "--overwrite"])
     assert result.exit_code == 2 and "would overwrite the input" in result.output
     result = CliRunner().invoke(cli, ["eval", "accuracy", str(log), "--json", str(log)])
     assert result.exit_code == 2 and "--json" in result.output and "must end in .json" in result.output
-    same = str(tmp_path / "o.mcap")
-    result = CliRunner().invoke(cli, ["process", str(log), "-o", same, "--rrd", same])
+    (tmp_path / "o.rrd").symlink_to(tmp_path / "o.mcap")
+    result = CliRunner().invoke(cli, ["process", str(log), "-o", str(tmp_path / "o.mcap"), "--rrd", str(tmp_path / "o.rrd")])
     assert result.exit_code == 2 and "same file" in result.output
     assert log.read_bytes() == before
 

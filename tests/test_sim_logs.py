@@ -252,6 +252,8 @@ def test_cli_simulate_writes_a_log_and_guards_existing_output(tmp_path):
     assert bad.exit_code != 0 and "--frames: must be in 1..100000, got 0" in str(bad.exception)
     bad = CliRunner().invoke(cli, ["simulate", str(tmp_path / "x.mcap"), "--baseline-m", "0.0005"])
     assert bad.exit_code != 0 and "--baseline-m: must be within 0.001..100 m" in str(bad.exception)
+    bad = CliRunner().invoke(cli, ["simulate", str(tmp_path / "x.mcap"), "--camera-height-m", "1e6"])  # as process checks
+    assert bad.exit_code != 0 and "--camera-height-m: must be at most 100 m, got 1e+06" in str(bad.exception)
     bad = CliRunner().invoke(cli, ["simulate", str(tmp_path / "folder"), "--compressed"])
     assert bad.exit_code != 0 and "--compressed: applies to an MCAP log only" in str(bad.exception)
     for option in ("--focal-px", "--baseline-m", "--speed-mps", "--texture-detail"):  # named as the option

@@ -14,7 +14,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from ..config import check_kinds
-from ..errors import ConfigError, InputError
+from ..errors import ConfigError, InputError, counted
 from ..stereo import PLAUSIBLE
 from .folder_log import FolderLog
 from .mcap_log import McapLog
@@ -87,6 +87,7 @@ class SimConfig:
             low, high, unit = PLAUSIBLE[field]
             value = getattr(self, name)
             check(low <= value <= high, name, f"must be within {low:g}..{high:g} {unit}, got {value:g}")
+        check(self.camera_height_m <= 100, "camera_height_m", f"must be at most 100 m, got {self.camera_height_m:g}")
         check(-30 <= self.pitch_deg <= 45, "pitch_deg", f"must be within [-30, 45] degrees, got {self.pitch_deg}")
         check(0 <= self.noise <= 50, "noise", f"must be within [0, 50] grey levels, got {self.noise}")
         check(0 <= self.vignetting < 1, "vignetting", f"must be within [0, 1), got {self.vignetting}")
@@ -175,5 +176,5 @@ def simulate(out: str | Path, config: SimConfig, progress: Callable[[int], None]
         raise InputError(f"{out}: cannot write the simulated log ({exc.strerror or exc}){removed}") from exc
     seconds = time.perf_counter() - start
     size = out.stat().st_size if out.is_file() else sum(p.stat().st_size for p in log.written)
-    logger.info("wrote %d frames of %s to %s in %.1f s", config.frames, config.scene, out, seconds)
+    logger.info("wrote %s of %s to %s in %.1f s", counted(config.frames, "frame"), config.scene, out, seconds)
     return {"path": str(out), "frames": config.frames, "seconds": seconds, "bytes": size}

@@ -203,7 +203,7 @@ class McapSink:
             log.warning("MCAP output %s: %s", self.path, self._cut_back())
             return
         self.finished = True
-        log.info("wrote %d frames to %s", self.frames_written, self.path)
+        log.info("wrote %s to %s", counted(self.frames_written, "frame"), self.path)
 
     def _cut_back(self) -> str:
         """Cut the file back to the end of its last whole frame and end it there with the metadata
