@@ -181,7 +181,8 @@ _STEP = 1 << 22
 field read as the limit took 4 GB; 4 MB costs a 24 MB chunk 9 ms more than decompressing it whole)."""
 
 _CUT_READ = 64 << 20
-"""Bytes read at most of a chunk still open (its length unknown, :func:`_cut_chunk_contents`)."""
+"""Bytes read at most of a chunk still open (its length unknown, :func:`_cut_chunk_contents`), and
+decompressed at most from a chunk cut off."""
 
 _MAX_RATIO = 1000
 """A compressed chunk may say it holds at most this many times its compressed bytes (or 64 MB,
@@ -193,10 +194,11 @@ def _decompress(compression: str, data: bytes, size: int, *, cut: bool = False) 
     """A chunk's records, decompressed (``size``: their length, as its header gives it). Output
     comes :data:`_STEP` bytes at a time and stops once past ``size``, and ``size`` is held to
     :data:`_MAX_RATIO`, so that neither a crafted chunk nor a damaged ``size`` fills the memory.
-    ``cut``: ``data`` is cut off; what it decompresses to, up to :data:`_MAX_RATIO` times its length."""
+    ``cut``: ``data`` is cut off, its size unknown; what it decompresses to, up to :data:`_CUT_READ`
+    bytes (a chunk as rosbag writes them holds about 768 KB)."""
     bound = max(64 << 20, _MAX_RATIO * len(data))
     if cut:
-        size = bound
+        size = _CUT_READ
     if compression == "none":
         out = data
     elif compression in ("bz2", "lz4"):
