@@ -174,8 +174,8 @@ def middlebury_calibration(path: Path) -> StereoCalibration:
         doffs=field("doffs", float, "a number of pixels", 0.0),
         source=str(path),
     ))
-    K1 = field("cam1", matrix, "a 3×3 matrix [fx 0 cx; 0 fy cy; 0 0 1]", False)
-    if K1 is not False and not (np.isclose(K1[0, 0], K0[0, 0], rtol=0.01) and abs(K1[0, 2] - K0[0, 2] - calib.doffs) <= 0.5):
+    K1 = field("cam1", matrix, "a 3×3 matrix [fx 0 cx; 0 fy cy; 0 0 1]") if "cam1" in values else None
+    if K1 is not None and not (np.isclose(K1[0, 0], K0[0, 0], rtol=0.01) and abs(K1[0, 2] - K0[0, 2] - calib.doffs) <= 0.5):
         logger.warning("%s: cam1 (fx %g, cx %g) is not cam0 shifted by doffs %g (fx %g, cx %g): not one rectified "
                        "pair? cam0 and doffs are used", path, K1[0, 0], K1[0, 2], calib.doffs, K0[0, 0], K0[0, 2])
     return calib
