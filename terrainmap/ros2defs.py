@@ -177,17 +177,18 @@ SCHEMAS: dict[str, str] = {
 """Full type name → schema text, for ``Writer.register_msgdef(name, SCHEMAS[name])``."""
 
 
-def offered_qos_profiles(latched: bool) -> str:
+def offered_qos_profiles(latched: bool, depth: int = 10) -> str:
     """rosbag2's ``offered_qos_profiles`` channel metadata (a YAML list of one profile), which the
     MCAP ``ros2`` profile asks for and ``ros2 bag play`` publishes each topic with: reliable,
-    keep last (depth 1 latched, else 10), and transient local where ``latched`` (``/tf_static``,
+    keep last (depth 1 latched, else ``depth``: 100 for ``/tf``, as tf2's broadcaster offers),
+    and transient local where ``latched`` (``/tf_static``,
     maps: subscribers that join later, such as tf2's static listener, still get the last
     message; a volatile publisher would not even connect to them) or volatile. Enum values
     are rmw's (history 1 keep last, reliability 1 reliable, durability 1 transient local / 2
     volatile, liveliness 1 automatic); durations 0 are rmw's "unspecified" (the default)."""
     zero = "\n    sec: 0\n    nsec: 0"
     return (
-        f"- history: 1\n  depth: {1 if latched else 10}\n  reliability: 1\n  durability: {1 if latched else 2}\n"
+        f"- history: 1\n  depth: {1 if latched else depth}\n  reliability: 1\n  durability: {1 if latched else 2}\n"
         f"  deadline:{zero}\n  lifespan:{zero}\n  liveliness: 1\n  liveliness_lease_duration:{zero}\n"
         "  avoid_ros_namespace_conventions: false"
     )

@@ -218,12 +218,15 @@ def channel_qos(path: Path) -> dict[str, tuple[int, int, int]]:
     return {topic: (p.reliability.value, p.durability.value, p.depth) for topic, (p,) in profiles.items()}
 
 
-def test_channels_offer_qos_for_ros2_bag_play_with_static_topics_latched(ros_file):
-    qos = channel_qos(ros_file[0])
+def test_channels_offer_qos_for_ros2_bag_play_with_static_topics_latched(ros_file, tmp_path):
+    estimated = tmp_path / "estimated.mcap"  # its camera pose goes on /tf
+    write_frames(estimated, "ros2", [make_frame(0, source="estimated")])
+    qos = {**channel_qos(ros_file[0]), "/tf": channel_qos(estimated)["/tf"]}
     assert {"/tf_static", "/terrainmap/costmap", "/terrainmap/grid_map", "/terrainmap/points"} <= set(qos)
     for topic, (reliability, durability, depth) in qos.items():
         latched = topic in ("/tf_static", "/terrainmap/costmap")
-        assert (reliability, durability, depth) == (1, 1 if latched else 2, 1 if latched else 10), topic  # 1 = reliable; 1 transient local, 2 volatile
+        depth_wanted = 1 if latched else 100 if topic == "/tf" else 10  # /tf: as tf2's TransformBroadcaster
+        assert (reliability, durability, depth) == (1, 1 if latched else 2, depth_wanted), topic  # 1 = reliable; 1 transient local, 2 volatile
 
 
 def test_schemas_registered_once_with_short_dependency_names(ros_file):

@@ -202,7 +202,8 @@ class Ros2Writer(Writer):
         if topic not in self._channel_ids:
             self._channel_ids[topic] = self._writer.register_channel(
                 topic=topic, message_encoding="cdr", schema_id=schema.id,
-                metadata={"offered_qos_profiles": offered_qos_profiles(topic in self._latched)},
+                metadata={"offered_qos_profiles": offered_qos_profiles(topic in self._latched,
+                                                                       100 if topic == "/tf" else 10)},
             )
         return self._channel_ids[topic]
 
