@@ -136,8 +136,8 @@ def cell_of(grid: GridConfig, x: float, y: float) -> tuple[int, int]:
 def fox_stamp(msg) -> int:
     if hasattr(msg, "transforms"):
         ts = msg.transforms[0].timestamp
-    elif hasattr(msg, "deletions"):
-        ts = msg.deletions[0].timestamp
+    elif hasattr(msg, "deletions"):  # the obstacles' (a delete-all first), the surface's (its entity)
+        ts = msg.deletions[0].timestamp if msg.deletions else msg.entities[0].timestamp
     else:
         ts = msg.timestamp
     return ts.seconds * 1_000_000_000 + ts.nanos
@@ -345,7 +345,7 @@ def test_messages_are_placed_in_the_vehicle_frame_the_extrinsics_name(tmp_path, 
         for _, _, msg in messages:
             if topic in ("/tf", "/tf_static"):
                 frame_ids |= {t.parent_frame_id if flavor == "foxglove" else t.header.frame_id for t in msg.transforms}
-            elif topic == "/terrainmap/obstacles":
+            elif topic in ("/terrainmap/obstacles", "/terrainmap/surface"):
                 parts = msg.entities if flavor == "foxglove" else [m.header for m in msg.markers]
                 frame_ids |= {part.frame_id for part in parts}
             else:
@@ -671,7 +671,8 @@ def test_layer_shape_mismatch_is_reported_before_any_message_of_the_frame(tmp_pa
 
 
 def test_foxglove_layout_names_written_topics_and_fields(fox_file):
-    """examples/foxglove_layout.json colours the grid by slope and the points by label, on our topics."""
+    """examples/foxglove_layout.json shows the surface (its mesh, coloured by slope), the points
+    coloured by label and the grid, hidden (Foxglove draws it flat), coloured by slope, on our topics."""
     layout = json.loads((Path(__file__).resolve().parents[1] / "examples" / "foxglove_layout.json").read_text())
     panel = layout["configById"][layout["layout"]["first"]]
     assert layout["layout"]["first"].startswith("3D!")
@@ -680,8 +681,8 @@ def test_foxglove_layout_names_written_topics_and_fields(fox_file):
     grid_fields = {f.name for f in topics["/terrainmap/grid"][0][2].fields}
     point_fields = {f.name for f in topics["/terrainmap/points"][0][2].fields}
     grid, points = panel["topics"]["/terrainmap/grid"], panel["topics"]["/terrainmap/points"]
-    assert grid["colorField"] == "slope" and grid["colorField"] in grid_fields
-    assert grid["elevationField"] in grid_fields
+    assert grid["colorField"] == "slope" and grid["colorField"] in grid_fields and not grid["visible"]
+    assert panel["topics"]["/terrainmap/surface"]["visible"]
     assert points["colorField"] == "label" and points["colorField"] in point_fields
     assert panel["followTf"] == "base_link"
 
@@ -750,3 +751,31 @@ def test_fixed_extrinsics_that_change_go_on_tf_static_again(tmp_path, flavor):
         (t,) = msg.transforms
         heights.append(t.translation.z if flavor == "foxglove" else t.transform.translation.z)
     assert heights == [1.6, 1.4]
+
+
+def test_the_surface_is_a_mesh_over_the_cells_with_data(tmp_path):
+    """foxglove.Grid is drawn flat: /terrainmap/surface carries the surface as a triangle list over
+    the cell centres at their elevation, the triangles (two a square of four centres) whose corners
+    all hold data, each vertex coloured by slope from green (0°) to red (≥ 30°)."""
+    frame, result = make_frame(0)
+    valid = result.layers["valid"]  # a pattern of cells without data
+    result = dataclasses.replace(result, grid=dataclasses.replace(result.grid, valid=valid))
+    path = tmp_path / "surface.mcap"
+    write_frames(path, "foxglove", [(frame, result)])
+    ((_, _, msg),) = read_messages(path, ProtobufDecoderFactory())["/terrainmap/surface"]
+    (entity,) = msg.entities
+    (mesh,) = entity.triangles
+    assert (entity.id, entity.frame_id, entity.timestamp.seconds) == ("terrain", "base_link", frame.stamp_ns // 10**9)
+    m0, m1 = GRID.shape
+    ix, iy = np.meshgrid(np.arange(m0), np.arange(m1), indexing="ij")
+    xyz = np.array([[p.x, p.y, p.z] for p in mesh.points]).reshape(m0, m1, 3)
+    np.testing.assert_allclose(xyz[..., 0], GRID.x_min_m + (ix + 0.5) * GRID.cell_size_m)
+    np.testing.assert_allclose(xyz[..., 1], GRID.y_min_m + (iy + 0.5) * GRID.cell_size_m)
+    np.testing.assert_allclose(xyz[..., 2], result.layers["elevation"], rtol=1e-6)
+    faces = np.array(mesh.indices).reshape(-1, 3)
+    first = valid[:-1, :-1] & valid[1:, :-1] & valid[:-1, 1:]  # of a square's two triangles, those whose
+    second = valid[:-1, 1:] & valid[1:, :-1] & valid[1:, 1:]  # three corners all hold data
+    assert len(faces) == first.sum() + second.sum() and valid.ravel()[faces].all()
+    rgb = np.array([[c.r, c.g, c.b, c.a] for c in mesh.colors]).reshape(m0, m1, 4)
+    np.testing.assert_allclose(rgb[0, 0], [0, 1, 38 / 255, 1])  # slope 0: green
+    np.testing.assert_allclose(rgb[5, 0], [1, 0, 38 / 255, 1])  # slope 5 rad: red

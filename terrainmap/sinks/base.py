@@ -14,6 +14,7 @@ below turn a :class:`~terrainmap.types.FrameResult` into the plain arrays both f
 from __future__ import annotations
 
 import contextlib
+import functools
 import json
 import logging
 import os
@@ -343,6 +344,33 @@ def points_record(result: FrameResult, head: bytes, tail: bytes = b"", stride: i
     raw[:, :12] = points.view(np.uint8)
     raw[:, 12] = result.point_labels[::stride]
     return record
+
+
+SLOPE_RANGE_RAD = (0.0, np.radians(30.0))
+"""Slopes coloured from green (flat) to red (this steep and over) by both viewers' surfaces."""
+
+
+def colormap(values: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    """Values → RGB uint8 on a green–yellow–red ramp (NaN grey), shape (..., 3)."""
+    t = np.clip((np.nan_to_num(values, nan=lo) - lo) / max(hi - lo, 1e-9), 0.0, 1.0)
+    rgb = np.stack([np.clip(2 * t, 0, 1), np.clip(2 - 2 * t, 0, 1), np.full_like(t, 0.15)], axis=-1)
+    out = (255 * rgb).astype(np.uint8)
+    out[np.isnan(values)] = (128, 128, 128)
+    return out
+
+
+def surface_triangles(valid: np.ndarray) -> np.ndarray:
+    """Triangles (k, 3) uint32 of a mesh over the (m0, m1) lattice of cell centres (vertex
+    ``ix·m1 + iy``), two a square of four centres: those whose three corners hold data (``valid``)."""
+    all_of_them = _triangles(*valid.shape)
+    return all_of_them[valid.ravel()[all_of_them].all(axis=1)]
+
+
+@functools.lru_cache(maxsize=4)  # one per grid shape
+def _triangles(m0: int, m1: int) -> np.ndarray:
+    """Two triangles per grid square of an (m0, m1) vertex lattice, (2·(m0−1)·(m1−1), 3) uint32."""
+    i = (np.arange(m0 - 1)[:, None] * m1 + np.arange(m1 - 1)[None, :]).ravel()
+    return np.concatenate([np.stack([i, i + m1, i + 1], 1), np.stack([i + 1, i + m1, i + m1 + 1], 1)]).astype(np.uint32)
 
 
 class Box(NamedTuple):

@@ -10,6 +10,9 @@ Topics, all in the vehicle frame (``Extrinsics.vehicle_frame_id``: ``base_link``
   x, so ``column_count = m0`` and the cell at byte offset ``(iy·m0 + ix)·cell_stride`` is the
   terrainmap cell ``[ix, iy]``, centred at ``(x_min + (ix+½)c, y_min + (iy+½)c)``; the pose is
   the grid's corner ``(x_min_m, y_min_m, 0)`` with identity orientation.
+- ``/terrainmap/surface`` ``foxglove.SceneUpdate``: entity ``terrain``, a triangle list over the
+  cell centres at the surface's elevation where the cells hold data, coloured by slope (green 0°
+  to red ≥ 30°): foxglove.Grid is drawn flat, this is the surface in 3D (:func:`surface_message`).
 - ``/terrainmap/points`` ``foxglove.PointCloud``: x, y, z float32 and uint8 ``label``.
 - ``/terrainmap/obstacles`` ``foxglove.SceneUpdate``: deletes all previous entities, then one
   entity per confirmed obstacle (id ``obstacle/<track id>``) with a cube (coloured by kind) and a
@@ -48,17 +51,21 @@ from mcap.writer import CompressionType
 from mcap_protobuf.schema import register_schema
 from mcap_protobuf.writer import Writer
 
+from ..grid import cell_centers
 from ..ros2defs import yaw_quaternion
 from ..types import FrameResult, StereoFrame
 from .base import (
     FLOAT_LAYERS,
     METADATA_NAME,
     POINT_DTYPE,
+    SLOPE_RANGE_RAD,
     Box,
     McapSink,
+    colormap,
     grid_layers,
     points_record,
     shown_boxes,
+    surface_triangles,
 )
 
 FLOAT32 = PackedElementField.FLOAT32  # 7
@@ -166,6 +173,45 @@ def _entity(box: Box, stamp: Timestamp, frame_id: str) -> SceneEntity:
     )
 
 
+_POINT3 = np.dtype({"names": ["tag", "size", "tx", "x", "ty", "y", "tz", "z"],
+                    "formats": ["u1", "u1", "u1", "<f8", "u1", "<f8", "u1", "<f8"],
+                    "offsets": [0, 1, 2, 3, 11, 12, 20, 21], "itemsize": 29})
+"""A ``foxglove.Point3`` (x, y, z doubles: fields 1–3) as field 2 of a TriangleListPrimitive."""
+_COLOR = np.dtype({"names": ["tag", "size", "tr", "r", "tg", "g", "tb", "b", "ta", "a"],
+                   "formats": ["u1", "u1", "u1", "<f8", "u1", "<f8", "u1", "<f8", "u1", "<f8"],
+                   "offsets": [0, 1, 2, 3, 11, 12, 20, 21, 29, 30], "itemsize": 38})
+"""A ``foxglove.Color`` (r, g, b, a doubles: fields 1–4) as field 4 of a TriangleListPrimitive."""
+
+
+def surface_message(result: FrameResult) -> bytes:
+    """Serialized ``foxglove.SceneUpdate`` with one entity ``terrain``: a triangle list over the
+    centres of the cells with data, at the surface's elevation, each vertex coloured by slope
+    (green 0° to red ≥ 30°, :data:`~.base.SLOPE_RANGE_RAD`). foxglove.Grid is drawn flat, so this is
+    how Foxglove shows the surface in 3D. The 3000 vertices and colours are packed with numpy
+    (protobuf's message objects took milliseconds a frame); the wire format is protobuf's."""
+    grid = result.grid.config
+    xs, ys = cell_centers(grid)
+    X, Y = np.meshgrid(xs, ys, indexing="ij")
+    points = np.zeros(X.size, _POINT3)
+    points["tag"], points["size"], points["tx"], points["ty"], points["tz"] = 0x12, 27, 0x09, 0x11, 0x19
+    points["x"], points["y"], points["z"] = X.ravel(), Y.ravel(), result.layers["elevation"].ravel()
+    rgb = colormap(result.layers["slope"].ravel(), *SLOPE_RANGE_RAD) / 255.0
+    colors = np.zeros(X.size, _COLOR)
+    colors["tag"], colors["size"], colors["tr"], colors["tg"], colors["tb"], colors["ta"] = 0x22, 36, 9, 0x11, 0x19, 0x21
+    colors["r"], colors["g"], colors["b"], colors["a"] = rgb[:, 0], rgb[:, 1], rgb[:, 2], 1.0
+    indices = surface_triangles(result.grid.valid).astype("<u4").tobytes()
+    primitive = (_message_field(1, Pose(orientation=Quaternion(w=1.0)).SerializeToString()) + points.tobytes()
+                 + colors.tobytes() + bytes([5 << 3 | 2]) + _varint(len(indices)) + indices)
+    stamp = _timestamp(result.stamp_ns)
+    entity = SceneEntity(timestamp=stamp, frame_id=result.extrinsics.vehicle_frame_id, id="terrain").SerializeToString()
+    return SceneUpdate().SerializeToString() + _message_field(2, entity + _message_field(12, primitive))
+
+
+def _message_field(number: int, data: bytes) -> bytes:
+    """A length-delimited protobuf field (a message, bytes) with its tag."""
+    return bytes([number << 3 | 2]) + _varint(len(data)) + data
+
+
 def obstacles_message(result: FrameResult) -> SceneUpdate:
     """``foxglove.SceneUpdate`` that deletes every earlier entity and adds this frame's boxes
     (:func:`~.base.shown_boxes`): entity ids ``obstacle/<track id>`` and ``occupied/<n>``."""
@@ -230,6 +276,7 @@ class FoxgloveMcapSink(McapSink):
         for topic, transforms in self._transforms(frame, result):
             self._log(topic, transforms_message(t, transforms), t)
         self._log("/terrainmap/grid", grid_message(result), t)
+        self._writer.write_encoded("/terrainmap/surface", SceneUpdate, surface_message(result), t)
         points = encode_points(result, self._point_stride(result))
         self._writer.write_encoded("/terrainmap/points", PointCloud, points, t)
         self._log("/terrainmap/obstacles", obstacles_message(result), t)

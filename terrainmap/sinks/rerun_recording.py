@@ -56,7 +56,7 @@ from ..grid import cell_centers
 from ..ros2defs import yaw_quaternion
 from ..stereo import rectified_camera
 from ..types import FrameResult, Label, StereoFrame
-from .base import check_frame, point_stride, shown_boxes
+from .base import SLOPE_RANGE_RAD, check_frame, colormap, point_stride, shown_boxes, surface_triangles
 
 LABEL_COLORS = {
     Label.UNKNOWN: (140, 140, 140),
@@ -67,7 +67,6 @@ LABEL_COLORS = {
 NO_POINT = 255
 """Class id of the label image's pixels that hold no point: transparent (the image shows through),
 where the classes of :data:`LABEL_COLORS` are drawn over it."""
-SLOPE_RANGE_RAD = (0.0, np.radians(30.0))
 VEHICLE = "world/vehicle"
 """Entity of the vehicle frame; everything computed per frame is logged under it."""
 RESULTS = ("points", "grid", "terrain", "obstacles", "occupied", "camera/image/labels")
@@ -103,21 +102,6 @@ def _span(values: np.ndarray) -> tuple[float, float]:
     """(min, max) of the finite ``values`` (the cells drawn), (0, 1) when there are none."""
     finite = values[np.isfinite(values)]
     return (float(finite.min()), float(finite.max())) if finite.size else (0.0, 1.0)
-
-
-def _colormap(values: np.ndarray, lo: float, hi: float) -> np.ndarray:
-    """Values → RGB uint8 on a green–yellow–red ramp (NaN grey), shape (..., 3)."""
-    t = np.clip((np.nan_to_num(values, nan=lo) - lo) / max(hi - lo, 1e-9), 0.0, 1.0)
-    rgb = np.stack([np.clip(2 * t, 0, 1), np.clip(2 - 2 * t, 0, 1), np.full_like(t, 0.15)], axis=-1)
-    out = (255 * rgb).astype(np.uint8)
-    out[np.isnan(values)] = (128, 128, 128)
-    return out
-
-
-def _triangles(m0: int, m1: int) -> np.ndarray:
-    """Two triangles per grid square of an (m0, m1) vertex lattice, (2·(m0−1)·(m1−1), 3) uint32."""
-    i = (np.arange(m0 - 1)[:, None] * m1 + np.arange(m1 - 1)[None, :]).ravel()
-    return np.concatenate([np.stack([i, i + m1, i + 1], 1), np.stack([i + 1, i + m1, i + m1 + 1], 1)]).astype(np.uint32)
 
 
 _FLUSH_WAIT_S = 5.0
@@ -160,7 +144,6 @@ class RerunSink:
         self._config = config
         self._closed = False
         self.finished = False
-        self._mesh_key: tuple | None = None
         self._camera_key: tuple | None = None
         self._elevation_span: tuple[float, float] | None = None  # lowest and highest drawn so far, m
         self.frames_written = 0
@@ -259,20 +242,18 @@ class RerunSink:
             rec.log(f"{VEHICLE}/grid/{name}", samples)
         layers = result.layers
         vertices = np.column_stack([X.ravel(), Y.ravel(), layers["elevation"].ravel()]).astype(np.float32)
-        if grid.shape != self._mesh_key:  # the full triangle list depends on the grid shape only
-            self._triangles, self._mesh_key = _triangles(*grid.shape), grid.shape
-        triangles = self._triangles[valid.ravel()[self._triangles].all(axis=1)]  # cells with data only
+        triangles = surface_triangles(valid)  # cells with data only
         drawn = layers["elevation"][valid]
         drawn = drawn[np.isfinite(drawn)]
         lo, hi = self._elevation_span or _span(drawn)  # one scale for the whole drive, widened where needed
         if drawn.size:
             self._elevation_span = lo, hi = min(lo, float(drawn.min())), max(hi, float(drawn.max()))
         colorings = {
-            "slope": _colormap(layers["slope"].ravel(), *SLOPE_RANGE_RAD),
-            "elevation": _colormap(layers["elevation"].ravel(), lo, hi),
+            "slope": colormap(layers["slope"].ravel(), *SLOPE_RANGE_RAD),
+            "elevation": colormap(layers["elevation"].ravel(), lo, hi),
         }
         if "cost" in layers:
-            colorings["cost"] = _colormap(layers["cost"].ravel(), 0.0, 1.0)
+            colorings["cost"] = colormap(layers["cost"].ravel(), 0.0, 1.0)
         for name, colors in colorings.items():
             mesh = rr.Mesh3D(vertex_positions=vertices, triangle_indices=triangles, vertex_colors=colors)
             rec.log(f"{VEHICLE}/terrain/{name}", mesh)
