@@ -21,6 +21,15 @@ def is_whole(value) -> bool:
     return isinstance(value, numbers.Integral) and not isinstance(value, bool)
 
 
+STAMP_RANGE = "1970–2262 (0 to 2^63 − 1 ns)"
+"""The times an MCAP or ROS stamp (unsigned, signed 64-bit in Rerun) can hold, for messages."""
+
+
+def is_stamp(value: int) -> bool:
+    """Whether a whole number of nanoseconds lies in :data:`STAMP_RANGE`."""
+    return 0 <= value <= 2**63 - 1
+
+
 def counted(count: int, noun: str) -> str:
     """``1 frame``, ``2 frames``: a count with its noun in the right number, for messages."""
     return f"{count} {noun}{'s' * (count != 1)}"

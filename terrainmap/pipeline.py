@@ -16,7 +16,7 @@ from typing import NamedTuple
 import numpy as np
 
 from .config import Config, same_values
-from .errors import CalibrationError, ConfigError, InputError, is_whole
+from .errors import STAMP_RANGE, CalibrationError, ConfigError, InputError, is_stamp, is_whole
 from .extrinsics import estimate_extrinsics, extrinsics_from_calibration
 from .grid import HeightGrid, cell_index, quantize
 from .obstacle_stage import make_tracker, run_obstacle_stage
@@ -237,9 +237,9 @@ def check_stamp(frame: StereoFrame) -> None:
     if not is_whole(frame.stamp_ns):
         raise InputError(f"{frame.source or 'input'}: frame {frame.index} has stamp {frame.stamp_ns!r}; "
                          "a stamp is a whole number of nanoseconds")
-    if not 0 <= frame.stamp_ns <= 2**63 - 1:
+    if not is_stamp(frame.stamp_ns):
         raise InputError(f"{frame.source or 'input'}: frame {frame.index} has stamp {frame.stamp_ns} ns, "
-                         "outside 1970–2262 (0 to 2^63 − 1 ns)")
+                         f"outside {STAMP_RANGE}")
 
 
 class Prepared(NamedTuple):

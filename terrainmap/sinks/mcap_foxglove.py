@@ -128,10 +128,18 @@ def encode_points(result: FrameResult, stride: int = 1) -> bytearray:
         fields=_fields(POINT_DTYPE),
     ).SerializeToString()
     size = len(result.points_vehicle[::stride]) * POINT_DTYPE.itemsize
-    return points_record(result, head + _DATA_TAG + _varint(size), stride=stride)
+    return points_record(result, head + _field_head(PointCloud.DESCRIPTOR.fields_by_name["data"].number, size),
+                         stride=stride)
 
 
-_DATA_TAG = bytes([PointCloud.DESCRIPTOR.fields_by_name["data"].number << 3 | 2])  # length-delimited
+def _field_head(number: int, size: int) -> bytes:
+    """The tag and varint length of a length-delimited protobuf field (a message, bytes) of ``size`` bytes."""
+    return bytes([number << 3 | 2]) + _varint(size)
+
+
+def _message_field(number: int, data: bytes) -> bytes:
+    """A length-delimited protobuf field with its tag and length."""
+    return _field_head(number, len(data)) + data
 
 
 def _varint(value: int) -> bytes:
@@ -201,15 +209,10 @@ def surface_message(result: FrameResult) -> bytes:
     colors["r"], colors["g"], colors["b"], colors["a"] = rgb[:, 0], rgb[:, 1], rgb[:, 2], 1.0
     indices = surface_triangles(result.grid.valid).astype("<u4").tobytes()
     primitive = (_message_field(1, Pose(orientation=Quaternion(w=1.0)).SerializeToString()) + points.tobytes()
-                 + colors.tobytes() + bytes([5 << 3 | 2]) + _varint(len(indices)) + indices)
+                 + colors.tobytes() + _message_field(5, indices))
     stamp = _timestamp(result.stamp_ns)
     entity = SceneEntity(timestamp=stamp, frame_id=result.extrinsics.vehicle_frame_id, id="terrain").SerializeToString()
-    return SceneUpdate().SerializeToString() + _message_field(2, entity + _message_field(12, primitive))
-
-
-def _message_field(number: int, data: bytes) -> bytes:
-    """A length-delimited protobuf field (a message, bytes) with its tag."""
-    return bytes([number << 3 | 2]) + _varint(len(data)) + data
+    return _message_field(2, entity + _message_field(12, primitive))  # SceneUpdate.entities, SceneEntity.triangles
 
 
 def obstacles_message(result: FrameResult) -> SceneUpdate:

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
 
-from ..errors import CalibrationError, DamagedImageError, InputError
+from ..errors import STAMP_RANGE, CalibrationError, DamagedImageError, InputError, is_stamp
 from ..types import Extrinsics, StereoCalibration, StereoFrame
 from . import calibration as calib_io
 from .base import DEFAULT_PERIOD_NS, PairRef, Source, extrinsics_entry, natural_key
@@ -54,9 +54,9 @@ def image_names(folder: Path) -> list[str]:
 def checked_stamps(stamps: list[int], path: Path) -> list[int]:
     """``stamps`` (ns) read from the stamp file ``path``, or :class:`InputError` naming the file
     where one is no time that an MCAP or ROS stamp can hold."""
-    bad = next((stamp for stamp in stamps if not 0 <= stamp <= 2**63 - 1), None)
+    bad = next((stamp for stamp in stamps if not is_stamp(stamp)), None)
     if bad is not None:
-        raise InputError(f"{path}: stamp {bad} ns lies outside 1970–2262 (0 to 2^63 − 1 ns)")
+        raise InputError(f"{path}: stamp {bad} ns lies outside {STAMP_RANGE}")
     return stamps
 
 
