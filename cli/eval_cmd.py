@@ -163,16 +163,22 @@ def _print_table(results) -> None:
               help="Fraction of empty cells.")
 @click.option("--seeds", type=click.IntRange(1, 1000), default=5, show_default=True,
               help="Random samples to average over (seeds 0..N-1).")
+@click.option("--json", "json_path", type=click.Path(dir_okay=False), callback=output_file(".json"),
+              help="Write {iterative_rmse_m, single_fit_rmse_m, ratio} and the scene's settings here.")
 @config_options
-def robustness(noise_m, outlier_fraction, outlier_max_m, empty_fraction, seeds, config_path, overrides):
+def robustness(noise_m, outlier_fraction, outlier_max_m, empty_fraction, seeds, json_path, config_path, overrides):
     """Surface RMSE vs truth on synthetic rolling terrain: iterative estimator vs one plain fit."""
     from terrainmap.evaluation import robustness as lib
 
+    check_outputs({"--json": json_path}, [config_path])
     config = load_config(config_path, overrides)
-    r = lib.run(config, seeds=range(seeds), noise_m=noise_m, outlier_fraction=outlier_fraction,
-                outlier_max_m=outlier_max_m, empty_fraction=empty_fraction)
+    scene = {"noise_m": noise_m, "outlier_fraction": outlier_fraction, "outlier_max_m": outlier_max_m,
+             "empty_fraction": empty_fraction}
+    r = lib.run(config, seeds=range(seeds), **scene)
     click.echo(f"iterative (Algorithm V-B.1) RMSE {100 * r['iterative_rmse_m']:.2f} cm; "
                f"single unweighted fit RMSE {100 * r['single_fit_rmse_m']:.2f} cm ({r['ratio']:.1f}× the iterative's)")
+    if json_path:
+        write_text(json_path, json.dumps({**r, **scene, "seeds": seeds}, indent=2) + "\n")
 
 
 from .eval_accuracy import accuracy  # noqa: E402 (the commands live in their own modules)

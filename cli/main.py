@@ -142,6 +142,8 @@ def main(argv: list[str] | None = None) -> None:
         sys.exit(exc.exit_code)
     except click.UsageError as exc:  # one line, with the help hint click would print above it
         hint = f" (see '{exc.ctx.command_path} --help')" if exc.ctx is not None else ""
+        if isinstance(exc, click.NoSuchOption) and exc.option_name in ("-v", "--verbose"):
+            hint = f" ({exc.option_name} goes before the command: terrainmap {exc.option_name} COMMAND ...)"
         click.echo(f"Error: {exc.format_message()}{hint}", err=True)
         sys.exit(exc.exit_code)
     except click.ClickException as exc:

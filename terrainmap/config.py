@@ -858,10 +858,10 @@ def check_section(section: Any, kind: type, grid: GridConfig | None = None) -> N
         return
     name = _SECTION_NAMES[type(section)]
     check_kinds(name, section)
-    if isinstance(section, TerrainConfig):
-        section.validate(grid)
-    else:
-        section.validate()
+    try:
+        section.validate(grid) if isinstance(section, TerrainConfig) else section.validate()
+    except ConfigError as exc:
+        raise _with_value(exc, name, section) from None
     for f in fields(section):
         value, kind = getattr(section, f.name), str(f.type)
         if kind == "float" and abs(value) > MAX_NUMBER:
@@ -869,6 +869,17 @@ def check_section(section: Any, kind: type, grid: GridConfig | None = None) -> N
         if kind == "int" and not INT_RANGE[0] <= value <= INT_RANGE[1]:
             raise ConfigError(f"{name}.{f.name}: must be within {INT_RANGE[0]}..{INT_RANGE[1]}, got {brief(value)}")
     _PASSED[type(section)] = (dataclasses.replace(section), grid and dataclasses.replace(grid))
+
+
+def _with_value(error: ConfigError, name: str, section: Any) -> ConfigError:
+    """``error`` of one field of ``section`` (config section ``name``) with ", got VALUE" added
+    where its message does not say the value already."""
+    field, _, message = str(error).partition(": ")
+    section_name, _, key = field.partition(".")
+    if section_name != name or key not in section.__dataclass_fields__:
+        return error
+    value = brief(getattr(section, key))
+    return error if "got" in message or value in message else ConfigError(f"{field}: {message}, got {value}")
 
 
 _PASSED: dict[type, tuple] = {}

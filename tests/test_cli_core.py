@@ -48,6 +48,7 @@ def test_a_file_named_like_the_verbose_flag_is_no_flag(capsys):
         (["bogus"], r"Error: No such command 'bogus'\. \(see 'terrainmap --help'\)"),
         # (click 8.2 and 8.3 word it "No such option: --nope")
         (["config", "--nope"], r"Error: No such option(: --nope| '--nope'\.) \(see 'terrainmap config --help'\)"),
+        (["config", "-v"], r"Error: No such option(: -v| '-v'\.) \(-v goes before the command: terrainmap -v COMMAND \.\.\.\)"),
     ],
 )
 def test_usage_errors_are_one_line(capsys, args, line):
@@ -373,6 +374,19 @@ def test_eval_robustness_reports_both_fits():
     assert "iterative (Algorithm V-B.1) RMSE" in result.output and "single unweighted fit" in result.output
 
 
+def test_eval_robustness_writes_what_the_library_gives_as_json(tmp_path):
+    from terrainmap.config import Config
+    from terrainmap.evaluation import robustness
+
+    out = tmp_path / "r.json"
+    result = CliRunner().invoke(cli, ["eval", "robustness", "--seeds", "2", "--noise", "0.05", "--json", str(out)])
+    assert result.exit_code == 0, result.output
+    expected = robustness.run(Config(), seeds=range(2), noise_m=0.05)
+    assert json.loads(out.read_text()) == {**expected, "noise_m": 0.05, "outlier_fraction": 0.1, "outlier_max_m": 2.0,
+                                           "empty_fraction": 0.3, "seeds": 2}
+    assert f"{100 * expected['iterative_rmse_m']:.2f} cm" in result.output
+
+
 def test_eval_robustness_ratio_is_the_single_fits_rmse_over_the_iterative_ones():
     from terrainmap.config import Config
     from terrainmap.evaluation import robustness
@@ -576,3 +590,11 @@ def test_errors_name_the_option_the_user_gave(argv, line, capsys):
         main(argv)
     assert exc.value.code == 2
     assert capsys.readouterr().err.splitlines() == [line]
+
+
+@pytest.mark.parametrize(("words", "expected"), [("terrainmap pro", "plain,process"),
+                                                 ("terrainmap process --fl", "plain,--flavor")])
+def test_tab_completion_as_the_readme_sets_it_up(words, expected):
+    env = {"_TERRAINMAP_COMPLETE": "bash_complete", "COMP_WORDS": words, "COMP_CWORD": str(len(words.split()) - 1)}
+    result = CliRunner().invoke(cli, [], prog_name="terrainmap", env=env)
+    assert result.exit_code == 0 and expected in result.output.splitlines(), result.output

@@ -375,3 +375,18 @@ def test_a_config_file_with_a_byte_order_mark_and_a_set_with_spaces_are_read(tmp
     path.write_bytes("\ufeff[terrain]\ndegree = 2\n".encode())
     config = load_config(path, overrides=["grid. cell_size_m = 0.25"])
     assert config.terrain.degree == 2 and config.grid.cell_size_m == 0.25
+
+
+@pytest.mark.parametrize(("setting", "line"), [
+    ("stereo.left_margin_px=2000", "stereo.left_margin_px: must be in 0..1024, got 2000"),
+    ("terrain.threshold_factor=-1", "terrain.threshold_factor: must be > 0, got -1.0"),
+    ("grid.z_min_m=50", "grid.z_min_m: must be below grid.z_max_m, got 50.0"),
+    # messages that say the value already keep it once
+    ("stereo.num_disparities=17", "stereo.num_disparities: must be 0 (auto) or a positive multiple of 16, got 17"),
+    ("obstacles.min_cells=100000",
+     "obstacles.min_cells: (100000) exceeds the grid's 2992 cells: no obstacle could be found"),
+])
+def test_a_range_error_says_the_value_it_got(setting, line):
+    with pytest.raises(ConfigError) as exc:
+        load_config(None, [setting])
+    assert str(exc.value) == line
