@@ -211,7 +211,7 @@ class ObstacleTracker:
             self._backwards += 1
             (logger.warning if self._backwards == 1 else logger.info)(
                 "tracking: stamp %d is older than the previous %d; tracks reset%s", stamp_ns, self._stamp_ns,
-                " (said once; again each time it happens with --verbose)" if self._backwards == 1 else "",
+                " (said once per tracker; again each time it happens at log level INFO, which terrainmap -v shows)" if self._backwards == 1 else "",
             )
             self.reset()
         dt = 0.0 if self._stamp_ns is None else (stamp_ns - self._stamp_ns) * 1e-9
@@ -435,7 +435,7 @@ class ObstacleTracker:
             out.append(
                 Obstacle(
                     center_m=centers[k],
-                    size_m=last.size_m,
+                    size_m=last.size_m.copy(),  # the caller's to change (a safety margin): not the track's
                     yaw_rad=yaws[k],
                     height_m=last.height_m,
                     point_count=last.point_count,

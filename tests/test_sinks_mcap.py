@@ -779,3 +779,63 @@ def test_the_surface_is_a_mesh_over_the_cells_with_data(tmp_path):
     rgb = np.array([[c.r, c.g, c.b, c.a] for c in mesh.colors]).reshape(m0, m1, 4)
     np.testing.assert_allclose(rgb[0, 0], [0, 1, 38 / 255, 1])  # slope 0: green
     np.testing.assert_allclose(rgb[5, 0], [1, 0, 38 / 255, 1])  # slope 5 rad: red
+
+
+def test_threads_sharing_a_sink_take_turns(tmp_path, monkeypatch):
+    """A frame is written whole before another thread's starts: the second write waits while the
+    first is held inside its frame, and the file holds the first frame's messages, then the second's."""
+    import threading
+
+    from terrainmap.sinks import mcap_foxglove
+
+    inside, release, encode = threading.Event(), threading.Event(), mcap_foxglove.encode_points
+
+    def held(*args, **kwargs):
+        if threading.current_thread().name == "first":
+            inside.set()
+            release.wait(10)
+        return encode(*args, **kwargs)
+
+    monkeypatch.setattr(mcap_foxglove, "encode_points", held)
+    path = tmp_path / "shared.mcap"
+    with open_mcap_sink(path, config=Config()) as sink:
+        first = threading.Thread(target=sink.write, args=make_frame(0), name="first")
+        first.start()
+        assert inside.wait(10)
+        second = threading.Thread(target=sink.write, args=make_frame(1))
+        second.start()
+        second.join(0.3)
+        waited = second.is_alive()
+        release.set()
+        first.join()
+        second.join()
+    assert waited and sink.finished and sink.frames_written == 2
+    with open(path, "rb") as f:
+        order = [message.log_time for _, _, message in make_reader(f).iter_messages(log_time_order=False)]
+    assert order == sorted(order)  # as written: frame 0's messages, then frame 1's
+
+
+@pytest.mark.parametrize("flavor", ["foxglove", "ros2"])
+def test_a_sink_dropped_without_close_is_finished(tmp_path, flavor):
+    import gc
+
+    path = tmp_path / "dropped.mcap"
+    sink = open_mcap_sink(path, flavor, config=Config())
+    sink.write(*make_frame(0))
+    del sink
+    gc.collect()
+    with open(path, "rb") as f:
+        assert make_reader(f).get_summary().statistics.message_count > 0
+    assert read_metadata(path)["frames"] == "1"
+
+
+def test_a_sink_given_no_path_or_no_frame_says_so(tmp_path):
+    with pytest.raises(InputError, match=r"^MCAP output: expected a file path, got None$"):
+        open_mcap_sink(None, config=Config())
+    frame, result = make_frame(0)
+    with open_mcap_sink(tmp_path / "x.mcap", config=Config()) as sink:
+        for args in ((None, None), (frame, None), (result, frame)):
+            with pytest.raises(InputError, match=r"expected a StereoFrame and its FrameResult, got \w+ and \w+$"):
+                sink.write(*args)
+        sink.write(frame, result)
+    assert sink.frames_written == 1

@@ -380,9 +380,9 @@ def test_the_timelines_are_the_frame_index_and_the_image_stamp(log, tmp_path):
 
 
 def test_a_recording_of_bad_arguments_is_refused_naming_them(log, tmp_path):
-    """As the MCAP sink: a config that is no Config, a folder that does not exist, a stamp that no
-    Rerun time holds or an index that is no whole number are terrainmap's errors, said before
-    anything is logged."""
+    """As the MCAP sink: a config that is no Config, a path that is none or whose folder does not
+    exist, no frame or result, a stamp that no Rerun time holds or an index that is no whole number
+    are terrainmap's errors, said before anything is logged."""
     import dataclasses
 
     from terrainmap.errors import ConfigError, InputError
@@ -392,6 +392,8 @@ def test_a_recording_of_bad_arguments_is_refused_naming_them(log, tmp_path):
         RerunSink(tmp_path / "o.rrd", config=None)
     with pytest.raises(InputError, match="cannot create Rerun output .*: folder .*nowhere does not exist"):
         RerunSink(tmp_path / "nowhere" / "o.rrd", config=Config())
+    with pytest.raises(InputError, match="^Rerun output: expected a file path, got None$"):
+        RerunSink(None, config=Config())
     with open_source(log) as source:
         frame = next(source.frames())
     result = process_frame(frame, Config(), PipelineState(Config()))
@@ -403,6 +405,11 @@ def test_a_recording_of_bad_arguments_is_refused_naming_them(log, tmp_path):
             sink.write(bad, result)
     with pytest.raises(InputError, match="the result of frame 0 .* given with frame 1 .*: a result goes with its own frame"):
         sink.write(dataclasses.replace(frame, index=1), result)
+    for bad in ((None, None), (frame, None)):
+        with pytest.raises(InputError, match="expected a StereoFrame and its FrameResult, got"):
+            sink.write(*bad)
+    with pytest.raises(InputError, match="expected a StereoFrame and its FrameResult, got NoneType and NoneType"):
+        sink.failed(None, ValueError("x"))
     import numpy as np
 
     numpy_stamped = dataclasses.replace(frame, stamp_ns=np.int64(frame.stamp_ns))  # stamps read from an array

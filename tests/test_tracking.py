@@ -512,3 +512,17 @@ def test_a_frame_logged_twice_is_no_second_sighting():
         tracker.update([], 5 * DT_NS)
     (back,) = tracker.update([detection(10.0, 0.0)], 6 * DT_NS)
     assert back.track_id == out.track_id and back.confirmed
+
+
+def test_a_caller_changing_a_reported_obstacle_changes_no_track():
+    """An embedder that inflates the boxes it gets (a safety margin, in place) must not inflate the
+    track's shape, which later frames report and the cost layer occupies."""
+    tracker = ObstacleTracker(TrackingConfig(confirm_hits=2))
+    for k in range(3):
+        (out,) = tracker.update([detection(10, 1)], k * DT_NS)
+        out.size_m *= 2
+        out.center_m[:] = 0
+    tracker.update([], 3 * DT_NS)  # no detection: the track coasts with its last shape
+    (coasting,) = tracker.coasting(1)
+    np.testing.assert_array_equal(coasting.size_m, [1.0, 1.0, 1.0])
+    np.testing.assert_allclose(coasting.center_m[:2], [10, 1], atol=0.05)

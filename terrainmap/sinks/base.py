@@ -3,6 +3,7 @@
 A sink receives ``write(frame, result)`` once per processed frame and ``close()`` once at the
 end, in a ``finally``: ``close`` must leave a finalised file (summary and index) holding every
 frame written so far, even when the run failed part way, and may be called again safely.
+Threads may share a sink: its calls take turns (:func:`one_at_a_time`), each frame written whole.
 Where the file itself cannot be written (a full disk), :class:`McapSink` cuts it back to its
 last whole frame and ends it there without a summary, so that it still reads back.
 
@@ -18,6 +19,7 @@ import functools
 import json
 import logging
 import os
+import threading
 from collections.abc import Mapping
 from pathlib import Path
 from typing import NamedTuple, Protocol, runtime_checkable
@@ -28,7 +30,7 @@ from mcap.records import DataEnd, Footer, Metadata
 from mcap.writer import MCAP0_MAGIC
 
 from ..config import Config, check_config
-from ..errors import ConfigError, InputError, TerrainmapError, counted, is_whole
+from ..errors import ConfigError, InputError, TerrainmapError, brief, counted, is_whole
 from ..ros2defs import quaternion_from_matrix
 from ..types import Extrinsics, FrameResult, Obstacle, StereoFrame
 
@@ -48,10 +50,33 @@ OCCUPIED_RGBA = (0.6, 0.6, 0.6, 0.5)
 """Box colour of what occupies the cost map without being a confirmed obstacle of the frame."""
 
 
+def output_path(what: str, path) -> Path:
+    """``path`` as a Path; :class:`InputError` naming ``what`` (an output) where it is no path."""
+    if not isinstance(path, str | os.PathLike):
+        raise InputError(f"{what}: expected a file path, got {brief(path)}")
+    return Path(path)
+
+
+def one_at_a_time(method):
+    """A sink method whose calls from several threads take turns (on the sink's ``_lock``, an
+    RLock: a signal handler closing the sink within a write of its own thread goes on)."""
+
+    @functools.wraps(method)
+    def locked(self, *args, **kwargs):
+        with self._lock:
+            return method(self, *args, **kwargs)
+
+    return locked
+
+
 def check_frame(what: str, frame: StereoFrame, result: FrameResult, bits: int) -> None:
-    """:class:`InputError` naming ``what`` (an output) unless the frame's index is a whole number,
-    the result is that frame's (the same index and stamp) and the stamp a whole number of
-    nanoseconds in [0, 2^bits)."""
+    """:class:`InputError` naming ``what`` (an output) unless ``frame`` and ``result`` are a
+    StereoFrame and a FrameResult, the frame's index is a whole number, the result is that frame's
+    (the same index and stamp) and the stamp a whole number of nanoseconds in [0, 2^bits). A
+    failed frame is checked as its own result."""
+    if not isinstance(frame, StereoFrame) or not (result is frame or isinstance(result, FrameResult)):
+        raise InputError(f"{what}: expected a StereoFrame and its FrameResult, got {type(frame).__name__} and "
+                         f"{type(result).__name__}")
     if not is_whole(frame.index):
         raise InputError(f"{what}: the frame index must be a whole number, got {frame.index!r}")
     for stamp in {frame.stamp_ns, result.stamp_ns}:
@@ -106,8 +131,9 @@ class McapSink:
     """
 
     def __init__(self, path: str | Path, *, config: Config, metadata: Mapping[str, str] | None = None):
+        self._lock = threading.RLock()
+        self.path = output_path("MCAP output", path)
         check_config(f"MCAP output {path}", config)  # before the file is created: its TOML goes into the metadata
-        self.path = Path(path)
         self._config = config
         if metadata is not None and not isinstance(metadata, Mapping):
             raise ConfigError(f"MCAP output {path}: metadata must be a mapping of names to texts, got "
@@ -150,6 +176,7 @@ class McapSink:
     def _finish(self, metadata: dict[str, str]) -> None:
         raise NotImplementedError
 
+    @one_at_a_time
     def write(self, frame: StereoFrame, result: FrameResult) -> None:
         """Write all messages of one frame, stamped ``frame.stamp_ns``."""
         if self._closed:
@@ -179,6 +206,7 @@ class McapSink:
         self.frames_written += 1
         self._whole = self._stream.tell()
 
+    @one_at_a_time
     def close(self) -> None:
         """Write the metadata record, summary and index, and close the file. Safe to call twice."""
         if self._closed:
@@ -239,6 +267,12 @@ class McapSink:
 
     def __exit__(self, *exc_info) -> None:
         self.close()
+
+    def __del__(self) -> None:
+        # A sink dropped without close() (no `with`): finished, not left without its summary.
+        if getattr(self, "_whole", None) is not None and not self._closed:
+            with contextlib.suppress(Exception):
+                self.close()
 
     def _metadata_record(self) -> dict[str, str]:
         from .. import __version__

@@ -44,6 +44,7 @@ Written for rerun-sdk 0.41 (pinned); the files open in the Rerun viewer 0.41.
 from __future__ import annotations
 
 import shutil
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -56,7 +57,16 @@ from ..grid import cell_centers
 from ..ros2defs import yaw_quaternion
 from ..stereo import rectified_camera
 from ..types import FrameResult, Label, StereoFrame
-from .base import SLOPE_RANGE_RAD, check_frame, colormap, point_stride, shown_boxes, surface_triangles
+from .base import (
+    SLOPE_RANGE_RAD,
+    check_frame,
+    colormap,
+    one_at_a_time,
+    output_path,
+    point_stride,
+    shown_boxes,
+    surface_triangles,
+)
 
 LABEL_COLORS = {
     Label.UNKNOWN: (140, 140, 140),
@@ -137,8 +147,9 @@ class RerunSink:
     """
 
     def __init__(self, path: str | Path, *, config: Config, application_id: str = "terrainmap"):
+        self._lock = threading.RLock()
+        self.path = output_path("Rerun output", path)
         check_config(f"Rerun output {path}", config)
-        self.path = Path(path)
         if not self.path.parent.is_dir():  # said before a stream exists (Rerun would warn as it drops it)
             raise InputError(f"cannot create Rerun output {self.path}: folder {self.path.parent} does not exist")
         self._config = config
@@ -157,6 +168,7 @@ class RerunSink:
                                        + [(NO_POINT, "no point", (0, 0, 0, 0))])
         self._rec.log("world", context, static=True)
 
+    @one_at_a_time
     def write(self, frame: StereoFrame, result: FrameResult) -> None:
         check_frame(f"Rerun output {self.path}", frame, result, 63)  # (Rerun's timestamps are signed)
         self._start_frame(frame)
@@ -172,6 +184,7 @@ class RerunSink:
             rec.log(f"stats/{group}/{name}", rr.Scalars(value))
         self.frames_written += 1
 
+    @one_at_a_time
     def failed(self, frame: StereoFrame, error: Exception) -> None:
         """A frame the pipeline could not process: its vehicle pose and left image (where the
         source's images are rectified; else none), the results of the frame before cleared (so that
@@ -276,6 +289,7 @@ class RerunSink:
                 ),
             )
 
+    @one_at_a_time
     def close(self) -> None:
         """Flush and finish the recording; safe to call twice."""
         if self._closed:
