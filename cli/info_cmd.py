@@ -47,7 +47,8 @@ def format_description(description: dict) -> str:
 @click.option(
     "--check", is_flag=True,
     help="Also read and decode every stereo pair process would read (no matching) and say whether the "
-    "log reads to its end (CRCs of the chunks that hold them, images, calibration; chunks of other topics "
+    "log reads to its end (CRCs of the chunks that hold them, images, calibration, which must suit "
+    "matching with the default settings; chunks of other topics "
     "only are not read); exit code 1 if it does not, anything was skipped, the log is damaged (damage:) or "
     "it holds no stereo pair.",
 )
@@ -62,9 +63,14 @@ def info(log: str, source_opts: SourceOptions, as_json: bool, check: bool) -> No
         with source_opts.open(log) as source:
             description = source.describe()
             if check:
-                pairs = 0
+                from terrainmap.stereo import StereoMatcher
+
+                pairs, calibration = 0, None
                 try:
-                    for _frame in source.frames():
+                    for frame in source.frames():
+                        if calibration is None or frame.calibration.key() != calibration.key():
+                            StereoMatcher(frame.calibration)  # process's checks of it: sizes, disparity range
+                            calibration = frame.calibration
                         pairs += 1
                     description["check"] = f"{counted(pairs, 'stereo pair')} read and decoded, to the end"
                     skipped = source.skipped()

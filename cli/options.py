@@ -132,9 +132,14 @@ def damaged_parts(skipped: list[str]) -> str:
     return f"{counted(len(skipped), 'damaged part')}: {listed}"
 
 
-def failures(counts: dict[str, int]) -> str:
-    """``no_ground ×3, too_few_cells ×1``: frame failures by reason, most frequent first."""
-    return ", ".join(f"{reason} ×{n}" for reason, n in Counter(counts).most_common())
+def failures(counts: dict[str, int], first: dict[str, str] | None = None) -> str:
+    """``no_ground ×3, too_few_cells ×1``: frame failures by reason, most frequent first; with
+    ``first`` (reason → its first failure's message), ``; frame 0: ...`` of the most frequent
+    reason follows, where the message says more than the reason."""
+    ranked = Counter(counts).most_common()
+    text = ", ".join(f"{reason} ×{n}" for reason, n in ranked)
+    why = (first or {}).get(ranked[0][0], "") if ranked else ""
+    return f"{text}; {why}" if why and not why.endswith(f": {ranked[0][0]}") else text
 
 
 def wrote_before_stopping(written) -> str:

@@ -101,7 +101,7 @@ def process(log, output, flavor, compression, rrd, overwrite, source_opts, confi
                 click.echo(err=True)
     _report(summary, outputs, source.skipped())
     if summary.frames_done == 0:
-        raise Failed(f"no frame of {log} could be processed ({failures(summary.failures)})")
+        raise Failed(f"no frame of {log} could be processed ({failures(summary.failures, summary.first_failures)})")
     stop.check()  # a signal while the outputs were being closed: the exit code still says so
 
 
@@ -119,10 +119,15 @@ def _check_process_outputs(log: Path, output: Path, rrd: Path | None, overwrite:
 def _progress(summary, frame, result) -> None:
     click.echo(
         f"\rframe {frame.index}: {summary.frames_done} done, {summary.frames_failed} failed, "
-        f"{summary.fps:.1f} frames/s ",
+        f"{_fps(summary.fps)} frames/s ",
         err=True,
         nl=False,
     )
+
+
+def _fps(rate: float) -> str:
+    """Frames/s to one decimal, or two significant digits below 1 (a huge image's 0.04)."""
+    return f"{rate:.2g}" if rate < 1 else f"{rate:.1f}"
 
 
 def _why_none(source) -> str:
@@ -143,8 +148,9 @@ def _why_none(source) -> str:
 def _report(summary, outputs, skipped: list[str]) -> None:
     from terrainmap.extrinsics import describe_extrinsics
 
-    failed = f", {summary.frames_failed} failed ({failures(summary.failures)})" if summary.frames_failed else ""
-    rate = f" ({summary.fps:.1f} frames/s)" if summary.frames_done else ""
+    failed = f", {summary.frames_failed} failed ({failures(summary.failures, summary.first_failures)})" \
+        if summary.frames_failed else ""
+    rate = f" ({_fps(summary.fps)} frames/s)" if summary.frames_done else ""
     click.echo(f"processed {counted(summary.frames_done, 'frame')}{failed} in {summary.wall_s:.1f} s{rate}")
     if skipped:
         click.echo(f"skipped {damaged_parts(skipped)}")

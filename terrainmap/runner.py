@@ -54,6 +54,8 @@ class RunSummary:
 
     frames_done: int = 0
     failures: Counter = field(default_factory=Counter)
+    first_failures: dict[str, str] = field(default_factory=dict)
+    """Reason → what the first frame that failed for it says (``frame 3: ground fit: ...``)."""
     wall_s: float = 0.0
     extrinsics: Extrinsics | None = None
     _times: dict[str, list[float]] = field(default_factory=dict)
@@ -128,6 +130,7 @@ def run(
                 result = finish_frame(frame, matched, config, state)
             except FrameError as exc:
                 summary.failures[exc.reason] += 1
+                summary.first_failures.setdefault(exc.reason, f"frame {frame.index}: {exc}")
                 log.info("frame %d: %s", frame.index, exc)
                 result = None
                 for sink in sinks:  # those that show a timeline say so there (Sink.failed)

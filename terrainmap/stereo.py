@@ -102,6 +102,10 @@ class StereoResult:
 
 PLAUSIBLE = {"fx": (1.0, 1e6, "pixels"), "fy": (1.0, 1e6, "pixels"), "baseline_m": (1e-3, 100.0, "m")}
 """Ranges that a stereo camera's focal lengths and baseline fall in (:func:`check_calibration`)."""
+MAX_FIELD_OF_VIEW_DEG = 150.0
+"""Horizontal field of view past which a calibration is warned about (a focal length in mm, say)."""
+WIDE_BASELINE_M = 3.0
+"""Baseline past which a calibration is warned about (one in cm, say)."""
 _NUMBER = (int, float, np.integer, np.floating)
 _CALIBRATION_KINDS = {
     **dict.fromkeys(("width", "height"), ((int, np.integer), "an integer")),
@@ -174,7 +178,30 @@ def check_calibration(calibration: StereoCalibration, *, size_known: bool = True
                                        f"{np.ravel(dist).tolist()}")
         if not unknown:  # a pair that cannot be rectified is refused where it is read, not at its first frame
             _stereo_rectify(calibration)
+        K = np.asarray(calibration.K_left, float).reshape(3, 3)
+        fx, cx, cy, baseline_m = K[0, 0], K[0, 2], K[1, 2], length
+    else:
+        fx, cx, cy, baseline_m = calibration.fx, calibration.cx, calibration.cy, calibration.baseline_m
+    if not unknown:
+        _warn_unlikely(name, float(fx), float(cx), float(cy), int(calibration.width), int(calibration.height),
+                       float(baseline_m))
     return calibration
+
+
+@lru_cache(maxsize=16)  # once per calibration, not once per frame
+def _warn_unlikely(name: str, fx: float, cx: float, cy: float, width: int, height: int, baseline_m: float) -> None:
+    """Warn about values within the checked ranges that are likely a slip all the same (a unit, a
+    calibration of other images), which would only end in "no ground" later."""
+    if not (0 <= cx <= width and 0 <= cy <= height):
+        log.warning("%s: the principal point (%g, %g) lies outside the %d×%d images; is the calibration for these "
+                    "images?", name, cx, cy, width, height)
+    field_of_view = 2 * math.degrees(math.atan(width / (2 * fx)))
+    if field_of_view > MAX_FIELD_OF_VIEW_DEG:
+        log.warning("%s: a focal length of %g px gives the %d px wide images a field of view of %.0f°, more than "
+                    "a rectified pinhole shows; is it in pixels (not mm)?", name, fx, width, field_of_view)
+    if baseline_m > WIDE_BASELINE_M:
+        log.warning("%s: a baseline of %g m is wider than vehicles' stereo rigs are; is it in metres (not cm)?",
+                    name, baseline_m)
 
 
 def _check_camera_matrix(K: np.ndarray, name: str) -> None:
@@ -253,7 +280,8 @@ def _stereo_rectify(calibration: StereoCalibration) -> tuple[tuple, tuple, Recti
     if not baseline_m > 0:
         raise CalibrationError(
             f"{calibration.source or 'stereo calibration'}: the right camera is not to the right of the left "
-            f"(rectified baseline {baseline_m:.4f} m); swap the images"
+            f"(rectified baseline {baseline_m:.4f} m): swap the images, or give T as OpenCV's stereoCalibrate "
+            "does (the left camera's origin in the right camera's frame: [-B, 0, 0] for a baseline of B m)"
         )
     turn = None if np.allclose(R1, np.eye(3), atol=1e-9) else tuple(np.ravel(R1).tolist())
     pinhole = RectifiedPinhole(

@@ -598,3 +598,17 @@ def test_tab_completion_as_the_readme_sets_it_up(words, expected):
     env = {"_TERRAINMAP_COMPLETE": "bash_complete", "COMP_WORDS": words, "COMP_CWORD": str(len(words.split()) - 1)}
     result = CliRunner().invoke(cli, [], prog_name="terrainmap", env=env)
     assert result.exit_code == 0 and expected in result.output.splitlines(), result.output
+
+
+def test_frame_failures_are_counted_and_the_commonest_reasons_first_message_said():
+    from terrainmap.cli.options import failures
+
+    assert failures({"a": 1, "b": 3}, {"b": "frame 2: why", "a": "frame 0: x"}) == "b ×3, a ×1; frame 2: why"
+    assert failures({"no_ground": 1}, {"no_ground": "frame 0: no_ground"}) == "no_ground ×1"  # nothing more to say
+    assert failures({"a": 2}) == "a ×2" and failures({}) == ""
+
+
+def test_a_slow_runs_rate_is_not_shown_as_zero():
+    from terrainmap.cli.process_cmd import _fps
+
+    assert (_fps(0.0412), _fps(0.5), _fps(16.63)) == ("0.041", "0.5", "16.6")

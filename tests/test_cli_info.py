@@ -188,3 +188,14 @@ def test_check_fails_when_no_left_and_right_images_pair_up(tmp_path):
     assert result.exit_code == 1, result.output
     assert "0 stereo pairs read and decoded, to the end (no left and right images whose stamps agree within " \
            "--pair-tolerance-ms)" in result.output
+
+
+def test_check_fails_where_process_could_not_match_the_images(tmp_path):
+    """8 px wide images read and decode, but no disparity range fits them: process refuses the
+    calibration at its first frame, and so does ``--check``."""
+    from test_sources_folders import generic_folder
+
+    result = CliRunner().invoke(info, ["--check", str(generic_folder(tmp_path, n=2))])
+    assert result.exit_code == 1, result.output
+    assert "check:       fails after 0 stereo pairs: images 8 px wide cannot be matched over disparities 0..16 px" \
+        in result.output

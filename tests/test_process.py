@@ -766,13 +766,15 @@ def test_a_log_whose_images_never_pair_says_so(tmp_path, capsys):
 
 
 def test_a_run_where_every_frame_fails_says_its_output_holds_no_frame(small_log, tmp_path):
-    """The output is finalised and readable all the same, and the error names the reasons."""
+    """The output is finalised and readable all the same, and the error names the reasons and says
+    what the first frame that failed for the commonest one said (a setting to change, often)."""
     out = tmp_path / "o.mcap"
     result = CliRunner().invoke(cli, ["process", str(small_log), "-o", str(out), "--set", "grid.x_min_m=-100"])
     assert result.exit_code == 2
     assert f"wrote {out} (no frame in it)" in result.output
-    assert f"no frame of {small_log} could be processed (no_points_in_area ×2)" in result.output
-    assert "processed 0 frames, 2 failed (no_points_in_area ×2) in " in result.output
+    why = "no_points_in_area ×2; frame 0: no finite point lies in the grid area between its height limits"
+    assert f"no frame of {small_log} could be processed ({why}" in result.output
+    assert f"processed 0 frames, 2 failed ({why}" in result.output
     assert "frames/s" not in result.output  # no rate for no frame
     with open(out, "rb") as f:
         assert make_reader(f).get_summary() is not None

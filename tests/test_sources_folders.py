@@ -55,6 +55,13 @@ def generic_folder(root: Path, n: int = 5, calib: str = CALIB_YAML, suffix: str 
     return root
 
 
+def test_webp_images_are_read(tmp_path):
+    root = generic_folder(tmp_path, n=2, suffix=".webp")
+    with open_source(root) as source:
+        (first, _) = list(source.frames())
+    assert first.left.shape == (6, 8, 3)
+
+
 def test_images_numbered_without_leading_zeros_are_read_in_their_numbers_order(tmp_path):
     root = generic_folder(tmp_path, n=12, digits=1)
     (root / "timestamps.txt").write_text("".join(f"{i * 10**8}\n" for i in range(12)))
@@ -562,7 +569,7 @@ def test_unknown_and_missing_paths(tmp_path):
         open_source(tmp_path / "stuff")
     (tmp_path / "left").mkdir()
     (tmp_path / "right").mkdir()
-    with pytest.raises(InputError, match="no left/right image pairs"):
+    with pytest.raises(InputError, match=r"no left/right image pairs in it \(image files: \.png, .*, \.webp\)$"):
         open_source(tmp_path)
 
 

@@ -679,3 +679,36 @@ def test_threads_matching_at_once_each_use_an_sgbm_of_their_own_and_get_the_sequ
 
     odd = cv2.StereoSGBM.create(3, 32, 7, 100, 900, 2, 31, 5, 50, 3, cv2.STEREO_SGBM_MODE_HH4)  # none a default
     assert written(stereo._copy_of(odd)) == written(odd)
+
+
+@pytest.mark.parametrize(("change", "warned"), [
+    ({}, None),
+    ({"baseline_m": 53.27}, "a baseline of 53.27 m is wider than vehicles' stereo rigs are; is it in metres (not cm)?"),
+    ({"fx": 3.6, "fy": 3.6}, "a focal length of 3.6 px gives the 640 px wide images a field of view of 179°"),
+    ({"cx": 5000.0}, "the principal point (5000, 240) lies outside the 640×480 images"),
+    ({"cy": -3.0}, "the principal point (320, -3) lies outside the 640×480 images"),
+])
+def test_a_calibration_likely_in_the_wrong_unit_or_for_other_images_is_warned_about(caplog, change, warned):
+    """Within the checked ranges, so used, but said once: the run would only end in "no ground"."""
+    calibration = StereoCalibration(width=640, height=480, fx=500.0, fy=500.0, cx=320.0, cy=240.0, baseline_m=0.3,
+                                    source=f"calib {change}")
+    calibration = dataclasses.replace(calibration, **change)
+    with caplog.at_level("WARNING", logger="terrainmap.stereo"):
+        for _ in range(3):
+            stereo.check_calibration(calibration)
+    said = [r.getMessage() for r in caplog.records]
+    assert len(said) == (warned is not None)  # once, not once a frame
+    assert warned is None or said[0].startswith(f"calib {change}: {warned}")
+
+
+def test_a_raw_pair_with_t_given_the_other_way_round_says_how_opencv_gives_it():
+    eye = np.eye(3).tolist()
+    calibration = StereoCalibration(width=64, height=48, fx=50.0, fy=50.0, cx=32.0, cy=24.0, baseline_m=0.3,
+                                    rectified=False, K_left=[[50, 0, 32], [0, 50, 24], [0, 0, 1]],
+                                    K_right=[[50, 0, 32], [0, 50, 24], [0, 0, 1]], R=eye, T=[0.3, 0.0, 0.0],
+                                    source="calib.yaml")
+    with pytest.raises(CalibrationError, match=re.escape("swap the images, or give T as OpenCV's stereoCalibrate "
+                                                         "does (the left camera's origin in the right camera's "
+                                                         "frame: [-B, 0, 0] for a baseline of B m)")):
+        stereo.check_calibration(calibration)
+    stereo.check_calibration(dataclasses.replace(calibration, T=[-0.3, 0.0, 0.0]))

@@ -28,7 +28,7 @@ from .images import read_image, stereo_pair
 
 logger = logging.getLogger(__name__)
 
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".pgm", ".ppm", ".bmp", ".tif", ".tiff")
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".pgm", ".ppm", ".bmp", ".tif", ".tiff", ".webp")
 
 
 @dataclass(frozen=True)
@@ -100,7 +100,8 @@ class FolderSource(Source):
         self._override = calib_io.load_calibration_file(calibration) if calibration else None
         self.pairs = self._find_pairs()
         if not self.pairs:
-            raise InputError(f"{self.path}: {self.format} layout but no left/right image pairs in it")
+            raise InputError(f"{self.path}: {self.format} layout but no left/right image pairs in it (image files: "
+                             f"{', '.join(IMAGE_SUFFIXES)})")
         stamps = self._stamps_ns()
         if stamps is not None:
             stamps = self._stamps_of_pairs(stamps)
