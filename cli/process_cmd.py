@@ -54,6 +54,7 @@ def process(log, output, flavor, compression, rrd, overwrite, source_opts, confi
     from terrainmap import runner
     from terrainmap.sinks import open_mcap_sink
     from terrainmap.sources import log_path
+    from terrainmap.stereo import StereoMatcher
 
     log = log_path(log)  # a rosbag2's metadata.yaml: its folder, for the default output's name too
     config = load_config(config_path, overrides)
@@ -76,6 +77,7 @@ def process(log, output, flavor, compression, rrd, overwrite, source_opts, confi
         first = next(frames, None)
         if first is None:
             raise Failed(f"no frame of {log} could be processed ({_why_none(source)})")
+        StereoMatcher(first.calibration, config.stereo)  # images it cannot match: refused before any output
         stop.check()  # a signal while the first frame was read: no earlier output is replaced
         frames = itertools.chain([first], frames)
         with stop.outputs_open():

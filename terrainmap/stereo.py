@@ -106,6 +106,8 @@ MAX_FIELD_OF_VIEW_DEG = 150.0
 """Horizontal field of view past which a calibration is warned about (a focal length in mm, say)."""
 WIDE_BASELINE_M = 3.0
 """Baseline past which a calibration is warned about (one in cm, say)."""
+MAX_SKEW_PX = 0.1
+"""Skew (K[0][1]) past which a camera matrix is warned about: OpenCV's rectification ignores it."""
 _NUMBER = (int, float, np.integer, np.floating)
 _CALIBRATION_KINDS = {
     **dict.fromkeys(("width", "height"), ((int, np.integer), "an integer")),
@@ -213,6 +215,15 @@ def _check_camera_matrix(K: np.ndarray, name: str) -> None:
                                f"pixels, got {K.tolist()}")
     _check_plausible(name, "fx", K[0, 0])
     _check_plausible(name, "fy", K[1, 1])
+    if abs(K[0, 1]) > MAX_SKEW_PX:
+        _warn_skew(name, float(K[0, 1]))
+
+
+
+@lru_cache(maxsize=16)  # once per camera matrix, not once per frame
+def _warn_skew(name: str, skew: float) -> None:
+    log.warning("%s has a skew of %g px (K[0][1]), which OpenCV's rectification ignores: the images are rectified "
+                "as if it were 0", name, skew)
 
 
 def _check_plausible(name: str, field: str, value: float) -> None:
@@ -362,8 +373,8 @@ class StereoMatcher:
         n = disparity_range(self.config, calibration.width)
         if not (0 < self.config.min_disparity + n < calibration.width and n < calibration.width):
             raise CalibrationError(  # OpenCV would crash or search nothing that gives depth
-                f"images {calibration.width} px wide cannot be matched over disparities "
-                f"{self.config.min_disparity}..{self.config.min_disparity + n} px (stereo.min_disparity, "
+                f"{calibration.source or 'stereo calibration'}: images {calibration.width} px wide cannot be matched "
+                f"over disparities {self.config.min_disparity}..{self.config.min_disparity + n} px (stereo.min_disparity, "
                 "stereo.num_disparities): the range must hold positive disparities and be narrower than the images"
             )
         self.sgbm = create_sgbm(self.config, calibration.width)

@@ -912,3 +912,18 @@ def test_outputs_that_stop_at_different_frames_are_each_said(small_log, tmp_path
         main(["process", str(small_log), "-o", str(out), "--rrd", str(rrd)])
     assert f"wrote 2 frames to {out} and 1 to {rrd} before stopping" in capsys.readouterr().out
     assert len(_grids(out)) == 2
+
+
+def test_images_that_cannot_be_matched_are_refused_before_any_output_is_written(tmp_path, capsys):
+    """8 px wide images and a 16 px disparity range: the first pair's calibration is refused as it is
+    read, naming the file, and no output is left behind (an earlier one would stay as it was)."""
+    from test_sources_folders import generic_folder
+
+    from terrainmap.cli.main import main
+
+    folder, out = generic_folder(tmp_path / "pairs", n=2), tmp_path / "o.mcap"
+    with pytest.raises(SystemExit) as exc:
+        main(["process", str(folder), "-o", str(out)])
+    assert exc.value.code == 2 and not out.exists()
+    assert capsys.readouterr().err.startswith(f"Error: {folder / 'calibration.yaml'}: images 8 px wide cannot be "
+                                              "matched over disparities 0..16 px")

@@ -712,3 +712,17 @@ def test_a_raw_pair_with_t_given_the_other_way_round_says_how_opencv_gives_it():
                                                          "frame: [-B, 0, 0] for a baseline of B m)")):
         stereo.check_calibration(calibration)
     stereo.check_calibration(dataclasses.replace(calibration, T=[-0.3, 0.0, 0.0]))
+
+
+def test_a_camera_matrix_with_skew_is_warned_about_as_opencv_ignores_it(caplog):
+    K = [[50, 0, 32], [0, 50, 24], [0, 0, 1]]
+    skewed = [[50, 7.5, 32], [0, 50, 24], [0, 0, 1]]
+    calibration = StereoCalibration(width=64, height=48, fx=50.0, fy=50.0, cx=32.0, cy=24.0, baseline_m=0.3,
+                                    rectified=False, K_left=skewed, K_right=K, R=np.eye(3).tolist(),
+                                    T=[-0.3, 0.0, 0.0], source="skewed.yaml")
+    with caplog.at_level("WARNING", logger="terrainmap.stereo"):
+        stereo.check_calibration(calibration)
+        stereo.check_calibration(dataclasses.replace(calibration, K_left=K))
+    assert [r.getMessage() for r in caplog.records] == [
+        "skewed.yaml: K_left has a skew of 7.5 px (K[0][1]), which OpenCV's rectification ignores: the images are "
+        "rectified as if it were 0"]
