@@ -10,6 +10,7 @@ from __future__ import annotations
 import importlib
 import logging
 import os
+import re
 import signal
 import sys
 import threading
@@ -129,7 +130,11 @@ def main(argv: list[str] | None = None) -> None:
     ``--verbose``, the traceback and exit code 2)."""
     GracefulStop.last_signal = None
     options: dict = {}  # the group's --verbose, as parsed (a file named -v is no flag)
+    for name in ("stdout", "stderr"):  # closed when the process started (`2>&-`): Python's None
+        if getattr(sys, name) is None:
+            setattr(sys, name, open(os.devnull, "w"))  # noqa: SIM115 (the process's stream to its end)
     try:
+        _check_opencv_environment()
         with _terminate_as_interrupt():
             cli.main(args=argv, prog_name="terrainmap", standalone_mode=False, obj=options)
         if GracefulStop.last_signal is not None:  # a signal whose interrupt a destructor swallowed
@@ -172,6 +177,19 @@ def main(argv: list[str] | None = None) -> None:
         where = f"{exc.filename}: " if exc.filename else ""
         click.echo(f"Error: {where}{exc.strerror or exc}", err=True)
         sys.exit(2)
+
+
+_OPENCV_NUMBERS = ("OPENCV_FOR_THREADS_NUM", "OPENCV_IO_MAX_IMAGE_PIXELS", "OPENCV_IO_MAX_IMAGE_WIDTH",
+                   "OPENCV_IO_MAX_IMAGE_HEIGHT")
+"""OpenCV's environment settings that it parses as unsigned numbers: anything else ends in an
+OpenCV exception mid-run, or aborts the process."""
+
+
+def _check_opencv_environment() -> None:
+    for name in _OPENCV_NUMBERS:
+        value = os.environ.get(name)
+        if value is not None and not re.fullmatch("[0-9]{1,19}", value):
+            raise ConfigError(f"environment variable {name} must be a whole number (OpenCV reads it), got {value!r}")
 
 
 _NO_ARGS_IS_HELP = getattr(click.exceptions, "NoArgsIsHelpError", ())

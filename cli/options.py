@@ -41,9 +41,11 @@ class Failed(click.ClickException):
     exit_code = 2
 
 
-STOP_SIGNALS = tuple(getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, name))
-"""The signals that end a run as Ctrl-C does: SIGTERM (a supervisor) and, where the system has it,
-SIGHUP (the terminal closed or the SSH session dropped)."""
+STOP_SIGNALS = tuple(getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP", "SIGXCPU")
+                     if hasattr(signal, name))
+"""The signals that end a run as Ctrl-C does: SIGTERM (a supervisor) and, where the system has
+them, SIGHUP (the terminal closed or the SSH session dropped) and SIGXCPU (a CPU time limit,
+`ulimit -t`, reached; SIGKILL follows at the hard limit)."""
 
 _ON_TERMINAL: dict[int, bool] = {}
 """Whether standard output and error (1, 2) were terminals when the signals were last taken over."""
@@ -152,6 +154,14 @@ def wrote_before_stopping(written) -> str:
     return f"wrote {' and '.join(parts)} before stopping"
 
 
+def _resolved(option: str, path: Path) -> Path:
+    """``path`` with its links followed; a UsageError for a link that leads to itself."""
+    try:
+        return Path(path).resolve()
+    except (RuntimeError, OSError):  # Python 3.11 and 3.12: RuntimeError; later: OSError (ELOOP)
+        raise click.UsageError(f"{option} {path}: a symbolic link that leads back to itself") from None
+
+
 def check_outputs(outputs: dict[str, Path | None], inputs: Iterable[str | Path | None]) -> None:
     """Raise a UsageError when an output (option name → path) is an input file (also through a
     link) or lies inside an input folder, or when two outputs are one file: a report must never
@@ -160,14 +170,14 @@ def check_outputs(outputs: dict[str, Path | None], inputs: Iterable[str | Path |
     (:func:`writable`; probed only once it is known not to touch an input folder)."""
     from terrainmap.sources import log_path
 
-    given = {option: Path(path).resolve() for option, path in outputs.items() if path is not None}
+    given = {option: _resolved(option, path) for option, path in outputs.items() if path is not None}
     for (a, path), (b, other) in itertools.combinations(given.items(), 2):
         if path == other:
             raise click.UsageError(f"{a} and {b} are the same file {outputs[a]}")
     for option, path in outputs.items():
         if path is None:
             continue
-        target = Path(path).resolve()
+        target = given[option]
         for source in (log_path(p) for p in inputs if p is not None):
             same = target.exists() and source.exists() and os.path.samefile(target, source)
             if same or target == source.resolve():

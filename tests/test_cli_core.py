@@ -612,3 +612,24 @@ def test_a_slow_runs_rate_is_not_shown_as_zero():
     from terrainmap.cli.process_cmd import _fps
 
     assert (_fps(0.0412), _fps(0.5), _fps(16.63)) == ("0.041", "0.5", "16.6")
+
+
+@pytest.mark.parametrize("name", ["OPENCV_FOR_THREADS_NUM", "OPENCV_IO_MAX_IMAGE_PIXELS"])
+@pytest.mark.parametrize("value", ["abc", "-1", " 2", "", "1.5", "123456789012345678901"])
+def test_an_opencv_setting_in_the_environment_that_opencv_cannot_read_is_one_line(monkeypatch, capsys, name, value):
+    """OpenCV would raise mid-run (the thread count) or abort the process (the image size)."""
+    monkeypatch.setenv(name, value)
+    with pytest.raises(SystemExit) as exc:
+        main(["config"])
+    assert exc.value.code == 2
+    assert capsys.readouterr().err == (f"Error: environment variable {name} must be a whole number (OpenCV reads "
+                                       f"it), got {value!r}\n")
+
+
+def test_an_output_that_is_a_symbolic_link_to_itself_is_one_line(tmp_path, capsys):
+    loop = tmp_path / "loop.json"
+    loop.symlink_to(loop)
+    with pytest.raises(SystemExit) as exc:
+        main(["eval", "robustness", "--seeds", "1", "--json", str(loop)])
+    assert exc.value.code == 2
+    assert capsys.readouterr().err.startswith(f"Error: --json {loop}: a symbolic link that leads back to itself")

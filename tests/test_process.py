@@ -622,9 +622,15 @@ def test_an_output_folder_is_probed_for_writing_too():
     assert result.exit_code == 2 and "cannot write /proc/self: " in result.output
 
 
-def test_a_terminated_run_still_finalises_its_output(small_log, tmp_path):
-    """SIGTERM (a supervisor stopping the job) ends the run like Ctrl-C: the MCAP is readable."""
+@pytest.mark.parametrize("stop", ["SIGTERM", "SIGXCPU"])
+def test_a_terminated_run_still_finalises_its_output(small_log, tmp_path, stop):
+    """SIGTERM (a supervisor stopping the job) and SIGXCPU (a CPU time limit reached) end the run
+    like Ctrl-C: the MCAP is readable."""
     import signal
+
+    stop = getattr(signal, stop, None)
+    if stop is None:
+        pytest.skip("no such signal here")
     import subprocess
     import sys
     import time
@@ -640,9 +646,9 @@ def test_a_terminated_run_still_finalises_its_output(small_log, tmp_path):
     deadline = time.monotonic() + 60
     while not (out.exists() and out.stat().st_size > 0) and time.monotonic() < deadline and proc.poll() is None:
         time.sleep(0.05)
-    proc.send_signal(signal.SIGTERM)
+    proc.send_signal(stop)
     proc.communicate(timeout=60)
-    assert proc.returncode == 128 + signal.SIGTERM  # what a shell or supervisor expects of a terminated job
+    assert proc.returncode == 128 + stop  # what a shell or supervisor expects of a terminated job
     with open(out, "rb") as stream:
         assert make_reader(stream).get_summary() is not None  # finished: summary and index written
 
@@ -927,3 +933,18 @@ def test_images_that_cannot_be_matched_are_refused_before_any_output_is_written(
     assert exc.value.code == 2 and not out.exists()
     assert capsys.readouterr().err.startswith(f"Error: {folder / 'calibration.yaml'}: images 8 px wide cannot be "
                                               "matched over disparities 0..16 px")
+
+
+def test_a_run_started_with_its_standard_streams_closed_writes_its_output(small_log, tmp_path, monkeypatch):
+    """`terrainmap process LOG 2>&-`: Python gives None for a stream closed at the start; the run's
+    messages go nowhere and its output is written."""
+    import sys
+
+    from terrainmap.cli.main import main
+
+    monkeypatch.setattr(sys, "stderr", None)
+    monkeypatch.setattr(sys, "stdout", None)
+    out = tmp_path / "o.mcap"
+    main(["process", str(small_log), "-o", str(out)])
+    with open(out, "rb") as f:
+        assert make_reader(f).get_summary().statistics.message_count > 0

@@ -548,7 +548,7 @@ def test_a_frame_that_fails_part_way_is_cut_off_and_nothing_more_is_written(tmp_
     with pytest.raises(TerrainmapError, match="failed in an earlier frame"):
         sink.write(*make_frame(2))
     sink.close()
-    assert not sink.finished and "cut back to its first 1 frame, which read back" in caplog.text
+    assert not sink.finished and "cut back to its first frame, which reads back" in caplog.text
     factory = ProtobufDecoderFactory() if flavor == "foxglove" else Ros2DecoderFactory()
     topics = read_messages(path, factory)
     assert {topic: len(messages) for topic, messages in topics.items() if topic != "/tf_static"} == {

@@ -1,5 +1,6 @@
 """Folder sources: generic, KITTI (stereo, object, raw, odometry), Middlebury; selection; errors."""
 
+import os
 import shutil
 import struct
 import zlib
@@ -664,3 +665,13 @@ def test_kitti_raw_calibration_two_levels_above_the_drive(tmp_path):
         assert isinstance(source, KittiRawFolder)
         frame = next(source.frames())
     assert frame.calibration.baseline_m == pytest.approx(KITTI_BASELINE)
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="needs FIFOs")
+def test_a_fifo_or_device_is_no_log(tmp_path):
+    """Named as a log, a FIFO (whose reading would wait for a writer) or /dev/zero behind a link."""
+    os.mkfifo(tmp_path / "fifo.mcap")
+    (tmp_path / "zero.mcap").symlink_to("/dev/zero")
+    for name in ("fifo.mcap", "zero.mcap"):
+        with pytest.raises(InputError, match=r"neither a file nor a folder \(a device, FIFO or socket\)"):
+            open_source(tmp_path / name)

@@ -260,7 +260,8 @@ class McapSink:
         n = self.frames_written
         if n == 0:
             return "cut back to its header (no frame in it)"
-        return f"cut back to its first {counted(n, 'frame')}, which read back without an index"
+        first = "its first frame, which reads" if n == 1 else f"its first {n} frames, which read"
+        return f"cut back to {first} back without an index"
 
     def __enter__(self):
         return self

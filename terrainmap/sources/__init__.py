@@ -79,6 +79,8 @@ def source_class(path: str | Path) -> type[Source]:
         raise InputError(f"{path}: cannot be read ({exc.strerror or exc})") from None
     if not exists:
         raise InputError(f"{path}: does not exist")
+    if not (path.is_file() or path.is_dir()):  # reading a FIFO would wait for a writer
+        raise InputError(f"{path}: neither a file nor a folder (a device, FIFO or socket); a log is read from a file")
     for cls in SOURCES:
         if cls.matches(path):
             return cls
