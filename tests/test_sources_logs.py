@@ -1529,3 +1529,22 @@ def test_a_pair_tolerance_of_zero_pairs_only_equal_stamps(tmp_path):
     path = _write_pairs(tmp_path / "exact.mcap", [(T0, T0), (T0 + 100_000_000, T0 + 100_000_001)])
     with open_source(path, pair_tolerance_ns=0) as source:
         assert [frame.stamp_ns for frame in source.frames()] == [T0]
+
+
+def test_a_log_cut_short_while_it_is_read_ends_the_reading_naming_the_change(tmp_path, caplog):
+    """Chunks the index points past the new end are no damage to skip (and a run would end with
+    exit code 0 and half the frames): the file is not the one opened, and reading stops saying so."""
+    from terrainmap.sim import SimConfig, simulate
+
+    log = tmp_path / "run.mcap"
+    simulate(log, SimConfig(scene="flat", frames=6, seed=1, width=320, height=240, focal_px=250.0))
+    with open(log, "rb") as f:
+        assert len(make_reader(f).get_summary().chunk_indexes) > 3
+    with open_source(log) as source:
+        frames = source.frames()
+        next(frames)
+        os.truncate(log, log.stat().st_size // 3)
+        with pytest.raises(InputError, match=rf"^{log}: changed while it was being read \(\d+ bytes, was \d+; chunk at "
+                                             r"byte \d+, log time [\d.]+–[\d.]+ s: "):
+            list(frames)
+    assert "damaged, skipped" not in caplog.text

@@ -127,12 +127,23 @@ def register_ros1_type(typestore, name: str, definition: str) -> None:
         typestore.register(get_types_from_msg(definition, name))
 
 
+def file_version(path: Path) -> tuple[int, int] | None:
+    """``(size in bytes, modification time in ns)`` of ``path``; None where it cannot be read."""
+    try:
+        stat = path.stat()
+    except OSError:
+        return None
+    return stat.st_size, stat.st_mtime_ns
+
+
 class _SkipsDamage:
     """A reader that skips what is damaged and notes it: ``skipped_parts`` maps a key (a chunk's
     byte offset, a message's topic and time) to one line naming the file and what was skipped."""
 
     path: Path
     skipped_parts: dict
+    opened_as: tuple | None = None
+    """The file's size and modification time when it was opened (:func:`file_version`)."""
 
     @property
     def skipped(self) -> list[str]:
@@ -140,7 +151,12 @@ class _SkipsDamage:
         return list(self.skipped_parts.values())
 
     def _skip(self, key, what: str, exc: Exception) -> None:
-        """Note a damaged part in :attr:`skipped_parts` (once) and warn about it."""
+        """Note a damaged part in :attr:`skipped_parts` (once) and warn about it; but where the file
+        is no longer the one opened (cut short or written over while being read, a copy still
+        under way), :class:`InputError`: what follows is no damage to skip."""
+        if self.opened_as is not None and (now := file_version(self.path)) != self.opened_as:
+            size = f"{now[0]} bytes, was {self.opened_as[0]}" if now else "removed"
+            raise InputError(f"{self.path}: changed while it was being read ({size}; {what}: {_reason(exc)})") from exc
         if key not in self.skipped_parts:
             self.skipped_parts[key] = f"{self.path}: {what} ({_reason(exc)})"
             logger.warning("%s: damaged, skipped", self.skipped_parts[key])
@@ -198,6 +214,7 @@ class McapFile(_SkipsDamage):
         self.skipped_parts: dict[int | tuple, str] = {}
         """Damaged chunks of an indexed file (byte offset → what) and messages that could not be
         decoded (("message", topic, log time) → what), met while reading messages."""
+        self.opened_as = file_version(path)
         try:
             with open(path, "rb") as stream:
                 if (head := stream.read(len(MCAP_MAGIC))) != MCAP_MAGIC:
