@@ -1,6 +1,7 @@
 """Folder sources: generic, KITTI (stereo, object, raw, odometry), Middlebury; selection; errors."""
 
 import os
+import re
 import shutil
 import struct
 import zlib
@@ -472,8 +473,8 @@ def test_a_calibration_without_a_size_whose_principal_point_is_far_off_the_image
 
 def png_claiming(data: bytes, width: int, height: int) -> bytes:
     """The PNG ``data`` with its header (IHDR, CRC made good) claiming another size."""
-    header = data[12:17] + struct.pack(">II", width, height) + data[25:29]
-    return data[:8] + data[8:12] + header[:4] + header[4:] + struct.pack(">I", zlib.crc32(header)) + data[33:]
+    header = data[12:16] + struct.pack(">II", width, height) + data[24:29]  # type, size, depth ... interlace
+    return data[:12] + header + struct.pack(">I", zlib.crc32(header)) + data[33:]
 
 
 def broken_link(root: Path) -> None:
@@ -525,7 +526,11 @@ def test_a_pair_with_an_image_file_that_cannot_be_decoded_is_skipped(tmp_path, c
     bad.write_bytes(DAMAGED_PNGS[damage])
     source = open_source(root)
     assert [frame.index for frame in source.frames()] == [0, 2]
-    assert source.skipped() == [f"{root}: stereo pair 1 ({bad}: cannot decode the image file (not an image, damaged or cut short))"]
+    why = "cannot decode the image file (not an image, damaged or cut short)"
+    if "claiming" in damage:  # said from its header, before any decoding
+        side = damage.split()[2].rstrip("²")
+        why = f"its header declares a {side}×{side} image, larger than terrainmap reads (16384 px a side, 67108864 pixels)"
+    assert source.skipped() == [f"{root}: stereo pair 1 ({bad}: {why})"]
     with pytest.raises(DamagedImageError):  # the same from the decoder of log messages
         decode_compressed(DAMAGED_PNGS[damage], "/cam")
     assert "libpng" not in capfd.readouterr().err  # nothing from libpng on stderr
@@ -675,3 +680,25 @@ def test_a_fifo_or_device_is_no_log(tmp_path):
     for name in ("fifo.mcap", "zero.mcap"):
         with pytest.raises(InputError, match=r"neither a file nor a folder \(a device, FIFO or socket\)"):
             open_source(tmp_path / name)
+
+
+@pytest.mark.parametrize("suffix", [".png", ".jpg"])
+def test_an_image_declaring_more_pixels_than_terrainmap_reads_is_refused_before_decoding(tmp_path, suffix):
+    """A header that claims 20000×20000 (400 MB grey once decoded, as a crafted or broken file may)
+    is read first: damage naming the file and the size, and nothing allocated for it."""
+    from terrainmap.sources.images import decode_compressed, read_image
+
+    data = bytearray(cv2.imencode(suffix, np.zeros((6, 8), np.uint8))[1].tobytes())
+    if suffix == ".png":
+        struct.pack_into(">II", data, 16, 20000, 20000)
+        struct.pack_into(">I", data, 29, zlib.crc32(bytes(data[12:29])))  # the IHDR's CRC
+    else:
+        sof = data.index(b"\xff\xc0")
+        struct.pack_into(">HH", data, sof + 5, 20000, 20000)  # height, width
+    path = tmp_path / f"big{suffix}"
+    path.write_bytes(data)
+    message = "its header declares a 20000×20000 image, larger than terrainmap reads (16384 px a side, 67108864 pixels)"
+    with pytest.raises(DamagedImageError, match=f"^{re.escape(f'{path}: {message}')}$"):  # a folder skips the pair
+        read_image(str(path))
+    with pytest.raises(DamagedImageError, match=f"^/cam: {re.escape(message)}$"):
+        decode_compressed(bytes(data), "/cam")

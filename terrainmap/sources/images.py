@@ -15,6 +15,7 @@ import cv2
 import numpy as np
 
 from ..errors import DamagedImageError, InputError, brief
+from ..stereo import MAX_PIXELS, MAX_SIDE_PX
 
 # ROS / Foxglove raw encodings (lower case) -> (dtype, channels on the wire, conversion to RGB or None).
 # Bayer names give the colours of the first two pixels of the first two rows (rggb: R G / G B);
@@ -96,6 +97,10 @@ def decode_compressed(data: bytes, name: str) -> np.ndarray:
 def _decode(data: bytes, name: str, failure: str) -> np.ndarray:
     # A PNG or JPEG cut short (or a PNG with bytes changed) is refused before libpng/libjpeg see
     # it: they would print their own lines to stderr (or decode a grey remainder) before OpenCV gives up.
+    size = _declared_size(data)
+    if size is not None and (max(size) > MAX_SIDE_PX or size[0] * size[1] > MAX_PIXELS):  # not decoded at all
+        raise DamagedImageError(f"{name}: its header declares a {size[0]}×{size[1]} image, larger than terrainmap "
+                                f"reads ({MAX_SIDE_PX} px a side, {MAX_PIXELS} pixels)")
     buffer = np.frombuffer(data, dtype=np.uint8)  # a view of the bytes, no copy
     try:
         image = cv2.imdecode(buffer, cv2.IMREAD_UNCHANGED) if data and _complete(data) else None
@@ -107,6 +112,30 @@ def _decode(data: bytes, name: str, failure: str) -> np.ndarray:
 
 
 _PNG = b"\x89PNG\r\n\x1a\n"
+_JPEG_FRAME_MARKERS = frozenset(range(0xC0, 0xD0)) - {0xC4, 0xC8, 0xCC}
+"""JPEG's start-of-frame markers (SOF0–SOF15 but DHT, JPG and DAC), whose header holds the size."""
+
+
+def _declared_size(data: bytes) -> tuple[int, int] | None:
+    """``(width, height)`` that a PNG's or JPEG's header declares (None for other formats, or where
+    it cannot be found): checked before decoding, which would allocate the whole image first."""
+    if data.startswith(_PNG) and data[12:16] == b"IHDR" and len(data) >= 24:
+        return struct.unpack_from(">II", data, 16)
+    if not data.startswith(b"\xff\xd8"):
+        return None
+    pos = 2
+    while pos + 9 <= len(data) and data[pos] == 0xFF:
+        marker = data[pos + 1]
+        if marker == 0xFF:  # a fill byte
+            pos += 1
+        elif marker in _JPEG_FRAME_MARKERS:
+            height, width = struct.unpack_from(">HH", data, pos + 5)  # after length and precision
+            return width, height
+        elif marker == 0xDA:  # the image data begins: no frame header before it
+            return None
+        else:  # a segment: its length counts itself
+            pos += 2 + struct.unpack_from(">H", data, pos + 2)[0]
+    return None
 _DEFLATE_MAX_RATIO = 1032
 """Deflate's largest expansion: one 258-byte match per bit pair, at best (zlib's technical notes)."""
 
