@@ -63,13 +63,13 @@ def info(log: str, source_opts: SourceOptions, as_json: bool, check: bool) -> No
         with source_opts.open(log) as source:
             description = source.describe()
             if check:
-                from terrainmap.stereo import StereoMatcher
+                from terrainmap.stereo import check_matchable
 
                 pairs, calibration = 0, None
                 try:
                     for frame in source.frames():
                         if calibration is None or frame.calibration.key() != calibration.key():
-                            StereoMatcher(frame.calibration)  # process's checks of it: sizes, disparity range
+                            check_matchable(frame.calibration)  # process's checks of it: sizes, disparity range
                             calibration = frame.calibration
                         pairs += 1
                     description["check"] = f"{counted(pairs, 'stereo pair')} read and decoded, to the end"

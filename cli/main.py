@@ -79,14 +79,14 @@ def cli(ctx: click.Context, verbose: bool) -> None:
 
 
 def _signal_exit_code() -> int:
-    """128 + the signal that stopped the run: 130 for Ctrl-C, 143 for SIGTERM, 129 for SIGHUP."""
+    """128 + the signal that stopped the run: 130 for Ctrl-C, 143 for SIGTERM, 129 for SIGHUP, 152 for SIGXCPU."""
     return 128 + (GracefulStop.last_signal or signal.SIGINT)
 
 
 @contextmanager
 def _terminate_as_interrupt():
-    """While the CLI runs, SIGTERM and SIGHUP end it as Ctrl-C does ("Interrupted.", exit code 143
-    or 129) instead of killing it silently: commands whose outputs are written whole or not at all
+    """While the CLI runs, SIGTERM, SIGHUP and SIGXCPU end it as Ctrl-C does ("Interrupted.", exit
+    code 143, 129 or 152) instead of killing it silently: commands whose outputs are written whole or not at all
     (``eval``, ``bench``) clean up their partial files on the way out. Runs that write as they go
     (``process``, ``simulate``) take the signals over with :class:`GracefulStop` meanwhile. A signal
     the process was started ignoring stays ignored; off the main thread nothing changes."""
@@ -130,11 +130,10 @@ def main(argv: list[str] | None = None) -> None:
     ``--verbose``, the traceback and exit code 2)."""
     GracefulStop.last_signal = None
     options: dict = {}  # the group's --verbose, as parsed (a file named -v is no flag)
-    for name in ("stdout", "stderr"):  # closed when the process started (`2>&-`): Python's None
-        if getattr(sys, name) is None:
-            setattr(sys, name, open(os.devnull, "w"))  # noqa: SIM115 (the process's stream to its end)
+    _open_closed_standard_streams()
     try:
-        _check_opencv_environment()
+        if "_TERRAINMAP_COMPLETE" not in os.environ:  # (tab completion uses no OpenCV)
+            _check_opencv_environment()
         with _terminate_as_interrupt():
             cli.main(args=argv, prog_name="terrainmap", standalone_mode=False, obj=options)
         if GracefulStop.last_signal is not None:  # a signal whose interrupt a destructor swallowed
@@ -179,6 +178,23 @@ def main(argv: list[str] | None = None) -> None:
         sys.exit(2)
 
 
+def _open_closed_standard_streams() -> None:
+    """Point the standard streams closed when the process started (`2>&-`: Python's ``sys.stderr``
+    is None) at the null device: their messages go nowhere, and a file opened later does not take
+    their descriptor (where a message to standard error would then land)."""
+    for fd in (0, 1, 2):  # in order: each closed one is the lowest free descriptor when it is opened
+        try:
+            os.fstat(fd)
+        except OSError:
+            null = os.open(os.devnull, os.O_RDWR)
+            if null != fd:
+                os.dup2(null, fd)
+                os.close(null)
+    for name in ("stdout", "stderr"):
+        if getattr(sys, name) is None:
+            setattr(sys, name, open(os.devnull, "w"))  # noqa: SIM115 (the process's stream to its end)
+
+
 _OPENCV_NUMBERS = ("OPENCV_FOR_THREADS_NUM", "OPENCV_IO_MAX_IMAGE_PIXELS", "OPENCV_IO_MAX_IMAGE_WIDTH",
                    "OPENCV_IO_MAX_IMAGE_HEIGHT")
 """OpenCV's environment settings that it parses as unsigned numbers: anything else ends in an
@@ -186,10 +202,14 @@ OpenCV exception mid-run, or aborts the process."""
 
 
 def _check_opencv_environment() -> None:
+    """:class:`ConfigError` for an :data:`_OPENCV_NUMBERS` setting OpenCV cannot read: a whole number
+    below 2⁶⁴, optionally followed by KB or MB (any case but kB/mB), as OpenCV parses it."""
     for name in _OPENCV_NUMBERS:
         value = os.environ.get(name)
-        if value is not None and not re.fullmatch("[0-9]{1,19}", value):
-            raise ConfigError(f"environment variable {name} must be a whole number (OpenCV reads it), got {value!r}")
+        number = re.fullmatch("([0-9]+)(?:[Kk]b|KB|[Mm]b|MB)?", value or "")
+        if value is not None and not (number and int(number[1]) < 2**64):
+            raise ConfigError(f"environment variable {name} must be a whole number, or one with KB or MB after it "
+                              f"(OpenCV reads it), got {value!r}")
 
 
 _NO_ARGS_IS_HELP = getattr(click.exceptions, "NoArgsIsHelpError", ())

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import itertools
 import math
 import os
@@ -44,8 +45,8 @@ class Failed(click.ClickException):
 STOP_SIGNALS = tuple(getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP", "SIGXCPU")
                      if hasattr(signal, name))
 """The signals that end a run as Ctrl-C does: SIGTERM (a supervisor) and, where the system has
-them, SIGHUP (the terminal closed or the SSH session dropped) and SIGXCPU (a CPU time limit,
-`ulimit -t`, reached; SIGKILL follows at the hard limit)."""
+them, SIGHUP (the terminal closed or the SSH session dropped) and SIGXCPU (a soft CPU time limit,
+`ulimit -St`, reached; a hard limit alone, or reached, kills the process with SIGKILL)."""
 
 _ON_TERMINAL: dict[int, bool] = {}
 """Whether standard output and error (1, 2) were terminals when the signals were last taken over."""
@@ -75,7 +76,7 @@ def leave_hung_up_terminal(signum: int) -> None:
 
 
 class GracefulStop:
-    """While active, SIGINT (Ctrl-C), SIGTERM and SIGHUP (:data:`STOP_SIGNALS`) only ask the run to
+    """While active, SIGINT (Ctrl-C), SIGTERM, SIGHUP and SIGXCPU (:data:`STOP_SIGNALS`) only ask the run to
     stop: :meth:`check`, called between frames, then raises KeyboardInterrupt, so that no output is
     cut in the middle of a write and every file is finalised. A second signal interrupts at once
     while no output is open (a run stuck finding its first frame); while outputs are open
@@ -155,11 +156,16 @@ def wrote_before_stopping(written) -> str:
 
 
 def _resolved(option: str, path: Path) -> Path:
-    """``path`` with its links followed; a UsageError for a link that leads to itself."""
+    """``path`` with its links followed; a UsageError for links that lead back to themselves
+    (``Path.resolve`` raises on them before Python 3.13, and returns them unresolved since)."""
     try:
-        return Path(path).resolve()
-    except (RuntimeError, OSError):  # Python 3.11 and 3.12: RuntimeError; later: OSError (ELOOP)
-        raise click.UsageError(f"{option} {path}: a symbolic link that leads back to itself") from None
+        os.stat(path)
+    except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            raise click.UsageError(f"{option} {path}: a symbolic link that leads back to itself") from None
+    except ValueError:  # a NUL in the name: said where the path is checked for writing
+        pass
+    return Path(path).resolve()
 
 
 def check_outputs(outputs: dict[str, Path | None], inputs: Iterable[str | Path | None]) -> None:

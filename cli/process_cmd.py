@@ -54,7 +54,7 @@ def process(log, output, flavor, compression, rrd, overwrite, source_opts, confi
     from terrainmap import runner
     from terrainmap.sinks import open_mcap_sink
     from terrainmap.sources import log_path
-    from terrainmap.stereo import StereoMatcher
+    from terrainmap.stereo import check_matchable
 
     log = log_path(log)  # a rosbag2's metadata.yaml: its folder, for the default output's name too
     config = load_config(config_path, overrides)
@@ -77,7 +77,7 @@ def process(log, output, flavor, compression, rrd, overwrite, source_opts, confi
         first = next(frames, None)
         if first is None:
             raise Failed(f"no frame of {log} could be processed ({_why_none(source)})")
-        StereoMatcher(first.calibration, config.stereo)  # images it cannot match: refused before any output
+        check_matchable(first.calibration, config.stereo)  # images it cannot match: refused before any output
         stop.check()  # a signal while the first frame was read: no earlier output is replaced
         frames = itertools.chain([first], frames)
         with stop.outputs_open():
@@ -129,7 +129,7 @@ def _progress(summary, frame, result) -> None:
 
 def _fps(rate: float) -> str:
     """Frames/s to one decimal, or two significant digits below 1 (a huge image's 0.04)."""
-    return f"{rate:.2g}" if rate < 1 else f"{rate:.1f}"
+    return f"{rate:.2g}" if rate < 0.95 else f"{rate:.1f}"
 
 
 def _why_none(source) -> str:
@@ -150,8 +150,8 @@ def _why_none(source) -> str:
 def _report(summary, outputs, skipped: list[str]) -> None:
     from terrainmap.extrinsics import describe_extrinsics
 
-    failed = f", {summary.frames_failed} failed ({failures(summary.failures, summary.first_failures)})" \
-        if summary.frames_failed else ""
+    first = summary.first_failures if summary.frames_done else None  # (else the error line after it says it)
+    failed = f", {summary.frames_failed} failed ({failures(summary.failures, first)})" if summary.frames_failed else ""
     rate = f" ({_fps(summary.fps)} frames/s)" if summary.frames_done else ""
     click.echo(f"processed {counted(summary.frames_done, 'frame')}{failed} in {summary.wall_s:.1f} s{rate}")
     if skipped:

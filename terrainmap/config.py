@@ -873,13 +873,19 @@ def check_section(section: Any, kind: type, grid: GridConfig | None = None) -> N
 
 def _with_value(error: ConfigError, name: str, section: Any) -> ConfigError:
     """``error`` of one field of ``section`` (config section ``name``) with ", got VALUE" added
-    where its message does not say the value already."""
+    where its message is of that field alone (it names no other field of the section) and says
+    no number equal to the value."""
     field, _, message = str(error).partition(": ")
     section_name, _, key = field.partition(".")
     if section_name != name or key not in section.__dataclass_fields__:
         return error
-    value = brief(getattr(section, key))
-    return error if "got" in message or value in message else ConfigError(f"{field}: {message}, got {value}")
+    words, value = set(re.findall(r"\w+", message)), getattr(section, key)
+    if "got" in words or words & (set(section.__dataclass_fields__) - {key}):
+        return error
+    said = {float(n) for n in re.findall(r"-?\d+(?:\.\d+)?(?:e-?\d+)?", message)}
+    if isinstance(value, int | float) and value in said:
+        return error
+    return ConfigError(f"{field}: {message}, got {brief(value)}")
 
 
 _PASSED: dict[type, tuple] = {}

@@ -105,7 +105,7 @@ def run(
     :class:`StereoFrame` among the frames (a None too) ends the run with an error.
 
     The worker threads advance ``frames`` (an iterator tied to one thread, as some middleware's
-    are, is not for ``run``) and read up to two frames ahead, which an error leaves unprocessed;
+    are, is not for ``run``) and read up to :data:`MATCH_WORKERS` frames ahead, which an error leaves unprocessed;
     after an error, ``run`` returns once the iterator's pending ``next()`` has: a live camera's
     iterator that waits for the next image holds the error until it comes. There,
     :func:`~terrainmap.pipeline.process_frame` in one's own loop is the simpler tool.

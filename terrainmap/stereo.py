@@ -106,8 +106,9 @@ MAX_FIELD_OF_VIEW_DEG = 150.0
 """Horizontal field of view past which a calibration is warned about (a focal length in mm, say)."""
 WIDE_BASELINE_M = 3.0
 """Baseline past which a calibration is warned about (one in cm, say)."""
-MAX_SKEW_PX = 0.1
-"""Skew (K[0][1]) past which a camera matrix is warned about: OpenCV's rectification ignores it."""
+MAX_SKEW = 1e-3
+"""Skew (K[0][1]) as a fraction of fx past which a camera matrix is warned about (half a pixel at
+fx = 500 px): OpenCV's rectification ignores it."""
 _NUMBER = (int, float, np.integer, np.floating)
 _CALIBRATION_KINDS = {
     **dict.fromkeys(("width", "height"), ((int, np.integer), "an integer")),
@@ -202,7 +203,7 @@ def _warn_unlikely(name: str, fx: float, cx: float, cy: float, width: int, heigh
         log.warning("%s: a focal length of %g px gives the %d px wide images a field of view of %.0f°, more than "
                     "a rectified pinhole shows; is it in pixels (not mm)?", name, fx, width, field_of_view)
     if baseline_m > WIDE_BASELINE_M:
-        log.warning("%s: a baseline of %g m is wider than vehicles' stereo rigs are; is it in metres (not cm)?",
+        log.warning("%s: a baseline of %g m is unusually wide for a stereo rig; is it in metres (not cm)?",
                     name, baseline_m)
 
 
@@ -215,9 +216,8 @@ def _check_camera_matrix(K: np.ndarray, name: str) -> None:
                                f"pixels, got {K.tolist()}")
     _check_plausible(name, "fx", K[0, 0])
     _check_plausible(name, "fy", K[1, 1])
-    if abs(K[0, 1]) > MAX_SKEW_PX:
+    if abs(K[0, 1]) > MAX_SKEW * K[0, 0]:
         _warn_skew(name, float(K[0, 1]))
-
 
 
 @lru_cache(maxsize=16)  # once per camera matrix, not once per frame
@@ -353,6 +353,22 @@ def _copy_of(sgbm: cv2.StereoSGBM) -> cv2.StereoSGBM:
     return copy
 
 
+def check_matchable(calibration: StereoCalibration, config: StereoConfig | None = None) -> None:
+    """What :class:`StereoMatcher` checks of its arguments, without building it (its tables take a
+    second for a large raw camera): :func:`check_calibration`, ``config`` (defaults if None) and
+    that its disparity range fits the images. :class:`CalibrationError` or :class:`ConfigError`."""
+    check_calibration(calibration)
+    config = config or StereoConfig()
+    check_section(config, StereoConfig)  # a section built in code: ConfigError, not an OpenCV error
+    n = disparity_range(config, calibration.width)
+    if not (0 < config.min_disparity + n < calibration.width and n < calibration.width):
+        raise CalibrationError(  # OpenCV would crash or search nothing that gives depth
+            f"{calibration.source or 'stereo calibration'}: images {calibration.width} px wide cannot be matched "
+            f"over disparities {config.min_disparity}..{config.min_disparity + n} px (stereo.min_disparity, "
+            "stereo.num_disparities): the range must hold positive disparities and be narrower than the images"
+        )
+
+
 class StereoMatcher:
     """Rectification, SGBM and reprojection for one calibration, with everything cached. Threads
     may call :meth:`compute` at once (each then matches with an SGBM instance of its own).
@@ -366,17 +382,10 @@ class StereoMatcher:
     """
 
     def __init__(self, calibration: StereoCalibration, config: StereoConfig | None = None):
-        check_calibration(calibration)
         self.calibration = calibration
         self.config = replace(config or StereoConfig())  # a copy: same_setup sees a config changed in place
-        check_section(self.config, StereoConfig)  # a section built in code: ConfigError, not an OpenCV error
+        check_matchable(calibration, self.config)
         n = disparity_range(self.config, calibration.width)
-        if not (0 < self.config.min_disparity + n < calibration.width and n < calibration.width):
-            raise CalibrationError(  # OpenCV would crash or search nothing that gives depth
-                f"{calibration.source or 'stereo calibration'}: images {calibration.width} px wide cannot be matched "
-                f"over disparities {self.config.min_disparity}..{self.config.min_disparity + n} px (stereo.min_disparity, "
-                "stereo.num_disparities): the range must hold positive disparities and be narrower than the images"
-            )
         self.sgbm = create_sgbm(self.config, calibration.width)
         """The bare ``cv2.StereoSGBM`` (``sgbm.compute(grey_left, grey_right)`` is "SGBM alone"); a
         thread that matches while another is matching with it uses a copy of its settings."""

@@ -594,10 +594,15 @@ def test_errors_name_the_option_the_user_gave(argv, line, capsys):
 
 @pytest.mark.parametrize(("words", "expected"), [("terrainmap pro", "plain,process"),
                                                  ("terrainmap process --fl", "plain,--flavor")])
-def test_tab_completion_as_the_readme_sets_it_up(words, expected):
-    env = {"_TERRAINMAP_COMPLETE": "bash_complete", "COMP_WORDS": words, "COMP_CWORD": str(len(words.split()) - 1)}
-    result = CliRunner().invoke(cli, [], prog_name="terrainmap", env=env)
-    assert result.exit_code == 0 and expected in result.output.splitlines(), result.output
+def test_tab_completion_as_the_readme_sets_it_up(words, expected, monkeypatch, capsys):
+    """Through main, as the console command runs, with an OpenCV setting it would refuse for work."""
+    env = {"_TERRAINMAP_COMPLETE": "bash_complete", "COMP_WORDS": words, "COMP_CWORD": str(len(words.split()) - 1),
+           "OPENCV_FOR_THREADS_NUM": "abc"}
+    for name, value in env.items():
+        monkeypatch.setenv(name, value)
+    with pytest.raises(SystemExit) as exc:
+        main([])
+    assert exc.value.code == 0 and expected in capsys.readouterr().out.splitlines()
 
 
 def test_frame_failures_are_counted_and_the_commonest_reasons_first_message_said():
@@ -611,19 +616,26 @@ def test_frame_failures_are_counted_and_the_commonest_reasons_first_message_said
 def test_a_slow_runs_rate_is_not_shown_as_zero():
     from terrainmap.cli.process_cmd import _fps
 
-    assert (_fps(0.0412), _fps(0.5), _fps(16.63)) == ("0.041", "0.5", "16.6")
+    assert (_fps(0.0412), _fps(0.5), _fps(0.999), _fps(16.63)) == ("0.041", "0.5", "1.0", "16.6")
 
 
 @pytest.mark.parametrize("name", ["OPENCV_FOR_THREADS_NUM", "OPENCV_IO_MAX_IMAGE_PIXELS"])
-@pytest.mark.parametrize("value", ["abc", "-1", " 2", "", "1.5", "123456789012345678901"])
+@pytest.mark.parametrize("value", ["abc", "-1", " 2", "", "1.5", "2GB", "1k", "18446744073709551616"])
 def test_an_opencv_setting_in_the_environment_that_opencv_cannot_read_is_one_line(monkeypatch, capsys, name, value):
     """OpenCV would raise mid-run (the thread count) or abort the process (the image size)."""
     monkeypatch.setenv(name, value)
     with pytest.raises(SystemExit) as exc:
         main(["config"])
     assert exc.value.code == 2
-    assert capsys.readouterr().err == (f"Error: environment variable {name} must be a whole number (OpenCV reads "
-                                       f"it), got {value!r}\n")
+    assert capsys.readouterr().err == (f"Error: environment variable {name} must be a whole number, or one with KB "
+                                       f"or MB after it (OpenCV reads it), got {value!r}\n")
+
+
+@pytest.mark.parametrize("value", ["2", "1MB", "20Kb", "1kb", "18446744073709551615"])
+def test_an_opencv_setting_that_opencv_reads_is_taken(monkeypatch, capsys, value):
+    monkeypatch.setenv("OPENCV_IO_MAX_IMAGE_PIXELS", value)
+    main(["config"])
+    assert "[grid]" in capsys.readouterr().out
 
 
 def test_an_output_that_is_a_symbolic_link_to_itself_is_one_line(tmp_path, capsys):

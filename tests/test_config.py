@@ -380,8 +380,10 @@ def test_a_config_file_with_a_byte_order_mark_and_a_set_with_spaces_are_read(tmp
 @pytest.mark.parametrize(("setting", "line"), [
     ("stereo.left_margin_px=2000", "stereo.left_margin_px: must be in 0..1024, got 2000"),
     ("terrain.threshold_factor=-1", "terrain.threshold_factor: must be > 0, got -1.0"),
-    ("grid.z_min_m=50", "grid.z_min_m: must be below grid.z_max_m, got 50.0"),
-    # messages that say the value already keep it once
+    ("extrinsics.iterations=0", "extrinsics.iterations: must be in 1..100000, got 0"),  # a 0 in the range is no value
+    # messages that say the value already, or relate the field to another, are left as they are
+    ("grid.z_min_m=50", "grid.z_min_m: must be below grid.z_max_m"),
+    ("stereo.max_range_m=0.005", "stereo.min_range_m: must be in [0.01 m, max_range_m)"),  # not min_range_m's value
     ("stereo.num_disparities=17", "stereo.num_disparities: must be 0 (auto) or a positive multiple of 16, got 17"),
     ("obstacles.min_cells=100000",
      "obstacles.min_cells: (100000) exceeds the grid's 2992 cells: no obstacle could be found"),

@@ -834,8 +834,30 @@ def test_a_sink_given_no_path_or_no_frame_says_so(tmp_path):
         open_mcap_sink(None, config=Config())
     frame, result = make_frame(0)
     with open_mcap_sink(tmp_path / "x.mcap", config=Config()) as sink:
-        for args in ((None, None), (frame, None), (result, frame)):
+        for args in ((None, None), (frame, None), (result, frame), (frame, frame)):
             with pytest.raises(InputError, match=r"expected a StereoFrame and its FrameResult, got \w+ and \w+$"):
                 sink.write(*args)
         sink.write(frame, result)
     assert sink.frames_written == 1
+
+
+def test_a_close_from_within_a_write_fails_the_write_and_keeps_the_frames_before(tmp_path, monkeypatch):
+    """As a library's signal handler might: the close is refused (the RLock lets it in rather than
+    wait for ever), the write fails, and the close after it ends the file with the whole frames."""
+    from terrainmap.sinks import mcap_foxglove
+
+    path, encode = tmp_path / "o.mcap", mcap_foxglove.encode_points
+    sink = open_mcap_sink(path, config=Config())
+    sink.write(*make_frame(0))
+
+    def closing(*args, **kwargs):
+        sink.close()
+        return encode(*args, **kwargs)
+
+    monkeypatch.setattr(mcap_foxglove, "encode_points", closing)
+    with pytest.raises(TerrainmapError, match="close\\(\\) while a frame is being written"):
+        sink.write(*make_frame(1))
+    sink.close()
+    assert sink.frames_written == 1 and not sink.finished
+    grids = read_messages(path, ProtobufDecoderFactory())["/terrainmap/grid"]
+    assert [stamp for stamp, _, _ in grids] == [make_frame(0)[0].stamp_ns]

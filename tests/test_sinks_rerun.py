@@ -405,7 +405,7 @@ def test_a_recording_of_bad_arguments_is_refused_naming_them(log, tmp_path):
             sink.write(bad, result)
     with pytest.raises(InputError, match="the result of frame 0 .* given with frame 1 .*: a result goes with its own frame"):
         sink.write(dataclasses.replace(frame, index=1), result)
-    for bad in ((None, None), (frame, None)):
+    for bad in ((None, None), (frame, None), (frame, frame)):
         with pytest.raises(InputError, match="expected a StereoFrame and its FrameResult, got"):
             sink.write(*bad)
     with pytest.raises(InputError, match="expected a StereoFrame and its FrameResult, got NoneType and NoneType"):

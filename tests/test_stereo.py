@@ -683,7 +683,7 @@ def test_threads_matching_at_once_each_use_an_sgbm_of_their_own_and_get_the_sequ
 
 @pytest.mark.parametrize(("change", "warned"), [
     ({}, None),
-    ({"baseline_m": 53.27}, "a baseline of 53.27 m is wider than vehicles' stereo rigs are; is it in metres (not cm)?"),
+    ({"baseline_m": 53.27}, "a baseline of 53.27 m is unusually wide for a stereo rig; is it in metres (not cm)?"),
     ({"fx": 3.6, "fy": 3.6}, "a focal length of 3.6 px gives the 640 px wide images a field of view of 179°"),
     ({"cx": 5000.0}, "the principal point (5000, 240) lies outside the 640×480 images"),
     ({"cy": -3.0}, "the principal point (320, -3) lies outside the 640×480 images"),

@@ -59,7 +59,9 @@ def output_path(what: str, path) -> Path:
 
 def one_at_a_time(method):
     """A sink method whose calls from several threads take turns (on the sink's ``_lock``, an
-    RLock: a signal handler closing the sink within a write of its own thread goes on)."""
+    RLock: a signal handler that closes the sink within a write of its own thread does not wait for
+    ever; :meth:`McapSink.close` refuses that close, which fails the write, and a close after it
+    ends the file with the frame before)."""
 
     @functools.wraps(method)
     def locked(self, *args, **kwargs):
@@ -69,14 +71,15 @@ def one_at_a_time(method):
     return locked
 
 
-def check_frame(what: str, frame: StereoFrame, result: FrameResult, bits: int) -> None:
-    """:class:`InputError` naming ``what`` (an output) unless ``frame`` and ``result`` are a
-    StereoFrame and a FrameResult, the frame's index is a whole number, the result is that frame's
-    (the same index and stamp) and the stamp a whole number of nanoseconds in [0, 2^bits). A
-    failed frame is checked as its own result."""
-    if not isinstance(frame, StereoFrame) or not (result is frame or isinstance(result, FrameResult)):
+def check_frame(what: str, frame: StereoFrame, result: FrameResult | None, bits: int, *, failed: bool = False) -> None:
+    """:class:`InputError` naming ``what`` (an output) unless ``frame`` is a StereoFrame and
+    ``result`` its FrameResult (``failed``: a frame the pipeline could not process, which has none),
+    the frame's index is a whole number, the result is that frame's (the same index and stamp) and
+    the stamp a whole number of nanoseconds in [0, 2^bits)."""
+    if not isinstance(frame, StereoFrame) or not (failed or isinstance(result, FrameResult)):
         raise InputError(f"{what}: expected a StereoFrame and its FrameResult, got {type(frame).__name__} and "
                          f"{type(result).__name__}")
+    result = frame if failed else result  # (a failed frame's own index and stamp)
     if not is_whole(frame.index):
         raise InputError(f"{what}: the frame index must be a whole number, got {frame.index!r}")
     for stamp in {frame.stamp_ns, result.stamp_ns}:
@@ -145,6 +148,7 @@ class McapSink:
         self._last_static: tuple | None = None
         self.frames_written = 0
         self._closed = False
+        self._writing = False  # within write(): a close() then is refused
         self._failed: BaseException | None = None  # what stopped the file being written, part way into a frame
         self.finished = False
         try:
@@ -193,6 +197,7 @@ class McapSink:
             self._extrinsics = result.extrinsics
         self._extrinsics_changes += self._camera not in (None, camera)
         self._camera = camera
+        self._writing = True
         try:
             self._write_frame(frame, result)
             # The frame's chunk goes to the file now, so that a later failure can keep every
@@ -203,6 +208,8 @@ class McapSink:
             if isinstance(exc, OSError):
                 raise InputError(f"cannot write MCAP output {self.path}: {exc.strerror or exc}") from exc
             raise
+        finally:
+            self._writing = False
         self.frames_written += 1
         self._whole = self._stream.tell()
 
@@ -211,6 +218,8 @@ class McapSink:
         """Write the metadata record, summary and index, and close the file. Safe to call twice."""
         if self._closed:
             return
+        if self._writing:  # a signal handler's, within a write of this thread (one_at_a_time)
+            raise TerrainmapError(f"MCAP output {self.path}: close() while a frame is being written; close it after")
         self._closed = True
         failed_in_frame = self._failed
         try:

@@ -190,7 +190,7 @@ class RerunSink:
         source's images are rectified; else none), the results of the frame before cleared (so that
         the views do not pass them off as this frame's), and a warning line under ``log`` naming
         it and why."""
-        check_frame(f"Rerun output {self.path}", frame, frame, 63)  # (a frame has the index and stamp it checks)
+        check_frame(f"Rerun output {self.path}", frame, None, 63, failed=True)
         self._start_frame(frame)
         image = rr.Image(frame.left) if frame.calibration.rectified else rr.Clear(recursive=False)
         self._rec.log(f"{VEHICLE}/camera/image", image)

@@ -3,7 +3,7 @@
 Generic layout::
 
     my_run/
-      left/   000000.png 000001.png ...   (png, jpg, pgm, ppm, bmp, tif)
+      left/   000000.png 000001.png ...   (IMAGE_SUFFIXES: png, jpg, pgm, ppm, bmp, tif, webp)
       right/  000000.png 000001.png ...   (the same file names)
       calibration.yaml                     (or .yml / .toml; format in terrainmap.sources.calibration)
       timestamps.txt                       (optional: one integer stamp in nanoseconds per left image, in natural name order)

@@ -127,13 +127,12 @@ def register_ros1_type(typestore, name: str, definition: str) -> None:
         typestore.register(get_types_from_msg(definition, name))
 
 
-def file_version(path: Path) -> tuple[int, int] | None:
-    """``(size in bytes, modification time in ns)`` of ``path``; None where it cannot be read."""
+def file_size(path: Path) -> int | None:
+    """The size of ``path`` in bytes; None where it cannot be read."""
     try:
-        stat = path.stat()
+        return path.stat().st_size
     except OSError:
         return None
-    return stat.st_size, stat.st_mtime_ns
 
 
 class _SkipsDamage:
@@ -142,8 +141,8 @@ class _SkipsDamage:
 
     path: Path
     skipped_parts: dict
-    opened_as: tuple | None = None
-    """The file's size and modification time when it was opened (:func:`file_version`)."""
+    opened_size: int | None = None
+    """The file's size in bytes when it was opened."""
 
     @property
     def skipped(self) -> list[str]:
@@ -153,9 +152,10 @@ class _SkipsDamage:
     def _skip(self, key, what: str, exc: Exception) -> None:
         """Note a damaged part in :attr:`skipped_parts` (once) and warn about it; but where the file
         is no longer the one opened (cut short or written over while being read, a copy still
-        under way), :class:`InputError`: what follows is no damage to skip."""
-        if self.opened_as is not None and (now := file_version(self.path)) != self.opened_as:
-            size = f"{now[0]} bytes, was {self.opened_as[0]}" if now else "removed"
+        under way: its size is not the one it had), :class:`InputError`: what follows is no damage to
+        skip."""
+        if self.opened_size is not None and (now := file_size(self.path)) != self.opened_size:
+            size = f"{now} bytes, was {self.opened_size}" if now is not None else "removed"
             raise InputError(f"{self.path}: changed while it was being read ({size}; {what}: {_reason(exc)})") from exc
         if key not in self.skipped_parts:
             self.skipped_parts[key] = f"{self.path}: {what} ({_reason(exc)})"
@@ -214,7 +214,7 @@ class McapFile(_SkipsDamage):
         self.skipped_parts: dict[int | tuple, str] = {}
         """Damaged chunks of an indexed file (byte offset → what) and messages that could not be
         decoded (("message", topic, log time) → what), met while reading messages."""
-        self.opened_as = file_version(path)
+        self.opened_size = file_size(path)
         try:
             with open(path, "rb") as stream:
                 if (head := stream.read(len(MCAP_MAGIC))) != MCAP_MAGIC:

@@ -30,7 +30,7 @@ from typing import Any, BinaryIO
 
 from ..errors import InputError, counted
 from .messages import normalize_type
-from .readers import _reason, _SkipsDamage, _widened, file_version, register_ros1_type, ros1_typestore
+from .readers import _reason, _SkipsDamage, _widened, file_size, register_ros1_type, ros1_typestore
 
 logger = logging.getLogger(__name__)
 
@@ -254,7 +254,7 @@ class Ros1Bag(_SkipsDamage):
         self._connections: dict[int, _Connection] = {}
         self._chunks: list[_Chunk] = []
         self._scan_error: str | None = None  # why the scan of a bag without an index stopped
-        self.opened_as = file_version(path)
+        self.opened_size = file_size(path)
         try:
             with open(path, "rb") as stream:
                 if (magic := stream.readline(64)) != MAGIC:
