@@ -105,10 +105,10 @@ def run(
     :class:`StereoFrame` among the frames (a None too) ends the run with an error.
 
     The worker threads advance ``frames`` (an iterator tied to one thread, as some middleware's
-    are, is not for ``run``) and read up to :data:`MATCH_WORKERS` frames ahead, which an error leaves unprocessed;
-    after an error, ``run`` returns once the iterator's pending ``next()`` has: a live camera's
-    iterator that waits for the next image holds the error until it comes. There,
-    :func:`~terrainmap.pipeline.process_frame` in one's own loop is the simpler tool.
+    are, is not for ``run``) and read up to :data:`MATCH_WORKERS` frames ahead, which an error
+    leaves unprocessed; after an error, ``run`` returns once the iterator's pending ``next()``
+    has: a live camera's iterator that waits for the next image holds the error until it comes.
+    There, :func:`~terrainmap.pipeline.process_frame` in one's own loop is the simpler tool.
     """
     usable = isinstance(sinks, list | tuple) and all(callable(getattr(s, m, None)) for s in sinks for m in ("write", "close"))
     if not usable:

@@ -211,7 +211,8 @@ class ObstacleTracker:
             self._backwards += 1
             (logger.warning if self._backwards == 1 else logger.info)(
                 "tracking: stamp %d is older than the previous %d; tracks reset%s", stamp_ns, self._stamp_ns,
-                " (said once per tracker; again each time it happens at log level INFO, which terrainmap -v shows)" if self._backwards == 1 else "",
+                " (said once per tracker; again each time it happens at log level INFO, which terrainmap -v shows)"
+                if self._backwards == 1 else "",
             )
             self.reset()
         dt = 0.0 if self._stamp_ns is None else (stamp_ns - self._stamp_ns) * 1e-9

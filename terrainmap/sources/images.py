@@ -112,6 +112,8 @@ def _decode(data: bytes, name: str, failure: str) -> np.ndarray:
 
 
 _PNG = b"\x89PNG\r\n\x1a\n"
+_DEFLATE_MAX_RATIO = 1032
+"""Deflate's largest expansion: one 258-byte match per bit pair, at best (zlib's technical notes)."""
 _JPEG_FRAME_MARKERS = frozenset(range(0xC0, 0xD0)) - {0xC4, 0xC8, 0xCC}
 """JPEG's start-of-frame markers (SOF0–SOF15 but DHT, JPG and DAC), whose header holds the size."""
 
@@ -136,8 +138,6 @@ def _declared_size(data: bytes) -> tuple[int, int] | None:
         else:  # a segment: its length counts itself
             pos += 2 + struct.unpack_from(">H", data, pos + 2)[0]
     return None
-_DEFLATE_MAX_RATIO = 1032
-"""Deflate's largest expansion: one 258-byte match per bit pair, at best (zlib's technical notes)."""
 
 
 def _complete(data: bytes) -> bool:
