@@ -81,8 +81,6 @@ def info(log: str, source_opts: SourceOptions, as_json: bool, check: bool) -> No
                     if skipped:
                         readable = False
                         description["check"] += f", skipping {damaged_parts(skipped)}"
-                        if as_json:  # for scripts, every one of them
-                            description["skipped"] = skipped
                     if description.get("damage"):  # read whole all the same: a summary that fails its CRC
                         readable = False
                         if description["damage"] not in "; ".join(skipped):  # not the parts named above
@@ -90,6 +88,8 @@ def info(log: str, source_opts: SourceOptions, as_json: bool, check: bool) -> No
                 except InputError as exc:
                     readable = False
                     description["check"] = f"fails after {counted(pairs, 'stereo pair')}: {_reason(exc, log)}"
+                if as_json:  # for scripts, every part skipped ([] for none)
+                    description["skipped"] = source.skipped()
     except NoStereoError as exc:
         if (source_opts.left_topic or source_opts.right_topic) and not exc.contents.get("damage"):
             raise  # the topics the user named are not in the log: a bad option (damage may hide them)

@@ -123,6 +123,7 @@ def test_check_reads_every_stereo_pair_and_finds_a_damaged_chunk_the_index_does_
     intact = CliRunner().invoke(info, ["--check", str(log)])
     assert intact.exit_code == 0, intact.output
     assert "check:" in intact.output and "3 stereo pairs read and decoded, to the end" in intact.output
+    assert json.loads(CliRunner().invoke(info, ["--json", "--check", str(log)]).output)["skipped"] == []  # for scripts
 
     with open(log, "rb") as f:
         last = max(make_reader(f).get_summary().chunk_indexes, key=lambda c: c.chunk_start_offset)
