@@ -194,11 +194,7 @@ def step_height(samples: np.ndarray, elevation: np.ndarray, observed: np.ndarray
     check_shapes("step_height", np.shape(samples), elevation=elevation, observed=observed)
     observed = np.asarray(observed, bool) & np.isfinite(samples) & np.isfinite(elevation)
     relief = np.where(observed, np.asarray(samples, float) - elevation, 0.0)
-    footprint = np.ones((3, 3), bool)
-    hi = ndimage.maximum_filter(
-        np.where(observed, relief, -np.inf), footprint=footprint, mode="constant", cval=-np.inf
-    )
-    lo = ndimage.minimum_filter(
-        np.where(observed, relief, np.inf), footprint=footprint, mode="constant", cval=np.inf
-    )
+    # size=3: the 3×3 square as two separable 1-D passes (a footprint array takes the general path)
+    hi = ndimage.maximum_filter(np.where(observed, relief, -np.inf), size=3, mode="constant", cval=-np.inf)
+    lo = ndimage.minimum_filter(np.where(observed, relief, np.inf), size=3, mode="constant", cval=np.inf)
     return np.where(observed, np.maximum(hi - relief, relief - lo), np.nan)

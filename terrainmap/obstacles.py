@@ -115,8 +115,11 @@ def extract_obstacles(
         kinds.append((Label.BELOW, "negative", config.min_depth_m))
     result: list[Obstacle] = []
     terrain = _Bilinear(elevation, grid_config)
+    # One pass over the labels finds the points of both kinds (OBSTACLE 2, BELOW 3); indices are
+    # 10× faster than masks here.
+    candidates = np.flatnonzero(point_labels >= Label.OBSTACLE)
     for label, kind, min_height in kinds:
-        selected = np.flatnonzero(point_labels == label)  # 10× faster than a mask
+        selected = candidates[point_labels[candidates] == label]
         idx = cell_index(points_vehicle[selected], grid_config) if index is None else index[selected]
         counts, on_steep = (cell_counts, steep) if kind == "positive" else (None, None)
         result += _clusters(

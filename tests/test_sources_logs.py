@@ -319,6 +319,20 @@ def test_a_listed_file_missing_from_a_rosbag2_directory_is_damage(tmp_path, capl
     assert "bag_1.mcap, not in the folder: their messages are lost" in caplog.text
 
 
+@pytest.mark.parametrize("text", ["", "rosbag2_bagfile_information: [\n", "\0"])
+def test_an_unreadable_rosbag2_metadata_file_is_damage(tmp_path, caplog, text):
+    """Its files are read in name order all the same; ``info --check`` then exits 1 (README)."""
+    bag = tmp_path / "bag"
+    bag.mkdir()
+    write_ros2_log(bag / "bag_0.mcap", n=2)
+    (bag / "metadata.yaml").write_text(text)
+    with open_source(bag) as source:
+        assert source.describe()["damage"] == f"{bag / 'metadata.yaml'} is unreadable; the folder's files are read in " \
+                                              "name order"
+        assert len(list(source.frames())) == 2
+    assert "metadata.yaml: unreadable (" in caplog.text
+
+
 def test_files_that_give_a_topic_two_types_are_not_read_as_one_log(tmp_path):
     bag = tmp_path / "bag"
     bag.mkdir()
@@ -455,8 +469,11 @@ def test_undistorted_raw_images_with_a_rectifying_rotation_are_still_rectified()
     with pytest.raises(CalibrationError, match="test: the left camera info is 8×6 px but the right one 100×100"):
         calibration_from_infos(left, {**right, "width": 100, "height": 100}, rectified_images=True, source="test")
     narrow = {**right, "P": right["P"] * [[0.5], [0.5], [1]]}
-    with pytest.raises(CalibrationError, match=r"different focal lengths \(400 and 200 px\)"):
+    with pytest.raises(CalibrationError, match=r"different focal lengths \(fx 400 and 200, fy 400 and 200 px\)"):
         calibration_from_infos(left, narrow, rectified_images=True, source="test")
+    squashed = {**right, "P": right["P"] * [[1], [0.5], [1]]}  # fy alone differs: the message shows it
+    with pytest.raises(CalibrationError, match=r"different focal lengths \(fx 400 and 400, fy 400 and 200 px\)"):
+        calibration_from_infos(left, squashed, rectified_images=True, source="test")
     lower = {**right, "P": right["P"] + [[0, 0, 0, 0], [0, 0, 30, 0], [0, 0, 0, 0]]}  # cy 30 px further down
     with pytest.raises(CalibrationError, match=r"principal points at different rows \(cy 3 and 33 px\)"):
         calibration_from_infos(left, lower, rectified_images=True, source="test")

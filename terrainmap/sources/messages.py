@@ -157,7 +157,8 @@ def calibration_from_infos(
     )
     if rectified and not np.allclose(np.diag(right["P"])[:2], np.diag(left["P"])[:2], rtol=0.01):
         raise CalibrationError(f"{source}: the left and right projections P have different focal lengths "
-                               f"({left['P'][0, 0]:g} and {right['P'][0, 0]:g} px): not one rectified stereo pair")
+                               f"(fx {left['P'][0, 0]:g} and {right['P'][0, 0]:g}, fy {left['P'][1, 1]:g} and "
+                               f"{right['P'][1, 1]:g} px): not one rectified stereo pair")
     if rectified and abs(right["P"][1, 2] - left["P"][1, 2]) > 0.5:  # a rectified pair's rows line up
         raise CalibrationError(f"{source}: the left and right projections P have principal points at different rows "
                                f"(cy {left['P'][1, 2]:g} and {right['P'][1, 2]:g} px): not one rectified stereo pair")

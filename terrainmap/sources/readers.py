@@ -445,6 +445,8 @@ class SplitLog:
         if path.is_dir() and (missing := missing_bag_files(path)):  # a recording's file lost: its messages are too
             self.damage = f"{path / 'metadata.yaml'} lists {', '.join(missing)}, not in the folder"
             logger.warning("%s: their messages are lost", self.damage)
+        elif path.is_dir() and (path / "metadata.yaml").is_file() and not bag_metadata(path):  # (said as it was read)
+            self.damage = f"{path / 'metadata.yaml'} is unreadable; the folder's files are read in name order"
         self.paths = [f.path for f in self.files]
         where: dict[str, Path] = {}
         for f in self.files:
