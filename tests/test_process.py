@@ -128,7 +128,7 @@ def test_a_log_cut_before_its_first_pair_names_the_damage_and_writes_nothing(sha
         main(["process", str(log), "-o", str(tmp_path / "o.mcap")])
     assert exc.value.code == 2
     (line,) = capsys.readouterr().err.strip().splitlines()
-    assert line.startswith(f"Error: {log}: truncated or corrupt after") and "no stereo image topics found" in line
+    assert line.startswith(f"Error: {log}: truncated or corrupt after") and "; before it, no stereo image topics found" in line
     assert not (tmp_path / "o.mcap").exists()
 
 

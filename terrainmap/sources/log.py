@@ -106,8 +106,8 @@ class LogSource(Source):
         try:
             self.left_topic, self.right_topic = stereo_topics(self.reader.types, left_topic, right_topic, str(self.path))
         except InputError as exc:
-            damage = self.reader.damage
-            raise NoStereoError(f"{damage}; {exc}" if damage else str(exc), self._contents()) from None
+            damage, reason = self.reader.damage, str(exc).removeprefix(f"{self.path}: ")
+            raise NoStereoError(f"{damage}; before it, {reason}" if damage else str(exc), self._contents()) from None
         if self.left_topic == self.right_topic:
             raise InputError(f"{self.path}: left and right topic are the same ({self.left_topic})")
         self.pair_tolerance_ns = int(pair_tolerance_ns)
