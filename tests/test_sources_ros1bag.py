@@ -347,6 +347,7 @@ def test_an_index_that_names_an_unknown_connection_is_damage(tmp_path, caplog):
 
 
 @pytest.mark.parametrize("data, why", [(b"", "an empty file"), (b"#ROSBAG V1.2\n", r"format 1.2, not 2.0"),
+                                       (b"#ROSBAG V2\x8e0\n", r"format 2\\x8e0, not 2.0"),  # a damaged byte, shown
                                        (b"<html>\n", "no '#ROSBAG V2.0' line at its start"),
                                        (b"#ROSBAG V2.0\n\x10\x00\x00\x00abc", "cut off"),
                                        (b"#ROSBAG V2.0\n" + _record(op=b"\x03", encryptor=b"aes"), r"encrypted \(aes\)")])

@@ -258,7 +258,7 @@ class Ros1Bag(_SkipsDamage):
         try:
             with open(path, "rb") as stream:
                 if (magic := stream.readline(64)) != MAGIC:
-                    version = magic[len(b"#ROSBAG V"):].strip().decode(errors="replace")
+                    version = magic[len(b"#ROSBAG V"):].strip().decode(errors="backslashreplace")  # (bytes shown)
                     raise BagError(f"format {version}, not 2.0" if magic.startswith(b"#ROSBAG V") else
                                    "an empty file" if not magic else "no '#ROSBAG V2.0' line at its start")
                 fields, op, _ = _record(stream)  # its data: padding
