@@ -22,7 +22,7 @@ import click
 # first terrainmap import: limits OpenBLAS's threads
 from terrainmap.errors import ConfigError, TerrainmapError
 
-from .options import GracefulStop, leave_hung_up_terminal, take_stop_signals
+from .options import GracefulStop, leave_hung_up_terminal, point_at_null_device, take_stop_signals
 
 # command name -> "module:attribute" (modules relative to terrainmap.cli)
 COMMANDS = {
@@ -186,10 +186,7 @@ def _open_closed_standard_streams() -> None:
         try:
             os.fstat(fd)
         except OSError:
-            null = os.open(os.devnull, os.O_RDWR)
-            if null != fd:
-                os.dup2(null, fd)
-                os.close(null)
+            point_at_null_device(fd)
     for name in ("stdout", "stderr"):
         if getattr(sys, name) is None:
             setattr(sys, name, open(os.devnull, "w"))  # noqa: SIM115 (the process's stream to its end)

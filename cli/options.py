@@ -68,11 +68,17 @@ def leave_hung_up_terminal(signum: int) -> None:
     for fd, was_terminal in _ON_TERMINAL.items():
         if was_terminal and not os.isatty(fd):
             with suppress(OSError):
-                null = os.open(os.devnull, os.O_WRONLY)
-                try:
-                    os.dup2(null, fd)
-                finally:
-                    os.close(null)
+                point_at_null_device(fd)
+
+
+def point_at_null_device(fd: int) -> None:
+    """Make descriptor ``fd`` the null device's (open or closed before)."""
+    null = os.open(os.devnull, os.O_RDWR)
+    if null != fd:  # (a closed fd is the lowest free one: opening took it)
+        try:
+            os.dup2(null, fd)
+        finally:
+            os.close(null)
 
 
 class GracefulStop:
